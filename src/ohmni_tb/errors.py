@@ -1,0 +1,146 @@
+"""Every error ohmni_tb raises, in one tree.
+
+Catch :class:`OhmniError` to catch them all. Timeouts are also :class:`TimeoutError` and
+bad arguments are also :class:`ValueError`, so code that knows only the built-ins still
+catches the right thing::
+
+    OhmniError
+    ├── TransportError              the byte link failed (port missing, unplugged, I/O error)
+    │   └── TransportClosedError    the link is closed, or the peer went away
+    ├── ProtocolError               bytes arrived that break the protocol
+    │   └── MalformedReplyError     a reply whose layout does not fit its request
+    ├── DeviceError                 a device on the bus misbehaved          (.sid)
+    │   ├── BusTimeoutError         no reply in time    (+ TimeoutError)    (.sid, .cmd)
+    │   └── DeviceStatusError       a reply carried error bits (.status_error, .status_detail)
+    ├── StateError                  the call does not fit the object's state
+    │   └── BusClosedError          the bus is closed
+    ├── ConfigError                 bad settings or URL             (+ ValueError)
+    └── InvalidArgumentError        a bad argument; nothing was sent (+ ValueError)
+        └── OutOfRangeError         a value outside its allowed range (.name, .value, .low, .high)
+
+Foreign errors (``serial.SerialException``, ``OSError``) are turned into ours at the
+transport boundary with ``raise ... from exc``, so the original stays in ``__cause__``.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BusClosedError",
+    "BusTimeoutError",
+    "ConfigError",
+    "DeviceError",
+    "DeviceStatusError",
+    "InvalidArgumentError",
+    "MalformedReplyError",
+    "OhmniError",
+    "OutOfRangeError",
+    "ProtocolError",
+    "StateError",
+    "TransportClosedError",
+    "TransportError",
+]
+
+
+class OhmniError(Exception):
+    """The root of every error ohmni_tb raises."""
+
+
+class TransportError(OhmniError):
+    """The byte link failed: the port is missing, was unplugged, or an I/O call failed."""
+
+
+class TransportClosedError(TransportError):
+    """The transport is closed, or its peer closed it (end of stream)."""
+
+
+class ProtocolError(OhmniError):
+    """Bytes arrived that do not follow the bus protocol."""
+
+
+class MalformedReplyError(ProtocolError):
+    """A reply's layout does not fit the request it answers (length, address)."""
+
+
+class DeviceError(OhmniError):
+    """A device on the bus misbehaved.
+
+    Attributes:
+        sid: The bus id of the device.
+    """
+
+    def __init__(self, message: str, *, sid: int) -> None:
+        super().__init__(message)
+        self.sid = sid
+
+
+class BusTimeoutError(DeviceError, TimeoutError):
+    """A device did not answer in time.
+
+    Attributes:
+        sid: The bus id the request went to.
+        cmd: The request's command code.
+        attempts: How many times the request was sent.
+        timeout_s: The per-attempt timeout.
+    """
+
+    def __init__(self, *, sid: int, cmd: int, attempts: int, timeout_s: float) -> None:
+        super().__init__(
+            f"no reply from sid {sid} (0x{sid:02X}) to command 0x{cmd:02X} "
+            f"after {attempts} attempt(s) of {timeout_s * 1000:.1f} ms",
+            sid=sid,
+        )
+        self.cmd = cmd
+        self.attempts = attempts
+        self.timeout_s = timeout_s
+
+
+class DeviceStatusError(DeviceError):
+    """A device replied with error bits set.
+
+    Attributes:
+        sid: The device's bus id.
+        status_error: The status error byte (RAM 48 on a HerkuleX servo).
+        status_detail: The status detail byte (RAM 49).
+    """
+
+    def __init__(self, message: str, *, sid: int, status_error: int, status_detail: int) -> None:
+        super().__init__(message, sid=sid)
+        self.status_error = status_error
+        self.status_detail = status_detail
+
+
+class StateError(OhmniError):
+    """The call does not fit the object's current state."""
+
+
+class BusClosedError(StateError):
+    """The bus is closed; open a new one."""
+
+
+class ConfigError(OhmniError, ValueError):
+    """A setting or URL is invalid."""
+
+
+class InvalidArgumentError(OhmniError, ValueError):
+    """An argument is invalid. Raised before anything reaches the wire."""
+
+
+class OutOfRangeError(InvalidArgumentError):
+    """A value lies outside its allowed range. Raised before anything reaches the wire.
+
+    Attributes:
+        name: What the value is (``"sid"``, ``"playtime_ticks"``…).
+        value: The value given.
+        low: The smallest allowed value.
+        high: The largest allowed value.
+        unit: The unit of the value, if it has one.
+    """
+
+    def __init__(self, name: str, value: object, low: float, high: float, unit: str = "") -> None:
+        suffix = f" {unit}" if unit else ""
+        super().__init__(f"{name}={value!r} is out of range: allowed {low}..{high}{suffix}")
+        self.name = name
+        self.value = value
+        self.low = low
+        self.high = high
+        self.unit = unit

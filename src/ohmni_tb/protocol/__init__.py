@@ -1,0 +1,56 @@
+"""The bus protocol, sans-IO: framing, requests and replies, device codecs.
+
+Nothing here imports asyncio or serial or reads a clock: bytes in, packets out.
+"""
+
+from __future__ import annotations
+
+from ohmni_tb.protocol.framing import (
+    BROADCAST_ID,
+    MAX_PACKET_SIZE,
+    MIN_PACKET_SIZE,
+    REPLY_FLAG,
+    Command,
+    DecoderStats,
+    Packet,
+    PacketDecoder,
+    RejectReason,
+    checksum,
+    encode_packet,
+)
+from ohmni_tb.protocol.messages import (
+    AckPolicy,
+    Memory,
+    ReadReply,
+    StatusDetail,
+    StatusError,
+    StatusReply,
+    read_request,
+    reply_expected,
+    reply_matches,
+    write_request,
+)
+
+__all__ = [
+    "BROADCAST_ID",
+    "MAX_PACKET_SIZE",
+    "MIN_PACKET_SIZE",
+    "REPLY_FLAG",
+    "AckPolicy",
+    "Command",
+    "DecoderStats",
+    "Memory",
+    "Packet",
+    "PacketDecoder",
+    "ReadReply",
+    "RejectReason",
+    "StatusDetail",
+    "StatusError",
+    "StatusReply",
+    "checksum",
+    "encode_packet",
+    "read_request",
+    "reply_expected",
+    "reply_matches",
+    "write_request",
+]

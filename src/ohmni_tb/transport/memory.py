@@ -1,0 +1,190 @@
+"""An in-memory byte pipe with fault injection, for tests and the simulator.
+
+:meth:`MemoryTransport.pair` returns two connected ends. Each end can carry a
+*manipulator*: a function that receives every chunk that end writes and returns what the
+peer receives, as a sequence of ``bytes`` chunks (delivered separately, so a write can be
+split) and ``float`` delays in seconds (applied before the chunks after them). Returning
+nothing drops the write; returning changed bytes corrupts it. Order is always kept::
+
+    host, device = MemoryTransport.pair()
+    host.set_manipulator(split(1))            # the peer gets one byte per read
+    device.set_manipulator(corrupt_byte(3))   # flip bits in the 4th byte the device sends
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Iterable
+
+from ohmni_tb.errors import TransportClosedError
+from ohmni_tb.transport.base import Transport
+
+__all__ = [
+    "Manipulator",
+    "MemoryTransport",
+    "corrupt_byte",
+    "delay",
+    "drop_bytes",
+    "split",
+]
+
+#: Receives a written chunk; returns what the peer gets: bytes chunks and float delays (s).
+Manipulator = Callable[[bytes], Iterable[bytes | float]]
+
+
+class MemoryTransport(Transport):
+    """One end of an in-memory byte pipe. Make connected ends with :meth:`pair`."""
+
+    def __init__(self, name: str = "memory", *, baudrate: int | None = None) -> None:
+        self.name = name
+        self.baudrate = baudrate
+        self._peer: MemoryTransport | None = None
+        self._rx = bytearray()
+        self._rx_ready = asyncio.Event()
+        self._closed = False
+        self._manipulator: Manipulator | None = None
+        # Delayed chunks must not overtake each other: each is due no earlier than the last.
+        self._last_due = 0.0
+        self._timers: set[asyncio.TimerHandle] = set()
+        self.bytes_written = 0
+        self.bytes_read = 0
+
+    @classmethod
+    def pair(
+        cls, name: str = "memory", *, baudrate: int | None = None
+    ) -> tuple[MemoryTransport, MemoryTransport]:
+        """Two connected ends: what one writes, the other reads."""
+        a = cls(f"{name}[a]", baudrate=baudrate)
+        b = cls(f"{name}[b]", baudrate=baudrate)
+        a._peer, b._peer = b, a
+        return a, b
+
+    @classmethod
+    def loopback(cls, name: str = "loopback") -> MemoryTransport:
+        """One end whose writes come back to its own reads."""
+        t = cls(name)
+        t._peer = t
+        return t
+
+    def set_manipulator(self, manipulator: Manipulator | None) -> None:
+        """Alter what this end writes from now on (``None`` restores a clean line)."""
+        self._manipulator = manipulator
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    async def write(self, data: bytes) -> None:
+        if self._closed:
+            raise TransportClosedError(f"{self.name} is closed")
+        peer = self._peer
+        if peer is None or peer._closed:
+            raise TransportClosedError(f"{self.name}: the other end is closed")
+        self.bytes_written += len(data)
+        items: Iterable[bytes | float] = (
+            (bytes(data),) if self._manipulator is None else self._manipulator(bytes(data))
+        )
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        self._timers = {t for t in self._timers if t.when() > now}
+        wait_s = 0.0
+        for item in items:
+            if isinstance(item, float):
+                wait_s += item
+                continue
+            due = max(now + wait_s, self._last_due)
+            self._last_due = due
+            if due <= now:
+                peer._receive(bytes(item))
+            else:
+                handle = loop.call_at(due, self._deliver_later, peer, bytes(item))
+                self._timers.add(handle)
+
+    def _deliver_later(self, peer: MemoryTransport, chunk: bytes) -> None:
+        if not self._closed:
+            peer._receive(chunk)
+
+    def _receive(self, chunk: bytes) -> None:
+        if self._closed or not chunk:
+            return
+        self._rx += chunk
+        self._rx_ready.set()
+
+    async def read(self) -> bytes:
+        while not self._rx:
+            if self._closed:
+                raise TransportClosedError(f"{self.name} is closed")
+            peer = self._peer
+            if peer is None or peer._closed:
+                raise TransportClosedError(f"{self.name}: the other end closed")
+            self._rx_ready.clear()
+            await self._rx_ready.wait()
+        data = bytes(self._rx)
+        self._rx.clear()
+        self.bytes_read += len(data)
+        return data
+
+    async def aclose(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for handle in self._timers:
+            handle.cancel()
+        self._timers.clear()
+        self._rx.clear()
+        self._rx_ready.set()
+        peer = self._peer
+        if peer is not None and peer is not self:
+            # Wake a reader blocked on the other end: it sees the closed peer.
+            peer._rx_ready.set()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"<MemoryTransport {self.name} {state}>"
+
+
+def split(size: int) -> Manipulator:
+    """Deliver every write in chunks of ``size`` bytes."""
+    if size < 1:
+        raise ValueError(f"size={size} must be at least 1")
+
+    def manipulate(data: bytes) -> list[bytes | float]:
+        return [data[i : i + size] for i in range(0, len(data), size)]
+
+    return manipulate
+
+
+def delay(seconds: float) -> Manipulator:
+    """Deliver every write ``seconds`` late (order kept)."""
+
+    def manipulate(data: bytes) -> list[bytes | float]:
+        return [seconds, data]
+
+    return manipulate
+
+
+def drop_bytes(count: int, *, skip: int = 0) -> Manipulator:
+    """Drop ``count`` bytes of the stream after the first ``skip`` bytes, then pass all."""
+    state = {"pos": 0}
+
+    def manipulate(data: bytes) -> list[bytes | float]:
+        start, state["pos"] = state["pos"], state["pos"] + len(data)
+        kept = bytes(b for i, b in enumerate(data, start) if not skip <= i < skip + count)
+        return [kept] if kept else []
+
+    return manipulate
+
+
+def corrupt_byte(index: int, *, xor: int = 0x01) -> Manipulator:
+    """XOR the byte at stream offset ``index`` with ``xor`` (once), pass everything else."""
+    state = {"pos": 0}
+
+    def manipulate(data: bytes) -> list[bytes | float]:
+        start, state["pos"] = state["pos"], state["pos"] + len(data)
+        if start <= index < start + len(data):
+            buf = bytearray(data)
+            buf[index - start] ^= xor
+            data = bytes(buf)
+        return [data]
+
+    return manipulate
