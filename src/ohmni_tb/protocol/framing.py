@@ -282,16 +282,18 @@ class PacketDecoder:
         not coming (the frame was a false header, or its tail was lost). Packets hidden in
         the held bytes are returned.
         """
-        if not self._buf:
-            return []
-        if self._buf.startswith(HEADER):
-            self._expired += 1
-            self._reject(RejectReason.EXPIRED, len(self._buf))
-        out = self._scan()
-        # Whatever is still held cannot complete either: drop it for good.
-        if self._buf:
-            self._discarded += len(self._buf)
-            self._buf.clear()
+        out: list[Packet] = []
+        # The rescan can stop at a second incomplete frame (another false header further
+        # in); it cannot complete either, so give it up too and keep rescanning, or a
+        # packet behind it would be lost.
+        while self._buf:
+            if self._buf.startswith(HEADER):
+                self._expired += 1
+                self._reject(RejectReason.EXPIRED, len(self._buf))
+            else:
+                # A lone trailing FF: the first half of a header that never came.
+                self._drop(len(self._buf))
+            out += self._scan()
         return out
 
     def reset(self) -> None:

@@ -1,0 +1,162 @@
+"""Core board (sid 20): battery and dock status, light ring, firmware tag.
+
+Confirmed: the light ring at RAM 0xC1 (H, S, V bytes), the firmware tag at EEP 0xF1, the
+status *fields* (tb_control's ``tbcore_status``), the 5-cell LiFePO4 pack near 3.27 V a
+cell, and the vendor's percent rule from the lowest cell. **Assumed**: the status block's
+address and byte layout (:data:`CORE_PROFILE`), until a capture says otherwise.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+from ohmni_tb.errors import MalformedReplyError, OutOfRangeError
+from ohmni_tb.protocol.devices import DeviceId
+from ohmni_tb.protocol.framing import Packet
+from ohmni_tb.protocol.messages import ReadReply, read_request, write_request
+
+__all__ = [
+    "CELL_COUNT",
+    "CORE_PROFILE",
+    "CoreProfile",
+    "TbcoreStatus",
+    "encode_status",
+    "parse_status",
+    "percent_from_cells",
+    "read_status",
+    "set_light_ring",
+]
+
+CELL_COUNT = 5
+#: cells u16 ×5, charging current i16, docked u8, FET status u8, status 1..4 u8 ×4.
+_STATUS_LAYOUT = struct.Struct("<5Hh6B")
+
+#: The vendor's rule: lowest cell below 3150 mV → 20 %, below 3250 → 50 %, below 3380 → 80 %.
+_PERCENT_STEPS_MV: tuple[tuple[int, int], ...] = ((3150, 20), (3250, 50), (3380, 80))
+
+
+@dataclass(frozen=True, slots=True)
+class CoreProfile:
+    """Where things live on the core board. Change this table after a capture.
+
+    Attributes:
+        status_addr: RAM address of the status block (**assumed**).
+        status_size: Its size in bytes (**assumed**: the 18 bytes of the field list).
+        light_ring_addr: RAM address of the light ring H, S, V (confirmed).
+    """
+
+    status_addr: int = 0xA0
+    status_size: int = _STATUS_LAYOUT.size
+    light_ring_addr: int = 0xC1
+
+
+CORE_PROFILE = CoreProfile()
+
+
+@dataclass(frozen=True, slots=True)
+class TbcoreStatus:
+    """The core board's battery and dock status (tb_control's ``tbcore_status``).
+
+    Attributes:
+        cell_mv: The five cell voltages, mV.
+        charging_current_ma: Pack current, mA; positive while charging.
+        docked: Whether the robot sits on its dock.
+        fet_status: Charge/discharge FET bits, as the board reports them.
+        status: Status bytes 1..4, as the board reports them.
+    """
+
+    cell_mv: tuple[int, int, int, int, int]
+    charging_current_ma: int
+    docked: bool
+    fet_status: int
+    status: tuple[int, int, int, int]
+
+    @property
+    def pack_mv(self) -> int:
+        """Pack voltage, the sum of the cells, mV."""
+        return sum(self.cell_mv)
+
+    @property
+    def min_cell_mv(self) -> int:
+        """The lowest cell, mV (the one that limits the pack)."""
+        return min(self.cell_mv)
+
+    @property
+    def percent(self) -> int:
+        """State of charge by the vendor's rule from the lowest cell: 20, 50, 80 or 100."""
+        return percent_from_cells(self.cell_mv)
+
+    @property
+    def charging(self) -> bool:
+        """Whether current flows into the pack."""
+        return self.charging_current_ma > 0
+
+
+def percent_from_cells(cell_mv: tuple[int, ...]) -> int:
+    """The vendor's coarse state of charge from the lowest cell voltage."""
+    lowest = min(cell_mv)
+    for below_mv, percent in _PERCENT_STEPS_MV:
+        if lowest < below_mv:
+            return percent
+    return 100
+
+
+def read_status(profile: CoreProfile = CORE_PROFILE) -> Packet:
+    """The battery/dock status query (**assumed** address and size)."""
+    return read_request(DeviceId.CORE, profile.status_addr, profile.status_size)
+
+
+def parse_status(reply: ReadReply, profile: CoreProfile = CORE_PROFILE) -> TbcoreStatus:
+    """Decode a :func:`read_status` reply.
+
+    Raises:
+        MalformedReplyError: The reply is for another address or has the wrong size.
+    """
+    if reply.addr != profile.status_addr or reply.length != _STATUS_LAYOUT.size:
+        raise MalformedReplyError(
+            f"expected {_STATUS_LAYOUT.size} status bytes at RAM 0x{profile.status_addr:02X}, "
+            f"got {reply.length} at 0x{reply.addr:02X}"
+        )
+    c1, c2, c3, c4, c5, current, docked, fet, s1, s2, s3, s4 = _STATUS_LAYOUT.unpack(reply.data)
+    return TbcoreStatus(
+        cell_mv=(c1, c2, c3, c4, c5),
+        charging_current_ma=current,
+        docked=bool(docked),
+        fet_status=fet,
+        status=(s1, s2, s3, s4),
+    )
+
+
+def encode_status(status: TbcoreStatus) -> bytes:
+    """The status block's bytes (the simulated core board answers with these).
+
+    Raises:
+        OutOfRangeError: A field does not fit its byte layout.
+    """
+    for mv in status.cell_mv:
+        if not 0 <= mv <= 0xFFFF:
+            raise OutOfRangeError("cell_mv", mv, 0, 0xFFFF, "mV")
+    if not -0x8000 <= status.charging_current_ma <= 0x7FFF:
+        raise OutOfRangeError("charging_current_ma", status.charging_current_ma, -32768, 32767)
+    return _STATUS_LAYOUT.pack(
+        *status.cell_mv,
+        status.charging_current_ma,
+        int(status.docked),
+        status.fet_status & 0xFF,
+        *(s & 0xFF for s in status.status),
+    )
+
+
+def set_light_ring(
+    hue: int, saturation: int, value: int, profile: CoreProfile = CORE_PROFILE
+) -> Packet:
+    """Set the light ring colour (confirmed: RAM 0xC1, H, S, V bytes).
+
+    Raises:
+        OutOfRangeError: A component is outside 0..255.
+    """
+    for name, component in (("hue", hue), ("saturation", saturation), ("value", value)):
+        if not isinstance(component, int) or not 0 <= component <= 0xFF:
+            raise OutOfRangeError(name, component, 0, 255)
+    return write_request(DeviceId.CORE, profile.light_ring_addr, bytes((hue, saturation, value)))

@@ -1,0 +1,66 @@
+"""Who is on the bus: device ids and names (sans-IO).
+
+The ids of the drive boards, the necks and the core board are confirmed by the vendor's
+public Node driver. The external servo ids are not public: 11 and 12 are **assumed**.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+__all__ = ["DEFAULT_EXT_SERVO_IDS", "DEVICE_MAP", "DeviceId", "DeviceInfo", "device_name"]
+
+
+class DeviceId(enum.IntEnum):
+    """Bus ids of the Ohmni's own boards."""
+
+    LEFT_DRIVE = 0
+    RIGHT_DRIVE = 1
+    HERKULEX_NECK = 3
+    WORM_NECK = 4
+    CORE = 20
+    BROADCAST = 0xFE
+
+
+#: The vendor API lets clients address ids 11..19 as accessories; which two the external
+#: HerkuleX servos use is not public. **assumed**, configurable.
+DEFAULT_EXT_SERVO_IDS: tuple[int, ...] = (11, 12)
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceInfo:
+    """One entry of the device map.
+
+    Attributes:
+        sid: Bus id.
+        name: Short name used in logs and the bus monitor.
+        description: What the device is.
+        confirmed: Whether the id is confirmed by a public source (else assumed).
+    """
+
+    sid: int
+    name: str
+    description: str
+    confirmed: bool
+
+
+DEVICE_MAP: dict[int, DeviceInfo] = {
+    d.sid: d
+    for d in (
+        DeviceInfo(0, "left", "left drive board", True),
+        DeviceInfo(1, "right", "right drive board", True),
+        DeviceInfo(3, "neck", "HerkuleX DRS-0101/0201 neck servo", True),
+        DeviceInfo(4, "worm-neck", "worm-gear neck", True),
+        DeviceInfo(20, "core", "core board: battery, dock, light ring", True),
+        DeviceInfo(11, "ext1", "external HerkuleX servo (assumed id)", False),
+        DeviceInfo(12, "ext2", "external HerkuleX servo (assumed id)", False),
+        DeviceInfo(0xFE, "broadcast", "every device", True),
+    )
+}
+
+
+def device_name(sid: int) -> str:
+    """A short name for ``sid``: the map's name, or ``sid<N>``."""
+    info = DEVICE_MAP.get(sid)
+    return info.name if info is not None else f"sid{sid}"

@@ -1,0 +1,271 @@
+"""Simulated drive train: two motors with inertia, friction and a dead band, encoders,
+and the robot's ground-truth pose.
+
+Each wheel follows a DC-motor model in terms of its rim speed ``v`` (m/s)::
+
+    dv/dt = accel * (duty - v / v_free) - coulomb * sign(v) - viscous * v
+
+``duty`` is the board's PWM / 1000. Back-EMF (the ``v / v_free`` term) sets the no-load
+top speed; Coulomb friction makes a dead band — at rest the wheel does not move until
+``accel * |duty|`` beats ``coulomb`` (duty ≈ 0.06 by default) — and brings a coasting
+wheel to a stop. Brake mode shorts the motor (strong damping); free mode cuts the drive.
+The model is integrated in fixed 1 ms sub-steps; the pose integrates the true wheel
+motion with exact arcs, so it is the ground truth that odometry is judged against.
+
+Board frame vs robot frame: each board counts up when driven with positive PWM. The
+right motor is mounted mirrored, so the right wheel moves the robot *forward* when its
+board turns *negative* — the vendor's ``move(700, -700)`` drives forward.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ohmni_tb.protocol import Command, Packet
+from ohmni_tb.protocol.drive import (
+    DRIVE_PROFILE,
+    MOTOR_POSITION_MODULUS,
+    PWM_LIMIT,
+    DriveTorque,
+    decode_wheel_command,
+)
+from ohmni_tb.sim.board import BoardRegister, SimBoard
+
+__all__ = ["DriveTrain", "MotorModel", "Pose", "SimDriveBoard"]
+
+#: Integration step of the motor model.
+_STEP_S = 0.001
+#: Motor encoder ticks per motor turn (14-bit).
+TICKS_PER_MOTOR_TURN = MOTOR_POSITION_MODULUS
+#: Motor turns per wheel turn (30/11, inferred from measurements).
+GEAR_RATIO = 30 / 11
+
+
+@dataclass(frozen=True, slots=True)
+class MotorModel:
+    """Parameters of one wheel's drive.
+
+    Attributes:
+        accel_mps2: Acceleration at full duty from standstill.
+        v_free_mps: Back-EMF speed: the speed where full duty gives no torque.
+        coulomb_mps2: Friction deceleration (sets the dead band: coulomb / accel).
+        viscous_per_s: Viscous friction coefficient.
+        brake_per_s: Damping in brake mode.
+        wheel_radius_m: True wheel radius.
+    """
+
+    accel_mps2: float = 8.0
+    v_free_mps: float = 1.0 / (1 - 0.06)
+    coulomb_mps2: float = 8.0 * 0.06
+    viscous_per_s: float = 0.0
+    brake_per_s: float = 40.0
+    wheel_radius_m: float = 0.0760
+
+    @property
+    def dead_band_duty(self) -> float:
+        """The smallest duty that starts a wheel at rest."""
+        return self.coulomb_mps2 / self.accel_mps2
+
+    @property
+    def top_speed_mps(self) -> float:
+        """No-load top speed at full duty."""
+        a, v0, c, b = self.accel_mps2, self.v_free_mps, self.coulomb_mps2, self.viscous_per_s
+        return (a - c) / (a / v0 + b)
+
+
+@dataclass(frozen=True, slots=True)
+class Pose:
+    """A planar pose: metres and radians (yaw unwrapped)."""
+
+    x: float
+    y: float
+    yaw: float
+
+
+class _Wheel:
+    __slots__ = ("count_offset", "duty", "speed_mps", "torque", "turns")
+
+    def __init__(self, count_offset: int) -> None:
+        self.duty = 0.0  # board frame
+        self.speed_mps = 0.0  # board frame, rim speed
+        self.turns = 0.0  # board frame, wheel turns since start
+        self.torque = DriveTorque.ON
+        self.count_offset = count_offset
+
+    def step(self, model: MotorModel, dt: float) -> float:
+        """Advance ``dt``; return the rim distance travelled (board frame)."""
+        v = self.speed_mps
+        if self.torque is DriveTorque.ON:
+            drive = model.accel_mps2 * (self.duty - v / model.v_free_mps)
+        elif self.torque is DriveTorque.BRAKE:
+            drive = -model.brake_per_s * v
+        else:
+            drive = 0.0
+        friction = model.coulomb_mps2
+        if v == 0.0:
+            # Static friction holds the wheel until the drive beats it.
+            if abs(drive) <= friction:
+                return 0.0
+            accel = drive - math.copysign(friction, drive)
+        else:
+            accel = drive - math.copysign(friction, v) - model.viscous_per_s * v
+        new_v = v + accel * dt
+        if v != 0.0 and new_v * v < 0.0 and abs(drive) <= friction:
+            # Friction stops the wheel; it does not reverse it.
+            new_v = 0.0
+        self.speed_mps = new_v
+        distance = 0.5 * (v + new_v) * dt
+        self.turns += distance / (2 * math.pi * model.wheel_radius_m)
+        return distance
+
+    @property
+    def motor_ticks(self) -> int:
+        return math.floor(self.turns * GEAR_RATIO * TICKS_PER_MOTOR_TURN)
+
+
+class DriveTrain:
+    """Both wheels and the chassis: the physics shared by the two drive boards.
+
+    Args:
+        model: Motor and wheel parameters.
+        wheel_separation_m: True distance between the wheels.
+        count_offsets: Initial accumulated counts (board frame) of the left and right
+            boards, e.g. near 2**31 to exercise the int32 wrap.
+    """
+
+    def __init__(
+        self,
+        model: MotorModel | None = None,
+        *,
+        wheel_separation_m: float = 0.330,
+        count_offsets: tuple[int, int] = (0, 0),
+    ) -> None:
+        self.model = model or MotorModel()
+        self.wheel_separation_m = wheel_separation_m
+        self.wheels = (_Wheel(count_offsets[0]), _Wheel(count_offsets[1]))
+        self._x = 0.0
+        self._y = 0.0
+        self._yaw = 0.0
+        self._now_s = 0.0
+        self.distance_m = [0.0, 0.0]  # robot frame, forward-positive, left and right
+
+    @property
+    def pose(self) -> Pose:
+        """The true pose (yaw unwrapped)."""
+        return Pose(self._x, self._y, self._yaw)
+
+    def wheel_speeds_mps(self) -> tuple[float, float]:
+        """True forward speed of the left and right wheel (robot frame)."""
+        left, right = self.wheels
+        return left.speed_mps, -right.speed_mps
+
+    def set_duty(self, side: int, pwm: int) -> None:
+        """Set a board's PWM (board frame, −1000..1000)."""
+        self.wheels[side].duty = max(-PWM_LIMIT, min(PWM_LIMIT, pwm)) / PWM_LIMIT
+
+    def motor_current_a(self) -> float:
+        """Rough motor current drawn from the pack (for the battery sag)."""
+        total = 0.0
+        for wheel in self.wheels:
+            if wheel.torque is DriveTorque.ON:
+                torque_share = abs(wheel.duty - wheel.speed_mps / self.model.v_free_mps)
+                total += 0.5 + 6.0 * min(1.0, torque_share)
+        return total
+
+    def count(self, side: int) -> int:
+        """A board's accumulated count as the register holds it: int32, wrapping."""
+        raw = self.wheels[side].motor_ticks + self.wheels[side].count_offset
+        return (raw + 2**31) % 2**32 - 2**31
+
+    def motor_position(self, side: int) -> int:
+        """A board's 14-bit motor position."""
+        return (self.wheels[side].motor_ticks + self.wheels[side].count_offset) % (
+            MOTOR_POSITION_MODULUS
+        )
+
+    def advance(self, now_s: float) -> None:
+        """Integrate up to ``now_s`` (idempotent for the same time)."""
+        while self._now_s < now_s:
+            dt = min(_STEP_S, now_s - self._now_s)
+            left, right = self.wheels
+            d_left = left.step(self.model, dt)
+            d_right = -right.step(self.model, dt)
+            self.distance_m[0] += d_left
+            self.distance_m[1] += d_right
+            self._integrate(d_left, d_right)
+            self._now_s += dt
+
+    def _integrate(self, d_left: float, d_right: float) -> None:
+        ds = 0.5 * (d_left + d_right)
+        dyaw = (d_right - d_left) / self.wheel_separation_m
+        if abs(dyaw) < 1e-9:
+            self._x += ds * math.cos(self._yaw + 0.5 * dyaw)
+            self._y += ds * math.sin(self._yaw + 0.5 * dyaw)
+        else:
+            radius = ds / dyaw
+            self._x += radius * (math.sin(self._yaw + dyaw) - math.sin(self._yaw))
+            self._y -= radius * (math.cos(self._yaw + dyaw) - math.cos(self._yaw))
+        self._yaw += dyaw
+
+
+class SimDriveBoard(SimBoard):
+    """One drive board (sid 0 left, 1 right) on a shared :class:`DriveTrain`."""
+
+    def __init__(self, side: int, train: DriveTrain, tag: str = "sim-drive-1.0") -> None:
+        super().__init__(side, tag)
+        self.side = side
+        self.train = train
+        p = DRIVE_PROFILE
+        self.ram[p.count_addr] = BoardRegister(
+            p.count_size, lambda: train.count(side).to_bytes(4, "little", signed=True)
+        )
+        self.ram[p.motor_position_addr] = BoardRegister(
+            p.motor_position_size, lambda: train.motor_position(side).to_bytes(2, "little")
+        )
+        self.ram[60] = self.ram[p.motor_position_addr]
+        self.ram[62] = BoardRegister(2, self._differential)
+        self.ram[p.torque_addr] = BoardRegister(1, self._torque_bytes, self._set_torque)
+        # Polled by the vendor's driver; its meaning is unknown, so it reads as zero.
+        self.ram[0x6B] = BoardRegister(1, lambda: b"\x00")
+
+    def advance(self, now_s: float) -> None:
+        self.train.advance(now_s)
+
+    def power_cycle(self, now_s: float) -> None:
+        wheel = self.train.wheels[self.side]
+        wheel.duty = 0.0
+        wheel.torque = DriveTorque.ON
+        self.status_error = type(self.status_error).NONE
+        self.status_detail = type(self.status_detail).NONE
+
+    def handle_foreign(self, packet: Packet, now_s: float) -> Packet | None:
+        if packet.cmd == Command.S_JOG:
+            self.handle_jog(packet, now_s)
+        return None
+
+    def handle_jog(self, packet: Packet, now_s: float) -> None:
+        if packet.cmd != Command.S_JOG or (len(packet.data) - 1) % 4:
+            return
+        pwm = decode_wheel_command(packet).get(self.side)
+        if pwm is not None:
+            self.train.set_duty(self.side, pwm)
+
+    def _differential(self) -> bytes:
+        # Rim speed as motor ticks per 11.2 ms tick, signed (HerkuleX-like).
+        wheel = self.train.wheels[self.side]
+        m = self.train.model
+        ticks_per_s = (
+            wheel.speed_mps / (2 * math.pi * m.wheel_radius_m) * GEAR_RATIO * TICKS_PER_MOTOR_TURN
+        )
+        value = max(-32768, min(32767, round(ticks_per_s * 0.0112)))
+        return value.to_bytes(2, "little", signed=True)
+
+    def _torque_bytes(self) -> bytes:
+        return bytes((int(self.train.wheels[self.side].torque),))
+
+    def _set_torque(self, data: bytes) -> None:
+        try:
+            self.train.wheels[self.side].torque = DriveTorque(data[0])
+        except ValueError:
+            self._flag_invalid(type(self.status_detail).EXCEED_REG_RANGE)

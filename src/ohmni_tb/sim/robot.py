@@ -1,0 +1,148 @@
+"""The simulated Ohmni: every device of the bus map on one simulated line.
+
+``open_transport("sim://")`` builds one from the URL's options:
+
+==================  =========================================================  ==========
+option              meaning                                                    default
+==================  =========================================================  ==========
+``neck``            ``0101`` / ``0201`` (HerkuleX at sid 3) or ``worm`` (sid 4) ``0101``
+``ext``             external servo ids, comma-separated, or ``none``           ``11,12``
+``soc``             battery state of charge at start, percent                  ``80``
+``docked``          start on the dock (1/0)                                    ``0``
+``count_offset``    initial wheel count of both boards (int32 wrap tests)      ``0``
+``baudrate``        line speed                                                 ``115200``
+``turnaround_us``   device reply delay                                         ``500``
+``drop``            share of bytes lost on the line, 0..1                      ``0``
+``corrupt``         share of bytes garbled on the line, 0..1                   ``0``
+``silent``          device ids that never answer, comma-separated              none
+``seed``            seed of the fault generator                                ``0``
+==================  =========================================================  ==========
+
+The :class:`SimRobot` is reachable from the transport (``transport.robot``) for tests
+and tools: its ground-truth pose, the dock, the power switch.
+"""
+
+from __future__ import annotations
+
+from ohmni_tb.errors import ConfigError
+from ohmni_tb.herkulex import Model
+from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId
+from ohmni_tb.sim.core import BatteryPack, SimCoreBoard
+from ohmni_tb.sim.device import SimDevice
+from ohmni_tb.sim.drive import DriveTrain, MotorModel, Pose, SimDriveBoard
+from ohmni_tb.sim.servo import SimServo
+from ohmni_tb.sim.worm_neck import SimWormNeck
+
+__all__ = ["NECK_CHOICES", "SimRobot"]
+
+NECK_CHOICES = ("0101", "0201", "worm")
+
+
+class SimRobot:
+    """Every simulated device of one robot.
+
+    Args:
+        neck: ``"0101"``, ``"0201"`` (HerkuleX neck at sid 3) or ``"worm"`` (sid 4).
+        ext_servo_ids: Ids of the external HerkuleX servos.
+        soc_percent: Battery state of charge at start.
+        docked: Start on the dock.
+        count_offset: Initial accumulated count of both drive boards.
+        motor: Motor and wheel parameters.
+        wheel_separation_m: True wheel separation.
+    """
+
+    def __init__(
+        self,
+        *,
+        neck: str = "0101",
+        ext_servo_ids: tuple[int, ...] = DEFAULT_EXT_SERVO_IDS,
+        soc_percent: float = 80.0,
+        docked: bool = False,
+        count_offset: int = 0,
+        motor: MotorModel | None = None,
+        wheel_separation_m: float = 0.330,
+    ) -> None:
+        if neck not in NECK_CHOICES:
+            raise ConfigError(f"neck={neck!r} is not one of {', '.join(NECK_CHOICES)}")
+        if not 0 <= soc_percent <= 100:
+            raise ConfigError(f"soc={soc_percent} is out of range: allowed 0..100 %")
+        reserved = {int(d) for d in DeviceId}
+        for sid in ext_servo_ids:
+            if sid in reserved or not 0 <= sid <= 0xFD:
+                raise ConfigError(f"external servo id {sid} clashes with a board or is not 0..253")
+        self.train = DriveTrain(
+            motor, wheel_separation_m=wheel_separation_m, count_offsets=(count_offset,) * 2
+        )
+        self.left = SimDriveBoard(DeviceId.LEFT_DRIVE, self.train)
+        self.right = SimDriveBoard(DeviceId.RIGHT_DRIVE, self.train)
+        self.core = SimCoreBoard(BatteryPack(soc=soc_percent / 100.0))
+        self.core.pack.extra_load = self.train.motor_current_a
+        self.core.set_docked(docked)
+        self.neck: SimServo | SimWormNeck
+        if neck == "worm":
+            self.neck = SimWormNeck()
+        else:
+            model = Model.DRS_0101 if neck == "0101" else Model.DRS_0201
+            self.neck = SimServo(DeviceId.HERKULEX_NECK, model=model)
+        self.ext_servos = [SimServo(sid) for sid in ext_servo_ids]
+
+    @property
+    def devices(self) -> list[SimDevice]:
+        """Every device on the line."""
+        return [self.left, self.right, self.core, self.neck, *self.ext_servos]
+
+    @property
+    def pose(self) -> Pose:
+        """The true pose of the robot (metres, radians; yaw unwrapped)."""
+        return self.train.pose
+
+    def set_docked(self, docked: bool) -> None:
+        """Put the robot on its dock or take it off."""
+        self.core.set_docked(docked)
+
+    @classmethod
+    def from_options(cls, options: dict[str, str]) -> SimRobot:
+        """Build from ``sim://`` URL options, consuming the ones it knows.
+
+        Raises:
+            ConfigError: An option's value is invalid; the message names it.
+        """
+        neck = options.pop("neck", "0101")
+        ext_text = options.pop("ext", None)
+        ext_ids = DEFAULT_EXT_SERVO_IDS if ext_text is None else parse_ids("ext", ext_text)
+        try:
+            soc = float(options.pop("soc", "80"))
+        except ValueError:
+            raise ConfigError("option soc must be a number of percent") from None
+        docked = options.pop("docked", "0").lower() in {"1", "true", "yes", "on"}
+        try:
+            count_offset = int(options.pop("count_offset", "0"), 0)
+        except ValueError:
+            raise ConfigError("option count_offset must be an integer") from None
+        return cls(
+            neck=neck,
+            ext_servo_ids=ext_ids,
+            soc_percent=soc,
+            docked=docked,
+            count_offset=count_offset,
+        )
+
+
+def parse_ids(name: str, text: str) -> tuple[int, ...]:
+    """Parse ``"11,12"`` (or ``"none"``) into device ids.
+
+    Raises:
+        ConfigError: An id is not an integer in 0..253.
+    """
+    if text.strip().lower() in {"", "none"}:
+        return ()
+    ids = []
+    for part in text.split(","):
+        try:
+            sid = int(part.strip(), 0)
+        except ValueError:
+            raise ConfigError(f"option {name}: {part!r} is not a device id") from None
+        if not 0 <= sid <= 0xFD:
+            raise ConfigError(f"option {name}: id {sid} is out of range: allowed 0..253")
+        ids.append(sid)
+    return tuple(ids)
