@@ -6,6 +6,7 @@ import typer
 
 from ohmni_tb import __version__
 from ohmni_tb.cli import bus as bus_cli
+from ohmni_tb.cli.sim import sim
 
 __all__ = ["app", "main"]
 
@@ -17,6 +18,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 app.add_typer(bus_cli.app, name="bus")
+app.command()(sim)
 
 
 @app.command()

@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import json
+import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.table import Table
 
 from ohmni_tb.cli.common import (
     DEFAULT_PORT,
@@ -18,7 +24,10 @@ from ohmni_tb.cli.common import (
     run,
 )
 from ohmni_tb.errors import MalformedReplyError
+from ohmni_tb.monitor import BusMonitor, MonitorEvent
 from ohmni_tb.protocol import Command, Packet, ReadReply, StatusReply
+from ohmni_tb.protocol.devices import device_name
+from ohmni_tb.transport import open_transport
 
 app = typer.Typer(help="Raw packets on the bus: send one request, see the decoded reply.")
 
@@ -91,3 +100,123 @@ def send(
         for key, value in decoded.items():
             if key not in ("sid", "cmd", "data"):
                 console.print(f"  {key:14} {value}")
+
+
+@app.command()
+def monitor(
+    port: Annotated[
+        str | None,
+        typer.Option("--port", "-p", help="Listen on a live port (a tap on the line)."),
+    ] = None,
+    capture: Annotated[
+        Path | None,
+        typer.Option("--capture", help="Decode a file of raw captured bytes instead."),
+    ] = None,
+    duration: Annotated[
+        float | None,
+        typer.Option("--duration", help="Stop listening after this many seconds.", min=0.0),
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only the summary.")] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Decode bus traffic: every packet with device and register names, then per-device
+    rates, latencies and errors.
+
+    Use --capture for bytes logged from the real robot (see docs/hardware.md), or --port
+    on an adapter that listens to the line. Ctrl-C ends a live session.
+    """
+    if (port is None) == (capture is None):
+        raise typer.BadParameter("give exactly one of --port or --capture")
+    mon = BusMonitor()
+
+    def show(events: list[MonitorEvent]) -> None:
+        if quiet:
+            return
+        for ev in events:
+            if as_json:
+                sys.stdout.write(json.dumps(_event_json(ev)) + "\n")
+            else:
+                t = "" if ev.t_s is None else f"{ev.t_s:10.4f} "
+                lat = "" if ev.latency_s is None else f"  ({ev.latency_s * 1e3:.2f} ms)"
+                console.print(f"{t}{ev.device:>9} {ev.text}{lat}", highlight=False)
+
+    if capture is not None:
+        try:
+            data = capture.read_bytes()
+        except OSError as exc:
+            raise typer.BadParameter(f"cannot read capture {capture}: {exc}") from None
+        show(mon.feed(data))
+    else:
+        assert port is not None
+
+        async def listen() -> None:
+            transport = await open_transport(port)
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            try:
+                async with asyncio.timeout(duration):
+                    while True:
+                        chunk = await transport.read()
+                        show(mon.feed(chunk, loop.time() - t0))
+            except TimeoutError:
+                pass
+            finally:
+                await transport.aclose()
+
+        with contextlib.suppress(KeyboardInterrupt):
+            run(listen)
+    _summary(mon, as_json)
+
+
+def _event_json(ev: MonitorEvent) -> dict[str, object]:
+    return {
+        "t_s": ev.t_s,
+        "sid": ev.packet.sid,
+        "device": ev.device,
+        "cmd": ev.packet.cmd,
+        "data": ev.packet.data.hex(" "),
+        "text": ev.text,
+        "latency_ms": None if ev.latency_s is None else ev.latency_s * 1e3,
+    }
+
+
+_SUMMARY_HEADERS = ("sid", "device", "req", "rep", "unanswered", "err", "Hz", "p50 ms", "max ms")
+
+
+def _summary(mon: BusMonitor, as_json: bool) -> None:
+    rows = []
+    for t in sorted(mon.devices.values(), key=lambda d: d.sid):
+        lat = sorted(t.latencies_s)
+        rate = t.rate_hz()
+        rows.append(
+            {
+                "sid": t.sid,
+                "device": device_name(t.sid),
+                "requests": t.requests,
+                "replies": t.replies,
+                "unanswered": t.unanswered,
+                "error_replies": t.error_replies,
+                "rate_hz": None if rate is None else round(rate, 2),
+                "latency_p50_ms": round(lat[len(lat) // 2] * 1e3, 3) if lat else None,
+                "latency_max_ms": round(lat[-1] * 1e3, 3) if lat else None,
+            }
+        )
+    dec = mon.decoder_stats
+    decoder = {
+        "packets": dec.packets,
+        "bytes_in": dec.bytes_in,
+        "bytes_discarded": dec.bytes_discarded,
+        "checksum_errors": dec.checksum_errors,
+        "bad_headers": dec.bad_headers + dec.bad_sizes + dec.unknown_commands,
+        "bytes_pending": dec.bytes_pending,
+    }
+    if as_json:
+        sys.stdout.write(json.dumps({"devices": rows, "decoder": decoder}) + "\n")
+        return
+    table = Table(title="bus summary")
+    for header in _SUMMARY_HEADERS:
+        table.add_column(header, justify="right")
+    for row in rows:
+        table.add_row(*("-" if v is None else str(v) for v in row.values()))
+    console.print(table)
+    console.print("decoder: " + ", ".join(f"{k} {v}" for k, v in decoder.items()), highlight=False)

@@ -38,7 +38,7 @@ from ohmni_tb.transport import (
     reject_unknown_options,
 )
 
-__all__ = ["LineFaults", "LineStats", "SimLine", "SimTransport", "open_sim"]
+__all__ = ["LineFaults", "LineStats", "SimLine", "SimTransport", "build_line", "open_sim"]
 
 _log = logging.getLogger(__name__)
 
@@ -236,6 +236,8 @@ class SimTransport(Transport):
     def __init__(self, line: SimLine, *, robot: SimRobot | None = None, name: str = "sim") -> None:
         self.line = line
         self.robot = robot
+        if robot is not None:
+            robot.attach_clock(line.now_s)
         self.baudrate = line.baudrate
         self._host, self._device = MemoryTransport.pair(name, baudrate=line.baudrate)
         self._task: asyncio.Task[None] | None = asyncio.create_task(
@@ -266,8 +268,12 @@ class SimTransport(Transport):
         return f"<SimTransport [{names}] @{self.baudrate}>"
 
 
-async def open_sim(url: SplitResult, options: dict[str, str]) -> Transport:
-    """Open a simulated robot from a ``sim://`` URL (options: :mod:`ohmni_tb.sim.robot`)."""
+def build_line(options: dict[str, str]) -> tuple[SimLine, SimRobot]:
+    """Build a simulated robot and its line from ``sim://`` options, consuming them.
+
+    Raises:
+        ConfigError: An option's value is invalid; the message names it.
+    """
     baudrate = option_int(options, "baudrate", DEFAULT_BAUDRATE, 1200, 4_000_000)
     turnaround_us = option_int(
         options, "turnaround_us", round(DEFAULT_TURNAROUND_S * 1e6), 0, 100_000
@@ -277,13 +283,19 @@ async def open_sim(url: SplitResult, options: dict[str, str]) -> Transport:
     corrupt = _option_rate(options, "corrupt")
     silent = parse_ids("silent", options.pop("silent", ""))
     robot = SimRobot.from_options(options)
-    reject_unknown_options(url, options)
-    if url.netloc or url.path.strip("/"):
-        raise ConfigError(f"sim:// takes options only, not {url.netloc + url.path!r}")
     line = SimLine(robot.devices, baudrate=baudrate, turnaround_s=turnaround_us / 1e6, seed=seed)
     line.faults.drop_rate = drop
     line.faults.corrupt_rate = corrupt
     line.faults.silent = set(silent)
+    return line, robot
+
+
+async def open_sim(url: SplitResult, options: dict[str, str]) -> Transport:
+    """Open a simulated robot from a ``sim://`` URL (options: :mod:`ohmni_tb.sim.robot`)."""
+    if url.netloc or url.path.strip("/"):
+        raise ConfigError(f"sim:// takes options only, not {url.netloc + url.path!r}")
+    line, robot = build_line(options)
+    reject_unknown_options(url, options)
     return SimTransport(line, robot=robot)
 
 

@@ -24,6 +24,8 @@ and tools: its ground-truth pose, the dock, the power switch.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from ohmni_tb.errors import ConfigError
 from ohmni_tb.herkulex import Model
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId
@@ -85,6 +87,20 @@ class SimRobot:
             model = Model.DRS_0101 if neck == "0101" else Model.DRS_0201
             self.neck = SimServo(DeviceId.HERKULEX_NECK, model=model)
         self.ext_servos = [SimServo(sid) for sid in ext_servo_ids]
+        self._clock: Callable[[], float] | None = None
+
+    def attach_clock(self, clock: Callable[[], float]) -> None:
+        """Give the robot its line's clock, so readings are taken at the present time."""
+        self._clock = clock
+
+    def sync(self) -> float:
+        """Advance every device to the line's present time and return that time."""
+        if self._clock is None:
+            return 0.0
+        now = self._clock()
+        for device in self.devices:
+            device.advance(now)
+        return now
 
     @property
     def devices(self) -> list[SimDevice]:
@@ -93,11 +109,18 @@ class SimRobot:
 
     @property
     def pose(self) -> Pose:
-        """The true pose of the robot (metres, radians; yaw unwrapped)."""
+        """The true pose of the robot now (metres, radians; yaw unwrapped)."""
+        self.sync()
         return self.train.pose
 
+    def wheel_speeds_mps(self) -> tuple[float, float]:
+        """The true forward speed of the left and right wheel now."""
+        self.sync()
+        return self.train.wheel_speeds_mps()
+
     def set_docked(self, docked: bool) -> None:
-        """Put the robot on its dock or take it off."""
+        """Put the robot on its dock or take it off (from now on)."""
+        self.sync()
         self.core.set_docked(docked)
 
     @classmethod

@@ -1,0 +1,235 @@
+"""Decode bus traffic for people: device and register names, values, rates, latencies.
+
+:class:`BusMonitor` is sans-IO: feed it bytes (with the time they arrived, when known)
+and it returns one :class:`MonitorEvent` per packet, described in words, and keeps
+per-device counts. ``ohmni bus monitor`` runs it on a live port or a capture file; it is
+the tool for capturing a real robot's unknown bytes and checking them against the
+project's assumed tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError
+from ohmni_tb.herkulex import EEP as HERKULEX_EEP
+from ohmni_tb.herkulex import RAM as HERKULEX_RAM
+from ohmni_tb.protocol import (
+    REPLY_FLAG,
+    Command,
+    DecoderStats,
+    Memory,
+    Packet,
+    PacketDecoder,
+    ReadReply,
+    StatusReply,
+    reply_matches,
+)
+from ohmni_tb.protocol.core import CORE_PROFILE, parse_status
+from ohmni_tb.protocol.devices import DeviceId, device_name
+from ohmni_tb.protocol.drive import DRIVE_PROFILE, decode_wheel_command
+from ohmni_tb.protocol.worm_neck import WORM_PROFILE, parse_feedback
+
+__all__ = ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"]
+
+_LATENCY_WINDOW = 1024
+
+_BOARD_REGISTERS: dict[tuple[int, Memory, int], str] = {
+    **{
+        (sid, Memory.RAM, addr): name
+        for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)
+        for addr, name in (
+            (DRIVE_PROFILE.count_addr, "count"),
+            (DRIVE_PROFILE.motor_position_addr, "motor_position"),
+            (60, "absolute_position"),
+            (62, "differential_position"),
+            (DRIVE_PROFILE.torque_addr, "torque (assumed)"),
+            (0x6B, "unknown_6B"),
+        )
+    },
+    (DeviceId.CORE, Memory.RAM, CORE_PROFILE.status_addr): "status (assumed)",
+    (DeviceId.CORE, Memory.RAM, CORE_PROFILE.light_ring_addr): "light_ring",
+    (DeviceId.WORM_NECK, Memory.RAM, WORM_PROFILE.target_addr): "target (assumed)",
+    (DeviceId.WORM_NECK, Memory.RAM, WORM_PROFILE.feedback_addr): "feedback (assumed)",
+}
+_TAG_ADDR = 0xF1
+_BOARD_IDS = frozenset(
+    {DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE, DeviceId.WORM_NECK}
+)
+
+
+def register_name(sid: int, memory: Memory, addr: int) -> str:
+    """A name for a register of device ``sid``: the boards' tables, else HerkuleX's."""
+    name = _BOARD_REGISTERS.get((sid, memory, addr))
+    if name is not None:
+        return name
+    if addr == _TAG_ADDR and memory is Memory.EEP:
+        return "firmware_tag"
+    if sid not in _BOARD_IDS:
+        table = HERKULEX_RAM if memory is Memory.RAM else HERKULEX_EEP
+        try:
+            return table.by_addr(addr).name
+        except InvalidArgumentError:
+            pass
+    return f"{memory.name}[{addr}]"
+
+
+def _value_text(reply: ReadReply) -> str:
+    sid, addr, data = reply.sid, reply.addr, reply.data
+    try:
+        if reply.memory is Memory.EEP and addr == _TAG_ADDR:
+            return repr(data.decode("ascii", errors="replace"))
+        if sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+            if addr == DRIVE_PROFILE.count_addr and len(data) == 4:
+                return str(int.from_bytes(data, "little", signed=True))
+            if addr in (DRIVE_PROFILE.motor_position_addr, 60) and len(data) == 2:
+                return str(int.from_bytes(data, "little"))
+            if addr == 62 and len(data) == 2:
+                return str(int.from_bytes(data, "little", signed=True))
+        if sid == DeviceId.CORE and addr == CORE_PROFILE.status_addr:
+            s = parse_status(reply)
+            cells = "/".join(str(mv) for mv in s.cell_mv)
+            return (
+                f"cells {cells} mV, pack {s.pack_mv} mV, {s.charging_current_ma} mA, "
+                f"{'docked' if s.docked else 'undocked'}, {s.percent} %"
+            )
+        if sid == DeviceId.WORM_NECK and addr == WORM_PROFILE.feedback_addr:
+            f = parse_feedback(reply)
+            return f"position {f.position} {f.flags!s}"
+        if sid not in _BOARD_IDS and reply.memory is Memory.RAM:
+            reg = HERKULEX_RAM.by_addr(addr)
+            if reg.size == len(data):
+                return str(reg.decode(data))
+    except (MalformedReplyError, InvalidArgumentError, ValueError):
+        pass
+    return data.hex(" ")
+
+
+def describe(packet: Packet) -> str:
+    """One line of words for a packet, request or reply."""
+    base = packet.cmd & ~REPLY_FLAG
+    try:
+        cmd_name = Command(base).name
+    except ValueError:
+        return f"unknown command 0x{packet.cmd:02X} data {packet.data.hex(' ')}"
+    sid = packet.sid
+    if not packet.is_reply:
+        if base in (Command.RAM_READ, Command.EEP_READ) and len(packet.data) == 2:
+            memory = Memory.RAM if base == Command.RAM_READ else Memory.EEP
+            return f"{cmd_name} {register_name(sid, memory, packet.data[0])} len {packet.data[1]}"
+        if base in (Command.RAM_WRITE, Command.EEP_WRITE) and len(packet.data) >= 2:
+            memory = Memory.RAM if base == Command.RAM_WRITE else Memory.EEP
+            name = register_name(sid, memory, packet.data[0])
+            return f"{cmd_name} {name} = {packet.data[2:].hex(' ')}"
+        if base == Command.S_JOG:
+            try:
+                wheels = decode_wheel_command(packet)
+            except MalformedReplyError:
+                wheels = {}
+            if wheels:
+                parts = ", ".join(f"{device_name(s)} pwm {v:+d}" for s, v in wheels.items())
+                return f"S_JOG wheels: {parts} (board frame)"
+        return f"{cmd_name} {packet.data.hex(' ')}".rstrip()
+    try:
+        if base in (Command.RAM_READ, Command.EEP_READ):
+            reply = ReadReply.parse(packet)
+            text = f"{cmd_name} reply {register_name(sid, reply.memory, reply.addr)} = "
+            text += _value_text(reply)
+            if reply.status_error:
+                text += f" [error {reply.status_error!s}]"
+            return text
+        status = StatusReply.parse(packet)
+        return f"{cmd_name} reply error {status.status_error!s} detail {status.status_detail!s}"
+    except MalformedReplyError as exc:
+        return f"{cmd_name} reply, malformed: {exc}"
+
+
+@dataclass(frozen=True, slots=True)
+class MonitorEvent:
+    """One decoded packet.
+
+    Attributes:
+        t_s: When it arrived, if known.
+        packet: The packet.
+        device: The device's short name.
+        text: The packet in words.
+        latency_s: For a reply, the time since the request it answers, if known.
+    """
+
+    t_s: float | None
+    packet: Packet
+    device: str
+    text: str
+    latency_s: float | None
+
+
+@dataclass(slots=True)
+class DeviceTraffic:
+    """What one device id saw on the bus."""
+
+    sid: int
+    requests: int = 0
+    replies: int = 0
+    unanswered: int = 0
+    error_replies: int = 0
+    first_s: float | None = None
+    last_s: float | None = None
+    latencies_s: list[float] = field(default_factory=list)
+
+    def rate_hz(self) -> float | None:
+        """Requests a second over the time seen, if times are known."""
+        if self.first_s is None or self.last_s is None or self.last_s <= self.first_s:
+            return None
+        return (self.requests - 1) / (self.last_s - self.first_s) if self.requests > 1 else None
+
+
+class BusMonitor:
+    """Decode a byte stream into described packets and per-device statistics."""
+
+    def __init__(self) -> None:
+        self._decoder = PacketDecoder()
+        self._pending: tuple[Packet, float | None] | None = None
+        self.devices: dict[int, DeviceTraffic] = {}
+
+    @property
+    def decoder_stats(self) -> DecoderStats:
+        """Junk, checksum errors and the rest of the decoder's counters."""
+        return self._decoder.stats
+
+    def feed(self, data: bytes, t_s: float | None = None) -> list[MonitorEvent]:
+        """Decode ``data`` (arrived at ``t_s``) into events."""
+        return [self._event(p, t_s) for p in self._decoder.feed(data)]
+
+    def _traffic(self, sid: int, t_s: float | None) -> DeviceTraffic:
+        traffic = self.devices.get(sid)
+        if traffic is None:
+            traffic = self.devices[sid] = DeviceTraffic(sid)
+        if t_s is not None:
+            if traffic.first_s is None:
+                traffic.first_s = t_s
+            traffic.last_s = t_s
+        return traffic
+
+    def _event(self, packet: Packet, t_s: float | None) -> MonitorEvent:
+        latency: float | None = None
+        traffic = self._traffic(packet.sid, t_s)
+        if packet.is_reply:
+            traffic.replies += 1
+            pending = self._pending
+            if pending is not None and reply_matches(pending[0], packet):
+                self._pending = None
+                if t_s is not None and pending[1] is not None:
+                    latency = t_s - pending[1]
+                    if len(traffic.latencies_s) < _LATENCY_WINDOW:
+                        traffic.latencies_s.append(latency)
+            if len(packet.data) >= 2 and packet.data[-2]:
+                traffic.error_replies += 1
+        else:
+            if self._pending is not None and self._pending[0].cmd in _ANSWERED:
+                self._traffic(self._pending[0].sid, None).unanswered += 1
+            traffic.requests += 1
+            self._pending = (packet, t_s)
+        return MonitorEvent(t_s, packet, device_name(packet.sid), describe(packet), latency)
+
+
+_ANSWERED = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})
