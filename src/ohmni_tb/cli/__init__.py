@@ -6,6 +6,7 @@ import typer
 
 from ohmni_tb import __version__
 from ohmni_tb.cli import bus as bus_cli
+from ohmni_tb.cli.demo import demo
 from ohmni_tb.cli.sim import sim
 
 __all__ = ["app", "main"]
@@ -19,6 +20,7 @@ app = typer.Typer(
 )
 app.add_typer(bus_cli.app, name="bus")
 app.command()(sim)
+app.command()(demo)
 
 
 @app.command()

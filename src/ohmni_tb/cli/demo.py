@@ -1,0 +1,211 @@
+"""``ohmni demo``: a tour of the bus on the simulator (or, carefully, on a robot)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from ohmni_tb.bus import Bus
+from ohmni_tb.cli.common import PortOption, console, run, stats_rows
+from ohmni_tb.errors import BusTimeoutError, OhmniError
+from ohmni_tb.herkulex import (
+    JogTarget,
+    TorqueControl,
+    angle_deg_from_raw,
+    model_read,
+    parse_model,
+    parse_reply,
+    playtime_ticks_from_s,
+    ram_read,
+    ram_write,
+    s_jog,
+)
+from ohmni_tb.protocol import Memory, ReadReply
+from ohmni_tb.protocol.core import parse_status, read_status
+from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId, device_name
+from ohmni_tb.protocol.drive import (
+    MOTOR_POSITION_MODULUS,
+    parse_count,
+    read_count,
+    wheel_command,
+)
+from ohmni_tb.transport import open_transport
+
+__all__ = ["demo"]
+
+#: Motor ticks per wheel turn: 16384 per motor turn through the 30/11 gear (inferred).
+_TICKS_PER_WHEEL_TURN = MOTOR_POSITION_MODULUS * 30 / 11
+_WHEEL_RADIUS_M = 0.0760
+_NECK_FROM, _NECK_TO = 280, 650
+
+
+def demo(
+    port: PortOption = "sim://",
+    allow_motion: Annotated[
+        bool,
+        typer.Option(
+            "--allow-motion",
+            help="Let the demo drive the wheels on a real robot (always on for sim://).",
+        ),
+    ] = False,
+) -> None:
+    """Scan the bus, read the battery, drive the wheels, move the neck, show bus figures.
+
+    On the built-in simulator (the default, sim://) everything runs. On a real robot the
+    wheels stay still unless --allow-motion is given: the robot would drive ~40 cm.
+    """
+    motion = allow_motion or port.startswith("sim:")
+    run(lambda: _demo(port, motion))
+
+
+async def _demo(port: str, motion: bool) -> None:
+    transport = await open_transport(port)
+    robot = getattr(transport, "robot", None)  # the simulator's ground truth, if any
+    async with Bus(transport) as bus:
+        console.rule(f"ohmni demo on {port}")
+        await _scan(bus)
+        await _battery(bus)
+        if motion:
+            await _drive(bus, robot)
+        else:
+            console.print("[yellow]drive skipped[/yellow]: pass --allow-motion on a robot")
+        await _neck(bus)
+        _show_stats(bus)
+
+
+async def _scan(bus: Bus) -> None:
+    table = Table(title="devices on the bus")
+    for column in ("sid", "device", "answer"):
+        table.add_column(column)
+    for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE, DeviceId.WORM_NECK):
+        try:
+            tag = await bus.read(sid, 0xF1, 0, Memory.EEP)
+            answer = f"firmware {tag.data.decode('ascii', errors='replace')!r}"
+        except BusTimeoutError:
+            answer = "[dim]no answer[/dim]"
+        table.add_row(str(int(sid)), device_name(sid), answer)
+    for servo_id in (DeviceId.HERKULEX_NECK, *DEFAULT_EXT_SERVO_IDS):
+        try:
+            reply = await bus.request(model_read(servo_id))
+            assert reply is not None
+            model = parse_model(parse_reply(reply))
+            pos = await _servo_position(bus, servo_id)
+            answer = f"{model.name} at {pos} ({angle_deg_from_raw(pos):+.1f}°)"
+        except BusTimeoutError:
+            answer = "[dim]no answer[/dim]"
+        table.add_row(str(servo_id), device_name(servo_id), answer)
+    console.print(table)
+
+
+async def _servo_position(bus: Bus, sid: int) -> int:
+    reply = await bus.request(ram_read(sid, "calibrated_position"))
+    assert reply is not None
+    return int.from_bytes(parse_reply(reply).data, "little") & 0x3FF
+
+
+async def _battery(bus: Bus) -> None:
+    try:
+        reply = await bus.request(read_status())
+        assert reply is not None
+        status = parse_status(ReadReply.parse(reply))
+    except OhmniError as exc:
+        console.print(f"battery: [yellow]{exc}[/yellow]")
+        return
+    cells = " ".join(f"{mv / 1000:.3f}" for mv in status.cell_mv)
+    console.print(
+        f"battery: cells {cells} V, pack {status.pack_mv / 1000:.2f} V, "
+        f"{status.charging_current_ma / 1000:+.2f} A, "
+        f"{'docked' if status.docked else 'undocked'}, {status.percent} % (vendor rule)"
+    )
+
+
+async def _counts(bus: Bus) -> tuple[int, int]:
+    counts = []
+    for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+        reply = await bus.request(read_count(sid))
+        assert reply is not None
+        counts.append(parse_count(ReadReply.parse(reply)))
+    return counts[0], counts[1]
+
+
+def _metres(ticks: int) -> float:
+    return ticks / _TICKS_PER_WHEEL_TURN * 2 * math.pi * _WHEEL_RADIUS_M
+
+
+async def _drive(bus: Bus, robot: object) -> None:
+    start = await _counts(bus)
+    console.print(
+        "drive: forward at PWM 400 for 1.0 s (the command is re-sent at 10 Hz), then stop"
+    )
+    try:
+        for _ in range(10):
+            await bus.send(wheel_command(400, 400))
+            await asyncio.sleep(0.1)
+    finally:
+        # Stop whatever happened above; shielded so a Ctrl-C cannot skip it.
+        await asyncio.shield(bus.send(wheel_command(0, 0)))
+    await asyncio.sleep(0.5)
+    end = await _counts(bus)
+    d_left = _metres(end[0] - start[0])
+    d_right = _metres(-(end[1] - start[1]))  # the right wheel counts mirrored
+    console.print(
+        f"  wheel counts: left {end[0] - start[0]:+d}, right {end[1] - start[1]:+d} "
+        f"(mirrored) → left {d_left:.3f} m, right {d_right:.3f} m"
+    )
+    pose = getattr(robot, "pose", None)
+    if pose is not None:
+        console.print(
+            f"  simulator ground truth: x={pose.x:.3f} m, y={pose.y:.3f} m, yaw={pose.yaw:.4f} rad"
+        )
+
+
+async def _neck(bus: Bus) -> None:
+    sid = DeviceId.HERKULEX_NECK
+    try:
+        await bus.send(ram_write(sid, "torque_control", TorqueControl.ON))
+        await bus.send(s_jog(0, JogTarget(sid, _NECK_FROM)))
+        for _ in range(60):  # the servo needs < 1 s for any start position
+            if await _servo_position(bus, sid) == _NECK_FROM:
+                break
+            await asyncio.sleep(0.05)
+    except BusTimeoutError:
+        console.print("neck: [dim]no HerkuleX neck answers[/dim]")
+        return
+    playtime = playtime_ticks_from_s(1.0)
+    console.print(f"neck: {_NECK_FROM} → {_NECK_TO} over {playtime} ticks (1.0 s)")
+    await bus.send(s_jog(playtime, JogTarget(sid, _NECK_TO)))
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    samples = []
+    while loop.time() - t0 < 1.3:
+        samples.append((loop.time() - t0, await _servo_position(bus, sid)))
+        await asyncio.sleep(0.1)
+    console.print("  " + "  ".join(f"{t:.1f}s:{pos}" for t, pos in samples), highlight=False)
+    await bus.send(ram_write(sid, "torque_control", TorqueControl.FREE))
+
+
+def _show_stats(bus: Bus) -> None:
+    rows = stats_rows(bus.stats)
+    table = Table(title="bus statistics")
+    for column in ("sid", "device", "requests", "replies", "timeouts", "p50 ms", "p99 ms"):
+        table.add_column(column, justify="right")
+    for row in rows:
+        table.add_row(
+            str(row["sid"]),
+            device_name(row["sid"]),
+            str(row["requests"]),
+            str(row["replies"]),
+            str(row["timeouts"]),
+            "-" if row["latency_p50_ms"] is None else f"{row['latency_p50_ms']:.2f}",
+            "-" if row["latency_p99_ms"] is None else f"{row['latency_p99_ms']:.2f}",
+        )
+    console.print(table)
+    dec = bus.stats.decoder
+    console.print(
+        f"decoder: {dec.packets} packets, {dec.bytes_discarded} bytes discarded, "
+        f"{dec.checksum_errors} checksum errors; unmatched replies {bus.stats.unmatched}"
+    )
