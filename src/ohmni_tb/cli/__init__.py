@@ -6,6 +6,7 @@ import typer
 
 from ohmni_tb import __version__
 from ohmni_tb.cli import bus as bus_cli
+from ohmni_tb.cli import servo as servo_cli
 from ohmni_tb.cli.demo import demo
 from ohmni_tb.cli.sim import sim
 
@@ -19,6 +20,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 app.add_typer(bus_cli.app, name="bus")
+app.add_typer(servo_cli.app, name="servo")
 app.command()(sim)
 app.command()(demo)
 

@@ -1,0 +1,398 @@
+"""The async handle of one HerkuleX servo on the bus.
+
+::
+
+    async with Bus(await open_transport("sim://")) as bus:
+        neck = Servo(bus, 3)
+        await neck.torque(TorqueControl.ON)
+        await neck.move_to(650, playtime_s=1.0)
+        print(await neck.position_raw(), neck.last_status)
+
+Every reply updates :attr:`Servo.last_status`. A reply carrying error bits does not raise
+by itself — a latched fault must stay readable so it can be cleared — but the moves check
+the status first and raise :class:`~ohmni_tb.errors.DeviceStatusError` when the servo
+would ignore them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from ohmni_tb.bus import Bus
+from ohmni_tb.errors import (
+    DeviceStatusError,
+    InvalidArgumentError,
+    MalformedReplyError,
+    OutOfRangeError,
+)
+from ohmni_tb.herkulex.commands import (
+    JogMode,
+    JogTarget,
+    Reply,
+    clear_status,
+    eep_read,
+    eep_write,
+    i_jog,
+    model_read,
+    parse_model,
+    parse_reply,
+    ram_read,
+    ram_write,
+    reboot,
+    s_jog,
+    stat,
+)
+from ohmni_tb.herkulex.registers import EEP, RAM, Led, Model, Register, TorqueControl, resolve
+from ohmni_tb.herkulex.units import (
+    angle_rad_from_raw,
+    check_playtime_ticks,
+    playtime_ticks_from_s,
+    pos_raw_from_rad,
+)
+from ohmni_tb.protocol import Memory, Packet, StatusDetail, StatusError
+
+__all__ = ["Servo", "ServoStatus", "move_group"]
+
+#: Largest block read in one request (the reply must fit the bus's packet limit).
+_BLOCK = 64
+#: Errors that make a servo ignore jogs until they are cleared.
+_BLOCKING_ERRORS = StatusError.TEMPERATURE | StatusError.OVERLOAD | StatusError.DRIVER_FAULT
+#: The servos' factory position limits (RAM 20 / 22).
+_FACTORY_MIN_RAW = 21
+_FACTORY_MAX_RAW = 1002
+#: Time a servo needs after REBOOT before it answers (undocumented; drivers wait 1-2 s).
+REBOOT_SETTLE_S = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class ServoStatus:
+    """The two status bytes of a servo.
+
+    Attributes:
+        error: RAM 48.
+        detail: RAM 49.
+    """
+
+    error: StatusError
+    detail: StatusDetail
+
+    @property
+    def torque_on(self) -> bool:
+        """Whether the servo reports torque on."""
+        return bool(self.detail & StatusDetail.MOTOR_ON)
+
+    @property
+    def moving(self) -> bool:
+        """Whether the servo is moving."""
+        return bool(self.detail & StatusDetail.MOVING)
+
+    @property
+    def in_position(self) -> bool:
+        """Whether the servo is within its in-position margin of the goal."""
+        return bool(self.detail & StatusDetail.INPOSITION)
+
+    @property
+    def ok(self) -> bool:
+        """No error bit is set."""
+        return not self.error
+
+
+class Servo:
+    """One HerkuleX servo on a :class:`~ohmni_tb.bus.Bus`.
+
+    Args:
+        bus: The bus the servo is on.
+        sid: Its id, 0..0xFD.
+        zero_offset_raw: Raw counts added to the centre (512) to define 0 rad, like
+            tb_control's ``set_servo_zero_offset``.
+        min_raw: The lowest position a move may ask for (default: the servo's own
+            factory minimum, 21). The neck uses 280.
+        max_raw: The highest (default 1002). The neck uses 650.
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        sid: int,
+        *,
+        zero_offset_raw: int = 0,
+        min_raw: int | None = None,
+        max_raw: int | None = None,
+    ) -> None:
+        RAM["id"].check(sid)
+        low = _FACTORY_MIN_RAW if min_raw is None else min_raw
+        high = _FACTORY_MAX_RAW if max_raw is None else max_raw
+        if not 0 <= low <= high <= 1023:
+            raise InvalidArgumentError(
+                f"min_raw={low} and max_raw={high} must satisfy 0 <= min <= max <= 1023"
+            )
+        self._bus = bus
+        self.sid = sid
+        self.zero_offset_raw = zero_offset_raw
+        self.min_raw = low
+        self.max_raw = high
+        self.last_status: ServoStatus | None = None
+        self._torque_wanted = TorqueControl.FREE
+
+    def __repr__(self) -> str:
+        return f"<Servo sid={self.sid} range={self.min_raw}..{self.max_raw}>"
+
+    # -- registers -------------------------------------------------------------------
+
+    async def read(self, register: Register | str, memory: Memory = Memory.RAM) -> int:
+        """Read one register's value.
+
+        Raises:
+            InvalidArgumentError: Unknown register.
+            BusTimeoutError: No reply.
+        """
+        reg = resolve(register, memory)
+        packet = ram_read(self.sid, reg) if memory is Memory.RAM else eep_read(self.sid, reg)
+        return (await self._read(packet)).value(reg)
+
+    async def write(self, register: Register | str, value: int, *, persist: bool = False) -> None:
+        """Write a RAM register (acts now); with ``persist``, the EEP copy too (survives reboot).
+
+        Raises:
+            InvalidArgumentError: Unknown or read-only register, or a bad value; nothing sent.
+            OutOfRangeError: The value is out of the register's range; nothing sent.
+        """
+        reg = resolve(register, Memory.RAM)
+        packets = [ram_write(self.sid, reg, value)]
+        if persist:
+            if reg.name not in EEP:
+                raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
+            packets.insert(0, eep_write(self.sid, reg.name, value))
+        for packet in packets:
+            await self._send(packet)
+        if reg.name == "ack_policy":
+            self._bus.set_ack_policy(self.sid, value)
+        elif reg.name == "torque_control":
+            self._torque_wanted = TorqueControl(value)
+
+    async def info(self) -> dict[str, dict[str, int]]:
+        """Every register of both memories, by name (tb_control's ``get_servo_info``)."""
+        out: dict[str, dict[str, int]] = {}
+        for table in (EEP, RAM):
+            values: dict[str, int] = {}
+            regs = list(table)
+            start = 0
+            while start < len(regs):
+                first = regs[start]
+                end = start
+                while end + 1 < len(regs) and regs[end + 1].end - first.addr <= _BLOCK:
+                    end += 1
+                last = regs[end]
+                packet = (ram_read if table is RAM else eep_read)(self.sid, first, through=last)
+                reply = await self._read(packet)
+                for reg in regs[start : end + 1]:
+                    values[reg.name] = reply.value(reg)
+                start = end + 1
+            out[table.memory.name.lower()] = values
+        return out
+
+    async def model(self) -> Model:
+        """The servo's model (DRS-0101 or DRS-0201), from EEP 0.
+
+        Raises:
+            InvalidArgumentError: The servo reports a model this driver does not know.
+        """
+        return parse_model(await self._read(model_read(self.sid)))
+
+    # -- state -----------------------------------------------------------------------
+
+    async def status(self) -> ServoStatus:
+        """Ask the servo for its two status bytes (STAT; always answered)."""
+        reply = await self._bus.request(stat(self.sid), expect_reply=True)
+        assert reply is not None
+        return self._note(parse_reply(reply))
+
+    async def torque(self, mode: TorqueControl) -> None:
+        """Set torque: FREE (limp), BRAKE (holds, ignores jogs) or ON."""
+        await self.write("torque_control", TorqueControl(mode))
+
+    async def clear_errors(self) -> ServoStatus:
+        """Clear latched errors (RAM 48/49 ← 0), then restore the torque that was asked for.
+
+        Returns:
+            The status after clearing. An error whose cause remains (still too hot) comes
+            back at once; check :attr:`ServoStatus.ok`.
+        """
+        await self._send(clear_status(self.sid))
+        if self._torque_wanted is not TorqueControl.FREE:
+            await self._send(ram_write(self.sid, "torque_control", self._torque_wanted))
+        return await self.status()
+
+    async def position_raw(self) -> int:
+        """The calibrated position (RAM 58, the jog coordinate), 0..1023."""
+        return await self.read("calibrated_position") & 0x3FF
+
+    async def angle_rad(self) -> float:
+        """The position in radians from this servo's zero."""
+        return angle_rad_from_raw(await self.position_raw(), zero_offset_raw=self.zero_offset_raw)
+
+    async def temperature_raw(self) -> int:
+        """The raw temperature (RAM 55); compare with :meth:`max_temperature_raw`."""
+        return await self.read("temperature")
+
+    # -- motion ----------------------------------------------------------------------
+
+    def target(
+        self,
+        pos_raw: int | None = None,
+        *,
+        angle_rad: float | None = None,
+        led: Led = Led.NONE,
+    ) -> JogTarget:
+        """A checked position target for this servo (for :func:`move_group`).
+
+        Raises:
+            InvalidArgumentError: Neither or both of ``pos_raw`` and ``angle_rad``.
+            OutOfRangeError: Outside ``min_raw..max_raw``; nothing sent.
+        """
+        if (pos_raw is None) == (angle_rad is None):
+            raise InvalidArgumentError("give exactly one of pos_raw or angle_rad")
+        if angle_rad is not None:
+            if not math.isfinite(angle_rad):
+                raise OutOfRangeError("angle_rad", angle_rad, -math.pi, math.pi, "rad")
+            pos_raw = pos_raw_from_rad(angle_rad, zero_offset_raw=self.zero_offset_raw)
+        assert pos_raw is not None
+        if isinstance(pos_raw, bool) or not isinstance(pos_raw, int):
+            raise InvalidArgumentError(f"pos_raw must be an int, not {pos_raw!r}")
+        if not self.min_raw <= pos_raw <= self.max_raw:
+            raise OutOfRangeError(
+                f"servo {self.sid} position", pos_raw, self.min_raw, self.max_raw, "count"
+            )
+        return JogTarget(self.sid, pos_raw, led=led)
+
+    async def move_to(
+        self,
+        pos_raw: int | None = None,
+        *,
+        angle_rad: float | None = None,
+        playtime_s: float | None = None,
+        playtime_ticks: int | None = None,
+        led: Led = Led.NONE,
+    ) -> None:
+        """Move to a position (raw counts or radians) over a playtime.
+
+        Raises:
+            InvalidArgumentError: Bad combination of arguments.
+            OutOfRangeError: Position or playtime out of range; nothing sent.
+            DeviceStatusError: The servo has a latched fault (clear it first).
+        """
+        ticks = _ticks(playtime_s, playtime_ticks)
+        target = self.target(pos_raw, angle_rad=angle_rad, led=led)
+        await self._ensure_can_move()
+        await self._send(s_jog(ticks, target))
+
+    async def spin(self, pwm: int, *, led: Led = Led.NONE) -> None:
+        """Turn continuously at a signed PWM, −1023..1023 (0 stops, holding torque).
+
+        Switching from position to turn mode needs the torque off first, which this does.
+
+        Raises:
+            OutOfRangeError: ``pwm`` out of range; nothing sent.
+            DeviceStatusError: The servo has a latched fault.
+        """
+        target = JogTarget(self.sid, pwm, mode=JogMode.TURN, led=led)
+        await self._ensure_can_move()
+        if await self.read("current_control_mode") != JogMode.TURN:
+            await self._send(ram_write(self.sid, "torque_control", TorqueControl.FREE))
+            await self._send(ram_write(self.sid, "torque_control", TorqueControl.ON))
+        await self._send(i_jog(target))
+
+    async def set_id(self, new_sid: int) -> None:
+        """Give the servo a new id, in EEP and RAM; this handle follows it.
+
+        Raises:
+            OutOfRangeError: ``new_sid`` is not 0..0xFD.
+        """
+        RAM["id"].check(new_sid)
+        await self._send(eep_write(self.sid, "id", new_sid))
+        await self._send(ram_write(self.sid, "id", new_sid))
+        self.sid = new_sid
+
+    async def reboot(self, *, settle_s: float = REBOOT_SETTLE_S) -> None:
+        """Reboot (EEP is copied to RAM, torque free) and wait for it to come back."""
+        await self._send(reboot(self.sid))
+        self._torque_wanted = TorqueControl.FREE
+        await asyncio.sleep(settle_s)
+
+    # -- private ---------------------------------------------------------------------
+
+    async def _ensure_can_move(self) -> None:
+        status = await self.status()
+        if status.error & _BLOCKING_ERRORS:
+            raise DeviceStatusError(
+                f"servo {self.sid} has a latched fault ({status.error!s}); it ignores moves "
+                f"until clear_errors()",
+                sid=self.sid,
+                status_error=int(status.error),
+                status_detail=int(status.detail),
+            )
+        if not status.torque_on:
+            raise DeviceStatusError(
+                f"servo {self.sid} has torque off; call torque(TorqueControl.ON) first",
+                sid=self.sid,
+                status_error=int(status.error),
+                status_detail=int(status.detail),
+            )
+
+    async def _read(self, packet: Packet) -> Reply:
+        reply = await self._bus.request(packet, expect_reply=True)
+        assert reply is not None
+        parsed = parse_reply(reply)
+        if parsed.memory is None:
+            raise MalformedReplyError(f"servo {self.sid} answered a read with {reply!r}")
+        self._note(parsed)
+        return parsed
+
+    async def _send(self, packet: Packet) -> None:
+        reply = await self._bus.request(packet)
+        if reply is not None:
+            self._note(parse_reply(reply))
+
+    def _note(self, reply: Reply) -> ServoStatus:
+        status = ServoStatus(reply.status_error, reply.status_detail)
+        self.last_status = status
+        return status
+
+
+async def move_group(
+    moves: Sequence[tuple[Servo, int]],
+    *,
+    playtime_s: float | None = None,
+    playtime_ticks: int | None = None,
+) -> None:
+    """Move several servos on one bus together, in one S_JOG packet.
+
+    Args:
+        moves: ``(servo, pos_raw)`` pairs; each position is checked against its servo's
+            range before anything is sent.
+        playtime_s: The shared playtime in seconds, or
+        playtime_ticks: the same in 11.2 ms ticks.
+
+    Raises:
+        InvalidArgumentError: No moves, servos on different buses, or a repeated servo.
+        OutOfRangeError: A position or the playtime is out of range; nothing sent.
+    """
+    if not moves:
+        raise InvalidArgumentError("move_group needs at least one (servo, position)")
+    bus = moves[0][0]._bus
+    if any(servo._bus is not bus for servo, _ in moves):
+        raise InvalidArgumentError("move_group: every servo must be on the same bus")
+    ticks = _ticks(playtime_s, playtime_ticks)
+    targets = [servo.target(pos) for servo, pos in moves]
+    await bus.send(s_jog(ticks, *targets))
+
+
+def _ticks(playtime_s: float | None, playtime_ticks: int | None) -> int:
+    if playtime_s is not None and playtime_ticks is not None:
+        raise InvalidArgumentError("give playtime_s or playtime_ticks, not both")
+    if playtime_s is not None:
+        return playtime_ticks_from_s(playtime_s)
+    return check_playtime_ticks(0 if playtime_ticks is None else playtime_ticks)
