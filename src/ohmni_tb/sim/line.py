@@ -121,7 +121,11 @@ class SimLine:
         self._now_s = 0.0
 
     def now_s(self) -> float:
-        """Simulated time: seconds since the line started serving."""
+        """Simulated time: seconds since the line started serving (never goes back)."""
+        return max(self._elapsed_s(), self._now_s)
+
+    def _elapsed_s(self) -> float:
+        """Loop time since the line started serving."""
         loop = asyncio.get_running_loop()
         if self._t0 is None:
             self._t0 = loop.time()
@@ -135,7 +139,7 @@ class SimLine:
 
     async def serve(self, transport: Transport) -> None:
         """Play the devices on ``transport`` until it closes."""
-        self.now_s()
+        self._elapsed_s()
         while True:
             try:
                 data = await transport.read()
@@ -148,15 +152,15 @@ class SimLine:
         if not data:
             return
         # The bytes occupy the line after whatever is on it now.
-        now = self.now_s()
-        start = max(now, self._line_free_at)
+        start = max(self._elapsed_s(), self._line_free_at)
         end = start + len(data) * self.byte_s
         self._line_free_at = end
         self.stats.busy_s += end - start
         self.stats.bytes_to_devices += len(data)
-        if end > now:
-            await asyncio.sleep(end - now)
-        self._now_s = end
+        # The devices act at the moment the last byte arrives. Nothing can reach them
+        # before then (the line is busy), so there is no need to wait for it in real time:
+        # the one wait is for the reply, which keeps real-time runs close to the model.
+        self._now_s = max(self._now_s, end)
         for packet in self._decoder.feed(data):
             self.stats.packets += 1
             await self._dispatch(transport, packet, end)
@@ -177,9 +181,9 @@ class SimLine:
         end = start + len(wire) * self.byte_s
         self._line_free_at = end
         self.stats.busy_s += end - start
-        now = self.now_s()
-        if end > now:
-            await asyncio.sleep(end - now)
+        wait_s = end - self._elapsed_s()
+        if wait_s > 0:
+            await asyncio.sleep(wait_s)
         wire = self._apply_faults(wire)
         if not wire:
             return
