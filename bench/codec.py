@@ -3,9 +3,9 @@
 Run: ``python bench/codec.py`` (``--seconds`` per measurement, ``--chunk`` bytes per feed).
 
 The stream mixes the bus's real traffic shapes (9-byte read requests, 15-byte wheel-count
-replies, 12-byte jogs, 26-byte status blocks) with junk between 5 % of the packets, and is fed in chunks the
-size a serial read returns. The best of several runs is reported, since a shared machine
-only ever makes a run slower.
+replies, 16-byte jogs, 31-byte status blocks) with junk between 5 % of the packets, and is
+fed in chunks the size a serial read returns. The best of several runs is reported, since
+a shared machine only ever makes a run slower.
 """
 
 from __future__ import annotations

@@ -1,0 +1,32 @@
+"""Robot defaults from DESIGN §4, in one place so a measured robot changes one line."""
+
+from __future__ import annotations
+
+__all__ = [
+    "DEFAULT_MAX_ANGULAR_RADPS",
+    "DEFAULT_MAX_LINEAR_MPS",
+    "DEFAULT_TICKS_PER_REV",
+    "DEFAULT_WHEEL_RADIUS_M",
+    "DEFAULT_WHEEL_SEPARATION_M",
+    "MOTOR_TICKS_PER_REV",
+    "PID_RATE_HZ",
+    "PWM_LIMIT",
+]
+
+#: Wheel radius of the vendor's simulation model; robots measure 0.07525 m.
+DEFAULT_WHEEL_RADIUS_M = 0.0760
+#: Distance between the wheel contact points; robots measure 0.330-0.332 m.
+DEFAULT_WHEEL_SEPARATION_M = 0.330
+#: Encoder ticks per motor turn: the drive board's 14-bit motor position.
+MOTOR_TICKS_PER_REV = 16384
+#: Ticks per wheel turn: 14-bit motor encoder behind a 30/11 gear (inferred, ≈44,684).
+DEFAULT_TICKS_PER_REV = MOTOR_TICKS_PER_REV * 30 / 11
+#: No-load top speed of the robot.
+DEFAULT_MAX_LINEAR_MPS = 1.0
+#: Project choice (not a vendor figure): a telepresence robot spinning faster than
+#: ~115 °/s is hard to watch through its own camera.
+DEFAULT_MAX_ANGULAR_RADPS = 2.0
+#: tb_control runs the wheel PIDs at 50 Hz.
+PID_RATE_HZ = 50.0
+#: Wheel PWM command range is -1000..1000 (tb_msgs).
+PWM_LIMIT = 1000.0
