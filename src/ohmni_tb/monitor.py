@@ -23,6 +23,7 @@ from ohmni_tb.protocol import (
     PacketDecoder,
     ReadReply,
     StatusReply,
+    flag_names,
     reply_matches,
 )
 from ohmni_tb.protocol.core import CORE_PROFILE, parse_status
@@ -95,7 +96,7 @@ def _value_text(reply: ReadReply) -> str:
             )
         if sid == DeviceId.WORM_NECK and addr == WORM_PROFILE.feedback_addr:
             f = parse_feedback(reply)
-            return f"position {f.position} {f.flags!s}"
+            return f"position {f.position} {flag_names(f.flags)}"
         if sid not in _BOARD_IDS and reply.memory is Memory.RAM:
             reg = HERKULEX_RAM.by_addr(addr)
             if reg.size == len(data):
@@ -136,10 +137,11 @@ def describe(packet: Packet) -> str:
             text = f"{cmd_name} reply {register_name(sid, reply.memory, reply.addr)} = "
             text += _value_text(reply)
             if reply.status_error:
-                text += f" [error {reply.status_error!s}]"
+                text += f" [error {flag_names(reply.status_error)}]"
             return text
         status = StatusReply.parse(packet)
-        return f"{cmd_name} reply error {status.status_error!s} detail {status.status_detail!s}"
+        error, detail = flag_names(status.status_error), flag_names(status.status_detail)
+        return f"{cmd_name} reply error {error} detail {detail}"
     except MalformedReplyError as exc:
         return f"{cmd_name} reply, malformed: {exc}"
 

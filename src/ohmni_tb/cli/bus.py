@@ -25,7 +25,7 @@ from ohmni_tb.cli.common import (
 )
 from ohmni_tb.errors import MalformedReplyError
 from ohmni_tb.monitor import BusMonitor, MonitorEvent
-from ohmni_tb.protocol import Command, Packet, ReadReply, StatusReply
+from ohmni_tb.protocol import Command, Packet, ReadReply, StatusReply, flag_names
 from ohmni_tb.protocol.devices import device_name
 from ohmni_tb.transport import open_transport
 
@@ -84,12 +84,14 @@ def send(
             decoded.update(
                 addr=rr.addr,
                 value_hex=rr.data.hex(" "),
-                status_error=str(rr.status_error),
-                status_detail=str(rr.status_detail),
+                status_error=flag_names(rr.status_error),
+                status_detail=flag_names(rr.status_detail),
             )
         elif len(reply.data) == 2:
             sr = StatusReply.parse(reply)
-            decoded.update(status_error=str(sr.status_error), status_detail=str(sr.status_detail))
+            decoded.update(
+                status_error=flag_names(sr.status_error), status_detail=flag_names(sr.status_detail)
+            )
     except MalformedReplyError as exc:
         decoded["malformed"] = str(exc)
     if as_json:

@@ -24,7 +24,7 @@ from ohmni_tb.errors import BusTimeoutError
 from ohmni_tb.herkulex import EEP, RAM, TorqueControl, parse_reply, stat
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import angle_deg_from_raw
-from ohmni_tb.protocol import Memory
+from ohmni_tb.protocol import Memory, flag_names
 from ohmni_tb.protocol.devices import DeviceId, device_name
 
 __all__ = ["app"]
@@ -55,9 +55,9 @@ def _with_servo(
 def _status_dict(status: ServoStatus) -> dict[str, Any]:
     return {
         "error": int(status.error),
-        "error_flags": str(status.error),
+        "error_flags": flag_names(status.error),
         "detail": int(status.detail),
-        "detail_flags": str(status.detail),
+        "detail_flags": flag_names(status.detail),
         "torque_on": status.torque_on,
         "moving": status.moving,
         "in_position": status.in_position,

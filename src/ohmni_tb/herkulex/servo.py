@@ -52,7 +52,7 @@ from ohmni_tb.herkulex.units import (
     playtime_ticks_from_s,
     pos_raw_from_rad,
 )
-from ohmni_tb.protocol import Memory, Packet, StatusDetail, StatusError
+from ohmni_tb.protocol import Memory, Packet, StatusDetail, StatusError, flag_names
 
 __all__ = ["Servo", "ServoStatus", "move_group"]
 
@@ -328,8 +328,8 @@ class Servo:
         status = await self.status()
         if status.error & _BLOCKING_ERRORS:
             raise DeviceStatusError(
-                f"servo {self.sid} has a latched fault ({status.error!s}); it ignores moves "
-                f"until clear_errors()",
+                f"servo {self.sid} has a latched fault ({flag_names(status.error)}); "
+                f"it ignores moves until clear_errors()",
                 sid=self.sid,
                 status_error=int(status.error),
                 status_detail=int(status.detail),

@@ -35,6 +35,7 @@ __all__ = [
     "StatusDetail",
     "StatusError",
     "StatusReply",
+    "flag_names",
     "read_request",
     "reply_expected",
     "reply_matches",
@@ -98,6 +99,19 @@ class StatusDetail(enum.IntFlag):
     EXCEED_REG_RANGE = 0x10
     GARBAGE_DETECTED = 0x20
     MOTOR_ON = 0x40
+
+
+def flag_names(flags: enum.IntFlag) -> str:
+    """Flags for people: ``"TEMPERATURE|OVERLOAD"``, ``"none"``, unknown bits in hex."""
+    value = int(flags)
+    names = [m.name for m in type(flags) if m.value and m.value & value == m.value and m.name]
+    rest = value
+    for m in type(flags):
+        if m.value & value == m.value:
+            rest &= ~m.value
+    if rest:
+        names.append(f"0x{rest:02X}")
+    return "|".join(names) if names else "none"
 
 
 def _check_sid(sid: int, *, allow_broadcast: bool) -> None:
