@@ -1,0 +1,253 @@
+"""The async Servo against the simulated robot, in virtual time."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+
+import pytest
+
+from ohmni_tb.bus import Bus
+from ohmni_tb.errors import BusTimeoutError, DeviceStatusError, OutOfRangeError
+from ohmni_tb.herkulex import (
+    EEP,
+    RAM,
+    Model,
+    StatusDetail,
+    StatusError,
+    TorqueControl,
+    playtime_s_from_ticks,
+)
+from ohmni_tb.herkulex.servo import Servo, move_group
+from ohmni_tb.sim.clock import run_virtual
+from ohmni_tb.sim.line import SimTransport
+from ohmni_tb.sim.servo import SimServo
+from ohmni_tb.transport import open_transport
+
+NECK = 3
+
+
+def on_sim(body: Callable[[Bus, SimTransport], Awaitable[None]], url: str = "sim://") -> None:
+    """Run ``body(bus, transport)`` on a fresh simulated robot in virtual time."""
+
+    async def main() -> None:
+        transport = await open_transport(url)
+        assert isinstance(transport, SimTransport)
+        async with Bus(transport) as bus:
+            await body(bus, transport)
+
+    run_virtual(main())
+
+
+def test_neck_moves_280_to_650_over_its_playtime() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        loop = asyncio.get_running_loop()
+        neck = Servo(bus, NECK, min_raw=280, max_raw=650)
+        await neck.torque(TorqueControl.ON)
+        await neck.move_to(280, playtime_ticks=0)
+        await asyncio.sleep(1.0)
+        assert await neck.position_raw() == 280
+
+        ticks = 89  # 0.9968 s
+        await neck.move_to(650, playtime_ticks=ticks)
+        t0 = loop.time()
+        trajectory: list[tuple[float, int, ServoFlags]] = []
+        while loop.time() - t0 < playtime_s_from_ticks(ticks) + 0.3:
+            pos = await neck.position_raw()
+            status = await neck.status()
+            trajectory.append(
+                (loop.time() - t0, pos, ServoFlags(status.moving, status.in_position))
+            )
+            await asyncio.sleep(0.02)
+        positions = [p for _, p, _ in trajectory]
+        assert positions == sorted(positions), "the neck never moves backwards"
+        assert positions[0] < 300
+        assert positions[-1] == 650
+        # Halfway through the playtime it is roughly halfway (symmetric profile).
+        mid = min(trajectory, key=lambda s: abs(s[0] - 0.5))
+        assert 400 < mid[1] < 530
+        # It arrives at the end of the playtime, not long before.
+        arrived = next(t for t, p, _ in trajectory if p == 650)
+        assert 0.85 < arrived < playtime_s_from_ticks(ticks) + 0.1
+        assert any(f.moving for _, _, f in trajectory[:5])
+        assert trajectory[-1][2] == ServoFlags(moving=False, in_position=True)
+
+    on_sim(body)
+
+
+class ServoFlags:
+    """Moving / in-position pair that compares by value."""
+
+    def __init__(self, moving: bool, in_position: bool) -> None:
+        self.moving = moving
+        self.in_position = in_position
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ServoFlags) and (self.moving, self.in_position) == (
+            other.moving,
+            other.in_position,
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.moving, self.in_position))
+
+    def __repr__(self) -> str:
+        return f"ServoFlags(moving={self.moving}, in_position={self.in_position})"
+
+
+def test_out_of_range_move_raises_and_sends_nothing() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        neck = Servo(bus, NECK, min_raw=280, max_raw=650)
+        before = bus.stats.bytes_out
+        with pytest.raises(OutOfRangeError, match=r"700.*280\.\.650"):
+            await neck.move_to(700, playtime_s=1.0)
+        with pytest.raises(OutOfRangeError, match="playtime"):
+            await neck.move_to(400, playtime_s=5.0)
+        assert bus.stats.bytes_out == before
+
+    on_sim(body)
+
+
+def test_move_with_torque_off_is_refused_with_a_clear_error() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        neck = Servo(bus, NECK, min_raw=280, max_raw=650)
+        with pytest.raises(DeviceStatusError, match="torque off"):
+            await neck.move_to(400)
+
+    on_sim(body)
+
+
+def test_over_temperature_latches_and_recovers() -> None:
+    async def body(bus: Bus, transport: SimTransport) -> None:
+        assert transport.robot is not None
+        sim_neck = transport.robot.neck
+        assert isinstance(sim_neck, SimServo)
+        neck = Servo(bus, NECK, min_raw=280, max_raw=650)
+        await neck.torque(TorqueControl.ON)
+        start_temp = await neck.temperature_raw()
+        sim_neck.set_load(1.0)  # holding against a full load heats it
+        await asyncio.sleep(300.0)
+        status = await neck.status()
+        assert status.error & StatusError.TEMPERATURE
+        assert not status.torque_on, "the torque policy released the torque"
+        assert await neck.temperature_raw() > start_temp
+        with pytest.raises(DeviceStatusError, match="TEMPERATURE"):
+            await neck.move_to(400)
+
+        # With the torque released it cools. While it is still above the limit, clearing
+        # does not stick: lower the limit under the present temperature to see that.
+        hot = await neck.temperature_raw()
+        assert hot < 222, "released, the servo cools below the factory limit"
+        await neck.write("max_temperature", hot - 5)
+        status = await neck.clear_errors()
+        assert status.error & StatusError.TEMPERATURE
+        assert not status.torque_on
+
+        # Back to the factory limit, it is cool enough: clearing works and the torque the
+        # handle asked for comes back on.
+        sim_neck.set_load(0.0)
+        await neck.write("max_temperature", 0xDE)
+        status = await neck.clear_errors()
+        assert status.ok
+        assert status.torque_on
+        await neck.move_to(400, playtime_s=0.5)
+        await asyncio.sleep(0.7)
+        assert await neck.position_raw() == 400
+
+    on_sim(body)
+
+
+def test_info_reads_every_register() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        info = await Servo(bus, NECK).info()
+        assert info["eep"]["id"] == NECK
+        assert info["ram"]["id"] == NECK
+        assert info["eep"]["position_kp"] == 440
+        assert info["ram"]["acceleration_ratio"] == 25
+        assert info["ram"]["calibrated_position"] == 512
+        assert set(info["eep"]) == {reg.name for reg in EEP}
+        assert set(info["ram"]) == {reg.name for reg in RAM}
+
+    on_sim(body)
+
+
+def test_model_detection() -> None:
+    async def body_0101(bus: Bus, _: SimTransport) -> None:
+        assert await Servo(bus, NECK).model() is Model.DRS_0101
+
+    async def body_0201(bus: Bus, _: SimTransport) -> None:
+        assert await Servo(bus, NECK).model() is Model.DRS_0201
+
+    on_sim(body_0101, "sim://?neck=0101")
+    on_sim(body_0201, "sim://?neck=0201")
+
+
+def test_set_id_moves_the_handle_and_the_servo() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 11)
+        await servo.set_id(15)
+        assert servo.sid == 15
+        assert await servo.read("id") == 15
+        with pytest.raises(BusTimeoutError) as err:
+            await Servo(bus, 11).read("id")
+        assert err.value.sid == 11
+
+    on_sim(body)
+
+
+def test_persist_survives_a_reboot_and_plain_ram_does_not() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 12)
+        await servo.write("acceleration_ratio", 10, persist=True)
+        await servo.write("inposition_margin", 9)
+        await servo.reboot(settle_s=0.1)
+        assert await servo.read("acceleration_ratio") == 10
+        assert await servo.read("inposition_margin") == 3
+
+    on_sim(body)
+
+
+def test_ack_policy_two_makes_writes_answer() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 11)
+        await servo.write("ack_policy", 2)
+        replies = bus.stats.devices[11].replies
+        await servo.write("led_control", 1)
+        assert bus.stats.devices[11].replies == replies + 1
+        assert servo.last_status is not None
+
+    on_sim(body)
+
+
+def test_spin_turns_the_right_way() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 11)
+        await servo.torque(TorqueControl.ON)
+        await servo.spin(-600)
+        await asyncio.sleep(0.3)
+        assert await servo.read("current_control_mode") == 1
+        assert await servo.read("differential_position") < 0
+        await servo.spin(600)
+        await asyncio.sleep(0.3)
+        assert await servo.read("differential_position") > 0
+        with pytest.raises(OutOfRangeError):
+            await servo.spin(2000)
+
+    on_sim(body)
+
+
+def test_group_move_is_one_packet_and_moves_both() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        ext1, ext2 = Servo(bus, 11), Servo(bus, 12)
+        for servo in (ext1, ext2):
+            await servo.torque(TorqueControl.ON)
+        before = bus.stats.bytes_out
+        await move_group([(ext1, 300), (ext2, 700)], playtime_s=0.5)
+        # One S_JOG: header 7 + playtime 1 + two 4-byte tags.
+        assert bus.stats.bytes_out - before == 7 + 1 + 2 * 4
+        await asyncio.sleep(0.7)
+        assert (await ext1.position_raw(), await ext2.position_raw()) == (300, 700)
+        status = await ext1.status()
+        assert status.detail & StatusDetail.INPOSITION
+
+    on_sim(body)
