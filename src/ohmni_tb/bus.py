@@ -437,12 +437,19 @@ class Bus:
                 data = await transport.read()
                 self._route(self._decoder.feed(data))
         except TransportError as exc:
-            self._failure = exc
-            pending = self._pending
-            if pending is not None and not pending[1].done():
-                pending[1].set_exception(exc)
+            self._fail(exc)
             if not self._closed:
                 _log.warning("bus link failed: %s", exc)
+        except Exception as exc:
+            # A bug must not leave requests waiting for a reader that is gone.
+            self._fail(exc)
+            _log.exception("bus reader crashed")
+
+    def _fail(self, exc: BaseException) -> None:
+        self._failure = exc
+        pending = self._pending
+        if pending is not None and not pending[1].done():
+            pending[1].set_exception(exc)
 
     def _route(self, packets: list[Packet]) -> None:
         for packet in packets:

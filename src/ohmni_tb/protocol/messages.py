@@ -35,6 +35,7 @@ __all__ = [
     "StatusDetail",
     "StatusError",
     "StatusReply",
+    "check_sid",
     "flag_names",
     "read_request",
     "reply_expected",
@@ -114,10 +115,16 @@ def flag_names(flags: enum.IntFlag) -> str:
     return "|".join(names) if names else "none"
 
 
-def _check_sid(sid: int, *, allow_broadcast: bool) -> None:
+def check_sid(sid: int, *, allow_broadcast: bool) -> int:
+    """Return ``sid`` if it is a device id (0..0xFD), or broadcast when allowed.
+
+    Raises:
+        OutOfRangeError: Not an int in range (a bool is not an id).
+    """
     high = MAX_SID if allow_broadcast else MAX_SID - 1
-    if not isinstance(sid, int) or not 0 <= sid <= high:
+    if isinstance(sid, bool) or not isinstance(sid, int) or not 0 <= sid <= high:
         raise OutOfRangeError("sid", sid, 0, high)
+    return sid
 
 
 def _check_addr(addr: int) -> None:
@@ -134,7 +141,7 @@ def read_request(sid: int, addr: int, length: int, memory: Memory = Memory.RAM) 
     Raises:
         OutOfRangeError: sid, addr or length is out of range.
     """
-    _check_sid(sid, allow_broadcast=False)
+    check_sid(sid, allow_broadcast=False)
     _check_addr(addr)
     if not isinstance(length, int) or not 0 <= length <= MAX_READ_LENGTH:
         raise OutOfRangeError("length", length, 0, MAX_READ_LENGTH, "bytes")
@@ -149,7 +156,7 @@ def write_request(
     Raises:
         OutOfRangeError: sid, addr or the data length is out of range.
     """
-    _check_sid(sid, allow_broadcast=True)
+    check_sid(sid, allow_broadcast=True)
     _check_addr(addr)
     if not isinstance(data, bytes | bytearray):
         raise InvalidArgumentError(f"data must be bytes, not {type(data).__name__}")

@@ -1,0 +1,423 @@
+"""The DRS-0101 / DRS-0201 register maps, as one data table (sans-IO).
+
+Both models share one map. EEP holds the power-up settings; on power-up and REBOOT the
+servo copies EEP 6..53 to RAM 0..47 (RAM address = EEP address - 6), so the settings
+present in both memories come from a single row of :data:`_TABLE` that yields an EEP and
+a RAM :class:`Register`. EEP 0..5 exist only in EEP; RAM 48..73 only in RAM::
+
+    EEP  0 model no1  1 model no2  2-3 firmware  4 baud  5 reserved
+    EEP  6 ........................................... 53   settings
+           \\ copied on power-up / REBOOT
+    RAM  0 ........................................... 47   settings (act at once)
+    RAM 48 status error  49 status detail  52 torque  53 LED  54.. feedback (read-only)
+
+Multi-byte values are little-endian; the rows marked signed are two's complement. Every
+write is checked here (read-only, range, allowed values) before any packet exists.
+
+Where the reference gives no range, the register's natural byte range is used. The
+feedback registers 68/70/72 are listed read-only as in the manual's RAM table.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Final
+
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.protocol import Memory
+
+__all__ = [
+    "EEP",
+    "EEP_SIZE",
+    "RAM",
+    "RAM_SIZE",
+    "BaudRate",
+    "Led",
+    "Model",
+    "Register",
+    "RegisterMap",
+    "TorqueControl",
+    "model_from_bytes",
+    "resolve",
+]
+
+#: EEP 0..53: the last EEP register is the calibration difference at 53.
+EEP_SIZE: Final = 54
+#: RAM 0..73: the last RAM register is the desired velocity at 72..73.
+RAM_SIZE: Final = 74
+#: RAM address = EEP address - this, for the settings both memories hold (EEP 6..53).
+EEP_TO_RAM_OFFSET: Final = 6
+
+
+class Model(enum.IntEnum):
+    """The servo model, as EEP 0 (model no1) reports it."""
+
+    DRS_0101 = 0x01
+    DRS_0201 = 0x02
+
+
+class Led(enum.IntFlag):
+    """LED bits of RAM 53. A JOG's SET byte carries the same bits shifted left by 2."""
+
+    NONE = 0
+    GREEN = 0x01
+    BLUE = 0x02
+    RED = 0x04
+
+
+class TorqueControl(enum.IntEnum):
+    """RAM 52 values."""
+
+    FREE = 0x00
+    #: Holds by braking the motor; JOGs are ignored.
+    BRAKE = 0x40
+    ON = 0x60
+
+
+class BaudRate(enum.IntEnum):
+    """EEP 4 baud codes (they act after REBOOT)."""
+
+    B57600 = 0x22
+    B115200 = 0x10
+    B200000 = 0x09
+    B250000 = 0x07
+    B400000 = 0x04
+    B500000 = 0x03
+    B666666 = 0x02
+
+    @property
+    def bps(self) -> int:
+        """The line speed in bits per second."""
+        return _BAUD_BPS[self]
+
+
+_BAUD_BPS: Final[Mapping[BaudRate, int]] = {
+    BaudRate.B57600: 57_600,
+    BaudRate.B115200: 115_200,
+    BaudRate.B200000: 200_000,
+    BaudRate.B250000: 250_000,
+    BaudRate.B400000: 400_000,
+    BaudRate.B500000: 500_000,
+    BaudRate.B666666: 666_666,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Register:
+    """One register of one memory.
+
+    Attributes:
+        name: The register's name, shared by its EEP and RAM copies (``"ack_policy"``).
+        memory: RAM or EEP.
+        addr: The address of its first byte.
+        size: 1 or 2 bytes (little-endian).
+        default: The factory value, or ``None`` where it depends on the unit (model,
+            firmware) or is measured at run time (feedback).
+        low: The smallest value a write accepts.
+        high: The largest value a write accepts.
+        signed: Whether the bytes are two's complement.
+        read_only: Whether a write is refused.
+        unit: The unit of one count (``"count"``, ``"tick"`` = 11.2 ms, ``"%"``…), or ``""``.
+        choices: The only values a write accepts, where the register is an enumeration.
+    """
+
+    name: str
+    memory: Memory
+    addr: int
+    size: int
+    default: int | None
+    low: int
+    high: int
+    signed: bool = False
+    read_only: bool = False
+    unit: str = ""
+    choices: frozenset[int] | None = None
+
+    @property
+    def end(self) -> int:
+        """The address just after the register's last byte."""
+        return self.addr + self.size
+
+    def check(self, value: int) -> int:
+        """Return ``value`` as a plain int if a write of it is allowed.
+
+        Raises:
+            InvalidArgumentError: The register is read-only, ``value`` is not an int, or
+                it is not one of ``choices``.
+            OutOfRangeError: ``value`` is outside ``low..high``.
+        """
+        if self.read_only:
+            raise InvalidArgumentError(
+                f"{self.memory.name} {self.addr} ({self.name}) is read-only; nothing was sent"
+            )
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InvalidArgumentError(
+                f"{self.name} takes an int, not {type(value).__name__} {value!r}"
+            )
+        if not self.low <= value <= self.high:
+            raise OutOfRangeError(self.name, value, self.low, self.high, self.unit)
+        if self.choices is not None and value not in self.choices:
+            allowed = ", ".join(f"0x{c:02X}" for c in sorted(self.choices))
+            raise InvalidArgumentError(f"{self.name}={value!r} is not one of {allowed}")
+        return int(value)
+
+    def encode(self, value: int) -> bytes:
+        """Check ``value`` (see :meth:`check`) and return its bytes, little-endian.
+
+        Raises:
+            InvalidArgumentError: The register is read-only, ``value`` is not an int, or
+                it is not one of ``choices``.
+            OutOfRangeError: ``value`` is out of range.
+        """
+        return self.check(value).to_bytes(self.size, "little", signed=self.signed)
+
+    def decode(self, data: bytes | bytearray) -> int:
+        """Decode the register's bytes (little-endian, signed where the register is).
+
+        Values the device reports are not range-checked: a reading is a fact.
+
+        Raises:
+            InvalidArgumentError: ``data`` is not exactly ``size`` bytes long.
+        """
+        if len(data) != self.size:
+            raise InvalidArgumentError(
+                f"{self.name} is {self.size} byte(s), got {len(data)}: {bytes(data).hex(' ')}"
+            )
+        return int.from_bytes(data, "little", signed=self.signed)
+
+
+class RegisterMap:
+    """The registers of one memory, looked up by name or by address.
+
+    ``RAM["torque_control"]`` and ``RAM.by_addr(52)`` give the same register; iterating
+    yields the registers in address order.
+    """
+
+    __slots__ = ("_by_addr", "_by_name", "memory", "size")
+
+    def __init__(self, memory: Memory, size: int, registers: tuple[Register, ...]) -> None:
+        self.memory = memory
+        self.size = size
+        self._by_name = {r.name: r for r in sorted(registers, key=lambda r: r.addr)}
+        self._by_addr = {r.addr: r for r in registers}
+
+    def __getitem__(self, name: str) -> Register:
+        return self.by_name(name)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __iter__(self) -> Iterator[Register]:
+        return iter(self._by_name.values())
+
+    def __len__(self) -> int:
+        return len(self._by_name)
+
+    def __repr__(self) -> str:
+        return f"RegisterMap({self.memory.name}, {len(self)} registers)"
+
+    def by_name(self, name: str) -> Register:
+        """The register called ``name``.
+
+        Raises:
+            InvalidArgumentError: No register of this memory has that name.
+        """
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise InvalidArgumentError(
+                f"no {self.memory.name} register named {name!r}; known: {', '.join(self._by_name)}"
+            ) from None
+
+    def by_addr(self, addr: int) -> Register:
+        """The register whose first byte is at ``addr``.
+
+        Raises:
+            InvalidArgumentError: No register starts there (reserved, the second byte of
+                a 2-byte register, or past the end of the memory).
+        """
+        try:
+            return self._by_addr[addr]
+        except KeyError:
+            raise InvalidArgumentError(
+                f"no {self.memory.name} register starts at address {addr!r}"
+            ) from None
+
+    def writable(self, addr: int, length: int) -> bool:
+        """Whether every byte of ``addr..addr+length-1`` exists and may be written.
+
+        Reserved bytes inside the memory are writable (the firmware stores them); bytes
+        of read-only registers and bytes past the end are not.
+        """
+        if addr < 0 or length < 0 or addr + length > self.size:
+            return False
+        return not any(r.read_only and r.addr < addr + length and addr < r.end for r in self)
+
+
+def resolve(register: Register | str, memory: Memory) -> Register:
+    """Return the ``memory`` register named by ``register`` (an object or a name).
+
+    Raises:
+        InvalidArgumentError: Unknown name, or a register object of the other memory.
+    """
+    table = RAM if memory is Memory.RAM else EEP
+    if isinstance(register, str):
+        return table.by_name(register)
+    if not isinstance(register, Register):
+        raise InvalidArgumentError(
+            f"register must be a Register or a name, not {type(register).__name__}"
+        )
+    if register.memory is not memory:
+        raise InvalidArgumentError(
+            f"{register.name} at {register.memory.name} {register.addr} is not a "
+            f"{memory.name} register; use the {memory.name} map"
+        )
+    return register
+
+
+def model_from_bytes(data: bytes | bytearray) -> Model:
+    """Detect the model from the two bytes of EEP 0..1 (a read of addr 0, length 2).
+
+    The first byte (EEP 0, model no1) is the model; the second (model no2) is 0x01 on
+    both, so a driver that reads them in the wrong order takes every DRS-0201 for a
+    DRS-0101.
+
+    Raises:
+        InvalidArgumentError: ``data`` is not two bytes, or names an unknown model.
+    """
+    if len(data) != 2:
+        raise InvalidArgumentError(f"model detection needs EEP 0..1 (2 bytes), got {len(data)}")
+    try:
+        return Model(data[0])
+    except ValueError:
+        raise InvalidArgumentError(
+            f"unknown HerkuleX model no1 0x{data[0]:02X} (0x01 = DRS-0101, 0x02 = DRS-0201)"
+        ) from None
+
+
+# -- the table ------------------------------------------------------------------------
+
+_U8: Final = 0xFF
+_TICKS: Final = "tick"  # 11.2 ms
+
+
+@dataclass(frozen=True, slots=True)
+class _Row:
+    """One line of the map: an EEP address, a RAM address, or both (EEP 6..53)."""
+
+    name: str
+    eep: int | None
+    ram: int | None
+    size: int = 1
+    default: int | None = None
+    low: int | None = None
+    high: int | None = None
+    signed: bool = False
+    read_only: bool = False
+    unit: str = ""
+    choices: frozenset[int] | None = None
+
+
+# The columns follow the reference's table: name, EEP address, RAM address. Ranges left
+# out are the natural range of the bytes.
+# fmt: off
+_TABLE: Final[tuple[_Row, ...]] = (
+    # EEP only: identity and link. Model no1 and the firmware differ per unit.
+    _Row("model_no1", 0, None, read_only=True),
+    _Row("model_no2", 1, None, default=0x01, read_only=True),
+    _Row("firmware_version", 2, None, size=2, read_only=True),
+    _Row("baud_rate", 4, None, default=BaudRate.B115200, choices=frozenset(BaudRate)),
+    # Settings in both memories. 0xFE is broadcast, so no servo may take it as its id.
+    _Row("id", 6, 0, default=0xFD, high=0xFD),
+    _Row("ack_policy", 7, 1, default=1, high=2),
+    _Row("alarm_led_policy", 8, 2, default=0x7F, high=0x7F, unit="mask"),
+    _Row("torque_policy", 9, 3, default=0x35, high=0x7F, unit="mask"),
+    _Row("max_temperature", 11, 5, default=0xDE, unit="raw"),
+    _Row("min_voltage", 12, 6, default=0x5B, unit="0.074 V"),
+    _Row("max_voltage", 13, 7, default=0x89, unit="0.074 V"),
+    _Row("acceleration_ratio", 14, 8, default=25, high=50, unit="%"),
+    _Row("max_acceleration_time", 15, 9, default=0x2D, high=0xFE, unit=_TICKS),
+    _Row("dead_zone", 16, 10, default=0, unit="count"),
+    _Row("saturator_offset", 17, 11, default=0),
+    _Row("saturator_slope", 18, 12, size=2, default=0, high=0x7FFF),
+    _Row("pwm_offset", 20, 14, default=0, signed=True),
+    _Row("min_pwm", 21, 15, default=0),
+    _Row("max_pwm", 22, 16, size=2, default=1023, high=1023),
+    _Row("overload_pwm_threshold", 24, 18, size=2, default=1022, high=0x7FFE),
+    _Row("min_position", 26, 20, size=2, default=21, high=1023, unit="count"),
+    _Row("max_position", 28, 22, size=2, default=1002, high=1023, unit="count"),
+    _Row("position_kp", 30, 24, size=2, default=440, high=0x7FFF),
+    _Row("position_kd", 32, 26, size=2, default=8000, high=0x7FFF),
+    _Row("position_ki", 34, 28, size=2, default=0, high=0x7FFF),
+    _Row("position_feedforward_gain1", 36, 30, size=2, default=0, high=0x7FFF),
+    _Row("position_feedforward_gain2", 38, 32, size=2, default=0, high=0x7FFF),
+    _Row("led_blink_period", 44, 38, default=0x2D, unit=_TICKS),
+    _Row("adc_fault_check_period", 45, 39, default=0x2D, unit=_TICKS),
+    _Row("packet_garbage_check_period", 46, 40, default=0x12, unit=_TICKS),
+    _Row("stop_detection_period", 47, 41, default=0x1B, unit=_TICKS),
+    _Row("overload_detection_period", 48, 42, default=0x96, unit=_TICKS),
+    _Row("stop_threshold", 49, 43, default=3, unit="count"),
+    _Row("inposition_margin", 50, 44, default=3, unit="count"),
+    _Row("calibration_difference", 53, 47, default=0, signed=True, unit="count"),
+    # RAM only: status (write zeros to clear), control, then feedback.
+    _Row("status_error", None, 48, default=0, high=0x7F, unit="mask"),
+    _Row("status_detail", None, 49, default=0, high=0x7F, unit="mask"),
+    _Row("torque_control", None, 52, default=TorqueControl.FREE,
+         choices=frozenset(TorqueControl)),
+    _Row("led_control", None, 53, default=Led.NONE, high=0x07, unit="mask"),
+    _Row("voltage", None, 54, read_only=True, unit="0.074 V"),
+    _Row("temperature", None, 55, read_only=True, unit="raw"),
+    _Row("current_control_mode", None, 56, read_only=True),
+    _Row("tick", None, 57, read_only=True, unit=_TICKS),
+    # 58 is the JOG coordinate (absolute - calibration difference); 60 is the raw pot.
+    _Row("calibrated_position", None, 58, size=2, read_only=True, unit="count"),
+    _Row("absolute_position", None, 60, size=2, read_only=True, unit="count"),
+    _Row("differential_position", None, 62, size=2, signed=True, read_only=True,
+         unit="29.09 deg/s"),
+    _Row("pwm", None, 64, size=2, signed=True, read_only=True),
+    _Row("absolute_goal_position", None, 68, size=2, read_only=True, unit="count"),
+    _Row("absolute_desired_trajectory_position", None, 70, size=2, read_only=True,
+         unit="count"),
+    _Row("desired_velocity", None, 72, size=2, signed=True, read_only=True,
+         unit="29.09 deg/s"),
+)
+# fmt: on
+
+
+def _build(memory: Memory, size: int) -> RegisterMap:
+    regs: list[Register] = []
+    for row in _TABLE:
+        addr = row.eep if memory is Memory.EEP else row.ram
+        if addr is None:
+            continue
+        bits = 8 * row.size
+        if row.signed:
+            natural_low, natural_high = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+        else:
+            natural_low, natural_high = 0, (1 << bits) - 1
+        if row.choices is not None:
+            natural_low, natural_high = min(row.choices), max(row.choices)
+        regs.append(
+            Register(
+                name=row.name,
+                memory=memory,
+                addr=addr,
+                size=row.size,
+                default=None if row.default is None else int(row.default),
+                low=natural_low if row.low is None else row.low,
+                high=natural_high if row.high is None else row.high,
+                signed=row.signed,
+                read_only=row.read_only,
+                unit=row.unit,
+                choices=row.choices,
+            )
+        )
+    return RegisterMap(memory, size, tuple(regs))
+
+
+#: The EEP map (settings that act after REBOOT, plus model, firmware and baud).
+EEP: Final = _build(Memory.EEP, EEP_SIZE)
+#: The RAM map (live settings, status, torque, LED and feedback).
+RAM: Final = _build(Memory.RAM, RAM_SIZE)
