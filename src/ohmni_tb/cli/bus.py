@@ -25,7 +25,7 @@ from ohmni_tb.cli.common import (
 )
 from ohmni_tb.errors import MalformedReplyError
 from ohmni_tb.monitor import BusMonitor, MonitorEvent
-from ohmni_tb.protocol import Command, Packet, ReadReply, StatusReply, flag_names
+from ohmni_tb.protocol import BROADCAST_ID, Command, Packet, ReadReply, StatusReply, flag_names
 from ohmni_tb.protocol.devices import device_name
 from ohmni_tb.transport import open_transport
 
@@ -58,6 +58,8 @@ def send(
     Example: ``ohmni bus send 0 RAM_READ 3B 04`` reads the left wheel count.
     """
     sid_value = parse_int(sid, "SID")
+    if not 0 <= sid_value <= BROADCAST_ID:
+        raise typer.BadParameter(f"SID={sid_value} is out of range: allowed 0..{BROADCAST_ID}")
     code = _parse_command(cmd)
     try:
         payload = bytes.fromhex("".join(data or []))

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import signal
+import stat
 import sys
 from typing import Annotated
 from urllib.parse import parse_qsl, urlsplit
@@ -79,6 +81,16 @@ async def _serve(options: dict[str, str]) -> None:
 
 async def _console(line: SimLine, robot: SimRobot, stop: asyncio.Event) -> None:
     """Read operator commands from stdin, if there is one."""
+    try:
+        fd = sys.stdin.fileno()
+        mode = os.fstat(fd).st_mode
+    except (AttributeError, ValueError, OSError):
+        return  # no stdin at all: serve without a console
+    # The loop can watch a pipe, a socket or a terminal; /dev/null or a plain file is
+    # accepted by connect_read_pipe but fails to register later, inside the loop, with
+    # a traceback on stderr. Serve without a console then, as for a closed stdin.
+    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode) or os.isatty(fd)):
+        return
     loop = asyncio.get_running_loop()
     reader = asyncio.StreamReader()
     try:

@@ -75,7 +75,10 @@ class BatteryPack:
         current = -load
         if self.docked:
             ocv_max = float(np.interp(self.soc.max(), *LIFEPO4_OCV))
-            if ocv_max + self.charge_current_a * self.internal_ohm < _CHARGE_LIMIT_V:
+            # A full cell ends the charge too: the curve tops out at 3.45 V, so under the
+            # charging current no cell would ever reach the voltage limit.
+            full = self.soc.max() >= 1.0
+            if not full and ocv_max + self.charge_current_a * self.internal_ohm < _CHARGE_LIMIT_V:
                 current += self.charge_current_a + load  # the dock also feeds the load
             else:
                 current += load

@@ -187,6 +187,11 @@ class DriveTrain:
     def advance(self, now_s: float) -> None:
         """Integrate up to ``now_s`` (idempotent for the same time)."""
         while self._now_s < now_s:
+            if self._held():
+                # Nothing moves until a command changes: skip the sub-steps, so an idle
+                # robot costs nothing however far virtual time jumps.
+                self._now_s = now_s
+                return
             dt = min(_STEP_S, now_s - self._now_s)
             left, right = self.wheels
             d_left = left.step(self.model, dt)
@@ -195,6 +200,15 @@ class DriveTrain:
             self.distance_m[1] += d_right
             self._integrate(d_left, d_right)
             self._now_s += dt
+
+    def _held(self) -> bool:
+        """Both wheels at rest, held there by static friction (``_Wheel.step`` is a no-op)."""
+        m = self.model
+        return all(
+            w.speed_mps == 0.0
+            and (w.torque is not DriveTorque.ON or m.accel_mps2 * abs(w.duty) <= m.coulomb_mps2)
+            for w in self.wheels
+        )
 
     def _integrate(self, d_left: float, d_right: float) -> None:
         ds = 0.5 * (d_left + d_right)

@@ -34,6 +34,7 @@ from ohmni_tb.sim.device import SimDevice
 from ohmni_tb.sim.drive import DriveTrain, MotorModel, Pose, SimDriveBoard
 from ohmni_tb.sim.servo import SimServo
 from ohmni_tb.sim.worm_neck import SimWormNeck
+from ohmni_tb.transport import option_bool
 
 __all__ = ["NECK_CHOICES", "SimRobot"]
 
@@ -137,7 +138,7 @@ class SimRobot:
             soc = float(options.pop("soc", "80"))
         except ValueError:
             raise ConfigError("option soc must be a number of percent") from None
-        docked = options.pop("docked", "0").lower() in {"1", "true", "yes", "on"}
+        docked = option_bool(options, "docked", False)
         try:
             count_offset = int(options.pop("count_offset", "0"), 0)
         except ValueError:

@@ -34,7 +34,10 @@ class Transport(abc.ABC):
 
     @abc.abstractmethod
     async def read(self) -> bytes:
-        """Wait for bytes and return every byte available (at least one).
+        """Wait for bytes and return what has arrived (at least one byte).
+
+        A transport may hand the bytes over in the chunks they arrived in, so one frame can
+        take several reads; framing is the decoder's business.
 
         Raises:
             TransportClosedError: The transport was closed, or the peer went away, and

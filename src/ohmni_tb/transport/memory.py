@@ -14,6 +14,7 @@ nothing drops the write; returning changed bytes corrupts it. Order is always ke
 from __future__ import annotations
 
 import asyncio
+from collections import deque
 from collections.abc import Callable, Iterable
 
 from ohmni_tb.errors import TransportClosedError
@@ -39,7 +40,8 @@ class MemoryTransport(Transport):
         self.name = name
         self.baudrate = baudrate
         self._peer: MemoryTransport | None = None
-        self._rx = bytearray()
+        # Chunks as delivered: one read returns one chunk, so a split write is seen split.
+        self._rx: deque[bytes] = deque()
         self._rx_ready = asyncio.Event()
         self._closed = False
         self._manipulator: Manipulator | None = None
@@ -107,10 +109,11 @@ class MemoryTransport(Transport):
     def _receive(self, chunk: bytes) -> None:
         if self._closed or not chunk:
             return
-        self._rx += chunk
+        self._rx.append(chunk)
         self._rx_ready.set()
 
     async def read(self) -> bytes:
+        """Return the next chunk delivered: one write, or one piece of a split write."""
         while not self._rx:
             if self._closed:
                 raise TransportClosedError(f"{self.name} is closed")
@@ -119,8 +122,7 @@ class MemoryTransport(Transport):
                 raise TransportClosedError(f"{self.name}: the other end closed")
             self._rx_ready.clear()
             await self._rx_ready.wait()
-        data = bytes(self._rx)
-        self._rx.clear()
+        data = self._rx.popleft()
         self.bytes_read += len(data)
         return data
 

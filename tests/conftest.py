@@ -1,0 +1,79 @@
+"""Fixtures for every test: leak checks, the in-memory line, and opt-in hardware tests.
+
+Hardware-in-the-loop tests carry ``@pytest.mark.hardware`` and run only when a port is
+given (``pytest --ohmni-port=/dev/ttyUSB0``); they get the port from the ``ohmni_port``
+fixture. Everything else runs against fakes and the simulator.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import pytest
+
+from ohmni_tb.transport import MemoryTransport
+
+_PORT_OPTION = "--ohmni-port"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        _PORT_OPTION,
+        action="store",
+        default=None,
+        metavar="PATH",
+        help="serial port of a real Ohmni robot; enables tests marked 'hardware'",
+    )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption(_PORT_OPTION):
+        return
+    skip = pytest.mark.skip(reason=f"needs a robot: pass {_PORT_OPTION}=/dev/ttyUSB0")
+    for item in items:
+        if item.get_closest_marker("hardware") is not None:
+            item.add_marker(skip)
+
+
+@pytest.fixture
+def ohmni_port(request: pytest.FixtureRequest) -> str:
+    """The serial port given with ``--ohmni-port`` (the test is skipped without one)."""
+    port: str | None = request.config.getoption(_PORT_OPTION)
+    if not port:
+        pytest.skip(f"needs a robot: pass {_PORT_OPTION}=/dev/ttyUSB0")
+    return port
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_tasks(request: pytest.FixtureRequest) -> None:
+    """Fail an async test that leaves a task it created still running."""
+    if request.node.get_closest_marker("asyncio") is not None:
+        request.getfixturevalue("_task_leak_check")
+
+
+@pytest.fixture
+async def _task_leak_check(request: pytest.FixtureRequest) -> AsyncIterator[None]:
+    # Set up before, and so torn down after, every other fixture of the test: tasks
+    # that a fixture starts and stops are not leaks.
+    before = asyncio.all_tasks()
+    yield
+    # One pass of the loop lets a task that was cancelled but not awaited finish.
+    await asyncio.sleep(0)
+    leaked = asyncio.all_tasks() - before - {asyncio.current_task()}
+    if not leaked:
+        return
+    for task in leaked:
+        task.cancel()
+    await asyncio.wait(leaked)
+    names = sorted(task.get_name() for task in leaked)
+    pytest.fail(f"{request.node.nodeid} left {len(leaked)} task(s) running: {names}")
+
+
+@pytest.fixture
+async def memory_pair() -> AsyncIterator[tuple[MemoryTransport, MemoryTransport]]:
+    """A connected (host, device) in-memory pipe, both ends closed after the test."""
+    host, device = MemoryTransport.pair("test")
+    yield host, device
+    await host.aclose()
+    await device.aclose()

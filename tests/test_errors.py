@@ -1,0 +1,134 @@
+"""The error tree: one root, built-in bases where callers expect them, informative messages."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from ohmni_tb import errors
+from ohmni_tb.errors import (
+    BusClosedError,
+    BusTimeoutError,
+    ConfigError,
+    DeviceError,
+    DeviceStatusError,
+    InvalidArgumentError,
+    MalformedReplyError,
+    OhmniError,
+    OutOfRangeError,
+    ProtocolError,
+    StateError,
+    TransportClosedError,
+    TransportError,
+)
+
+ALL_ERRORS: list[type[OhmniError]] = [
+    BusClosedError,
+    BusTimeoutError,
+    ConfigError,
+    DeviceError,
+    DeviceStatusError,
+    InvalidArgumentError,
+    MalformedReplyError,
+    OhmniError,
+    OutOfRangeError,
+    ProtocolError,
+    StateError,
+    TransportClosedError,
+    TransportError,
+]
+
+#: Each error and the ohmni_tb error it derives from, as the module docstring draws it.
+PARENT: dict[type[OhmniError], type[OhmniError] | None] = {
+    OhmniError: None,
+    TransportError: OhmniError,
+    TransportClosedError: TransportError,
+    ProtocolError: OhmniError,
+    MalformedReplyError: ProtocolError,
+    DeviceError: OhmniError,
+    BusTimeoutError: DeviceError,
+    DeviceStatusError: DeviceError,
+    StateError: OhmniError,
+    BusClosedError: StateError,
+    ConfigError: OhmniError,
+    InvalidArgumentError: OhmniError,
+    OutOfRangeError: InvalidArgumentError,
+}
+
+
+def test_all_is_pinned() -> None:
+    assert errors.__all__ == [cls.__name__ for cls in ALL_ERRORS]
+    assert sorted(errors.__all__) == errors.__all__
+
+
+@pytest.mark.parametrize("cls", ALL_ERRORS, ids=lambda c: c.__name__)
+def test_every_error_derives_from_the_root(cls: type[OhmniError]) -> None:
+    assert issubclass(cls, OhmniError)
+    assert getattr(errors, cls.__name__) is cls
+
+
+@pytest.mark.parametrize("cls", ALL_ERRORS, ids=lambda c: c.__name__)
+def test_tree_matches_the_table(cls: type[OhmniError]) -> None:
+    own_bases = [b for b in cls.__bases__ if issubclass(b, OhmniError)]
+    expected = PARENT[cls]
+    assert own_bases == ([] if expected is None else [expected])
+
+
+def test_module_docstring_draws_the_real_tree() -> None:
+    doc = errors.__doc__
+    assert doc is not None
+    drawn: dict[str, str | None] = {}
+    stack: list[tuple[int, str]] = []
+    for line in doc.splitlines():
+        match = re.match(r"^(\s*(?:[│├└─ ]*))(\w+Error)\b", line)
+        if match is None:
+            continue
+        depth, name = len(match.group(1)), match.group(2)
+        while stack and stack[-1][0] >= depth:
+            stack.pop()
+        drawn[name] = stack[-1][1] if stack else None
+        stack.append((depth, name))
+    actual = {cls.__name__: (p.__name__ if p else None) for cls, p in PARENT.items()}
+    assert drawn == actual
+
+
+def test_builtin_bases() -> None:
+    assert issubclass(BusTimeoutError, TimeoutError)
+    for bad_argument in (OutOfRangeError, ConfigError, InvalidArgumentError):
+        assert issubclass(bad_argument, ValueError)
+    for other in (TransportError, ProtocolError, DeviceError, StateError):
+        assert not issubclass(other, ValueError | TimeoutError)
+
+
+def test_out_of_range_names_value_and_range() -> None:
+    err = OutOfRangeError("playtime_ticks", 255, 0, 254, "ticks")
+    assert str(err) == "playtime_ticks=255 is out of range: allowed 0..254 ticks"
+    assert (err.name, err.value, err.low, err.high, err.unit) == (
+        "playtime_ticks",
+        255,
+        0,
+        254,
+        "ticks",
+    )
+    with pytest.raises(ValueError, match=r"sid=-1 .*0\.\.253"):
+        raise OutOfRangeError("sid", -1, 0, 253)
+
+
+def test_bus_timeout_names_device_command_and_attempts() -> None:
+    err = BusTimeoutError(sid=20, cmd=0x04, attempts=3, timeout_s=0.025)
+    message = str(err)
+    assert "sid 20 (0x14)" in message
+    assert "0x04" in message
+    assert "3 attempt" in message
+    assert "25.0 ms" in message
+    assert (err.sid, err.cmd, err.attempts, err.timeout_s) == (20, 0x04, 3, 0.025)
+    with pytest.raises(TimeoutError):
+        raise err
+
+
+def test_device_errors_carry_the_sid_and_status() -> None:
+    err = DeviceStatusError("overload", sid=3, status_error=0x10, status_detail=0x40)
+    assert (err.sid, err.status_error, err.status_detail) == (3, 0x10, 0x40)
+    assert str(err) == "overload"
+    assert DeviceError("gone", sid=4).sid == 4

@@ -1,0 +1,135 @@
+"""The sans-IO layers import no asyncio, no serial and no clock.
+
+``protocol/``, ``control/`` and the codec half of ``herkulex/`` must run anywhere and be
+testable without a loop or a port (docs/design: "Layers"). Two checks: a fresh interpreter
+imports them and reports what they pulled in or asked for, and their source is scanned.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import json
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import ohmni_tb
+
+#: Top-level modules a sans-IO module must not import.
+FORBIDDEN = frozenset({"asyncio", "serial", "serial_asyncio_fast", "time"})
+#: Packages that are sans-IO as a whole.
+SANS_IO_PACKAGES = ("ohmni_tb.protocol", "ohmni_tb.control", "ohmni_tb.herkulex")
+#: Modules of those packages that are allowed I/O: the herkulex Servo handle drives the Bus.
+IO_MODULES = frozenset({"ohmni_tb.herkulex.servo"})
+
+SRC = Path(ohmni_tb.__file__).parent
+
+
+def sans_io_modules() -> list[str]:
+    """Every module of the sans-IO packages that exists now (packages included)."""
+    names: list[str] = []
+    for package in SANS_IO_PACKAGES:
+        if importlib.util.find_spec(package) is None:
+            continue
+        path = SRC.joinpath(*package.split(".")[1:])
+        if not (path / "__init__.py").exists():
+            # A directory without a package yet (work in progress elsewhere).
+            continue
+        names.append(package)
+        names += [f"{package}.{m.name}" for m in pkgutil.iter_modules([str(path)])]
+    return [name for name in names if name not in IO_MODULES]
+
+
+def source_of(module: str) -> Path:
+    path = SRC.joinpath(*module.split(".")[1:])
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+
+
+MODULES = sans_io_modules()
+
+# Runs in a fresh interpreter: imports the modules and reports (1) which forbidden
+# modules ended up loaded and (2) every import statement an ohmni_tb module executed for a
+# forbidden module, even one already loaded (`time` is, by the interpreter itself).
+_PROBE = """
+import builtins, json, sys
+forbidden, modules = set(sys.argv[1].split(",")), sys.argv[2].split(",")
+asked = []
+real_import = builtins.__import__
+def spy(name, globals=None, locals=None, fromlist=(), level=0):
+    importer = (globals or {}).get("__name__", "")
+    if level == 0 and name.split(".")[0] in forbidden and importer.startswith("ohmni_tb"):
+        asked.append([importer, name])
+    return real_import(name, globals, locals, fromlist, level)
+builtins.__import__ = spy
+preloaded = {m for m in forbidden if m in sys.modules}
+for module in modules:
+    __import__(module)
+loaded = sorted(m for m in forbidden if m in sys.modules and m not in preloaded)
+print(json.dumps({"loaded": loaded, "asked": asked}))
+"""
+
+
+def test_the_sans_io_packages_exist() -> None:
+    assert "ohmni_tb.protocol" in MODULES
+    assert "ohmni_tb.protocol.framing" in MODULES
+    assert "ohmni_tb.protocol.messages" in MODULES
+
+
+def test_importing_the_sans_io_layers_pulls_in_no_io() -> None:
+    result = subprocess.run(
+        [sys.executable, "-c", _PROBE, ",".join(sorted(FORBIDDEN)), ",".join(MODULES)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=30,
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report == {"loaded": [], "asked": []}
+
+
+def test_the_probe_sees_a_forbidden_import() -> None:
+    # The probe must be able to fail: the transport layer does import asyncio and serial.
+    result = subprocess.run(
+        [sys.executable, "-c", _PROBE, ",".join(sorted(FORBIDDEN)), "ohmni_tb.transport"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=30,
+    )
+    report = json.loads(result.stdout)
+    assert {"asyncio", "serial"} <= set(report["loaded"])
+    assert ["ohmni_tb.transport.serial", "serial"] in report["asked"]
+
+
+def forbidden_imports(source: str) -> list[str]:
+    found: list[str] = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [a.name for a in node.names if a.name.split(".")[0] in FORBIDDEN]
+        elif (
+            isinstance(node, ast.ImportFrom)
+            and node.level == 0
+            and node.module
+            and node.module.split(".")[0] in FORBIDDEN
+        ):
+            found.append(node.module)
+    return found
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_source_has_no_forbidden_import(module: str) -> None:
+    # Also catches imports inside functions, which the import probe cannot see.
+    assert forbidden_imports(source_of(module).read_text(encoding="utf-8")) == []
+
+
+@pytest.mark.parametrize(
+    "line",
+    ["import time", "from time import monotonic", "import asyncio.tasks", "import serial"],
+)
+def test_the_scan_sees_a_forbidden_import(line: str) -> None:
+    assert forbidden_imports(f"def f() -> None:\n    {line}\n") != []
