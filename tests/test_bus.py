@@ -288,6 +288,28 @@ async def test_corrupted_reply_is_retried(rig: Rig) -> None:
     assert len(rig.device.received) == 1 + stats.devices[3].retries
 
 
+async def test_a_reply_whose_length_byte_disagrees_is_retried_not_raised(rig: Rig) -> None:
+    rig.device.registers[3, 0x35] = b"\x01"
+    sent = 0
+
+    def respond(request: Packet) -> list[Packet]:
+        # The first answer is what a bit-0 error in the size byte leaves: a frame that
+        # passes both checksums but is one byte short of what its length byte says.
+        nonlocal sent
+        sent += 1
+        if sent == 1:
+            return [Packet(3, request.cmd | REPLY_FLAG, bytes([0x35, 1, 0x01, 0]))]
+        return rig.device.answer(request)
+
+    rig.device.respond = respond
+    async with Bus(rig.host, timeout_s=0.05, retries=2) as bus:
+        reply = await bus.read(3, 0x35, 1)
+        stats = bus.stats
+    assert reply.data == b"\x01"
+    assert stats.devices[3].unmatched == 1
+    assert stats.devices[3].retries == 1
+
+
 async def test_dropped_reply_bytes_time_out_then_retry(rig: Rig) -> None:
     rig.device.registers[3, 0x35] = b"\x01"
     # Lose one data byte of the first reply: its frame never completes.

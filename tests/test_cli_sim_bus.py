@@ -106,6 +106,7 @@ def test_send_with_a_bad_port_url_fails_with_an_error_line() -> None:
         (("300", "STAT"), "SID=300"),
         (("--", "-1", "STAT"), "SID=-1"),
         (("0", "JUMP"), "'JUMP'"),
+        (("0", "JUMP"), "RAM_READ"),  # the message lists the command names
         (("0", "0x1FF"), "CMD=511"),
         (("0", "RAM_READ", "3G"), "'3G'"),
         (("0", "RAM_READ", "3B", "0"), "'3B 0'"),

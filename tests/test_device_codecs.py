@@ -301,10 +301,16 @@ def test_light_ring_is_the_published_vector() -> None:
         assert packets == [core.set_light_ring(0, 255, 255)]
 
 
-@pytest.mark.parametrize(("h", "s", "v"), [(256, 0, 0), (0, -1, 0), (0, 0, 1.5)])
+@pytest.mark.parametrize(("h", "s", "v"), [(256, 0, 0), (0, -1, 0)])
 def test_light_ring_refuses_components_out_of_range(h: int, s: int, v: int) -> None:
     with pytest.raises(OutOfRangeError):
         core.set_light_ring(h, s, v)
+
+
+@pytest.mark.parametrize("bad", [1.5, True])
+def test_light_ring_refuses_components_that_are_not_ints(bad: object) -> None:
+    with pytest.raises(InvalidArgumentError, match="value must be an int"):
+        core.set_light_ring(0, 0, bad)  # type: ignore[arg-type]  # the wrong type on purpose
 
 
 # -- worm neck ----------------------------------------------------------------------------

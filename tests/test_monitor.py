@@ -125,6 +125,24 @@ def test_a_request_with_no_reply_before_the_next_is_counted_unanswered() -> None
     assert monitor.devices[20].unanswered == 1  # the STAT; the last read may still be answered
 
 
+def test_a_request_left_unanswered_at_the_end_of_a_capture_is_counted() -> None:
+    monitor = BusMonitor()
+    monitor.feed(encode_packet(read_status()))
+    assert monitor.devices[20].unanswered == 0  # its answer may still come
+    monitor.finish()
+    assert monitor.devices[20].unanswered == 1
+
+
+def test_rate_is_measured_between_requests() -> None:
+    monitor = BusMonitor()
+    for i in range(5):
+        monitor.feed(encode_packet(read_count(0)), t_s=0.1 * i)
+        monitor.feed(encode_packet(_reply(read_count(0), bytes(4))), t_s=0.1 * i + 0.003)
+    rate = monitor.devices[0].rate_hz()
+    assert rate is not None
+    assert rate == pytest.approx(10.0)
+
+
 def test_writes_and_jogs_are_not_expected_to_answer() -> None:
     monitor = BusMonitor()
     for packet in (set_light_ring(1, 2, 3), wheel_command(10, 10), read_count(0)):

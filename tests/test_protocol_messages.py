@@ -267,8 +267,19 @@ def test_reply_matches_its_read() -> None:
         Packet(3, Command.EEP_READ.reply, bytes([0x35, 1, 0x01, 0, 0])),
         Packet(3, Command.RAM_READ, bytes([0x35, 1])),
         Packet(3, Command.RAM_READ.reply, bytes([0x35])),
+        # A bit-0 error in the size byte passes both checksums (they ignore bit 0): the
+        # length byte then disagrees with the bytes carried.
+        Packet(3, Command.RAM_READ.reply, bytes([0x35, 1, 0x01, 0])),
     ],
-    ids=["wrong-sid", "wrong-addr", "wrong-length", "eep-not-ram", "echo", "too-short"],
+    ids=[
+        "wrong-sid",
+        "wrong-addr",
+        "wrong-length",
+        "eep-not-ram",
+        "echo",
+        "too-short",
+        "length-byte-disagrees",
+    ],
 )
 def test_reply_matches_refuses(reply: Packet) -> None:
     assert not reply_matches(READ_LED, reply)

@@ -12,9 +12,10 @@ never handed to the next request::
 
 Timing on the wire: the reply timeout starts when the request has been written and is
 stretched by the request's and reply's own wire time at the transport's baud rate, so it
-means "device turnaround plus link latency" at any baud rate. After a request that got no
-reply (cancelled, or timed out) the bus keeps quiet for one more timeout before the next,
-so a late reply cannot collide with the next request on the line.
+means "device turnaround plus link latency" at any baud rate. A timed-out request has
+already waited its whole reply window; after a *cancelled* one the bus keeps quiet for one
+more reply window before the next request, so a late reply cannot collide with it on the
+line (and a late reply that does arrive is counted, never delivered).
 """
 
 from __future__ import annotations

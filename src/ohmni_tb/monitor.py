@@ -174,12 +174,12 @@ class DeviceTraffic:
     replies: int = 0
     unanswered: int = 0
     error_replies: int = 0
-    first_s: float | None = None
-    last_s: float | None = None
+    first_s: float | None = None  # time of the first request seen
+    last_s: float | None = None  # time of the last request seen
     latencies_s: list[float] = field(default_factory=list)
 
     def rate_hz(self) -> float | None:
-        """Requests a second over the time seen, if times are known."""
+        """Requests a second between the first and the last request, if times are known."""
         if self.first_s is None or self.last_s is None or self.last_s <= self.first_s:
             return None
         return (self.requests - 1) / (self.last_s - self.first_s) if self.requests > 1 else None
@@ -202,19 +202,24 @@ class BusMonitor:
         """Decode ``data`` (arrived at ``t_s``) into events."""
         return [self._event(p, t_s) for p in self._decoder.feed(data)]
 
-    def _traffic(self, sid: int, t_s: float | None) -> DeviceTraffic:
+    def finish(self) -> None:
+        """The capture ended: a request still waiting for its answer counts as unanswered."""
+        self._close_pending()
+
+    def _traffic(self, sid: int) -> DeviceTraffic:
         traffic = self.devices.get(sid)
         if traffic is None:
             traffic = self.devices[sid] = DeviceTraffic(sid)
-        if t_s is not None:
-            if traffic.first_s is None:
-                traffic.first_s = t_s
-            traffic.last_s = t_s
         return traffic
+
+    def _close_pending(self) -> None:
+        if self._pending is not None and self._pending[0].cmd in _ANSWERED:
+            self._traffic(self._pending[0].sid).unanswered += 1
+        self._pending = None
 
     def _event(self, packet: Packet, t_s: float | None) -> MonitorEvent:
         latency: float | None = None
-        traffic = self._traffic(packet.sid, t_s)
+        traffic = self._traffic(packet.sid)
         if packet.is_reply:
             traffic.replies += 1
             pending = self._pending
@@ -227,9 +232,12 @@ class BusMonitor:
             if len(packet.data) >= 2 and packet.data[-2]:
                 traffic.error_replies += 1
         else:
-            if self._pending is not None and self._pending[0].cmd in _ANSWERED:
-                self._traffic(self._pending[0].sid, None).unanswered += 1
+            self._close_pending()
             traffic.requests += 1
+            if t_s is not None:
+                if traffic.first_s is None:
+                    traffic.first_s = t_s
+                traffic.last_s = t_s
             self._pending = (packet, t_s)
         return MonitorEvent(t_s, packet, device_name(packet.sid), describe(packet), latency)
 

@@ -291,6 +291,8 @@ def test_default_url_has_a_clean_line() -> None:
         ("sim://?corrupt=-0.1", "corrupt"),
         ("sim://?drop=lots", "drop"),
         ("sim://?bogus=1", "bogus"),
+        ("sim://?ext=11,11", "repeat"),
+        ("sim://?count_offset=4294967296", "count_offset"),
         ("sim://?silent=core", "silent"),
         ("sim://?silent=300", "silent"),
         ("sim://?seed=-1", "seed"),

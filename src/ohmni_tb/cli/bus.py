@@ -37,7 +37,13 @@ def _parse_command(text: str) -> int:
         return int(Command[text.upper()])
     except KeyError:
         pass
-    code = parse_int(text, "CMD")
+    try:
+        code = int(text, 0)
+    except ValueError:
+        names = ", ".join(c.name for c in Command)
+        raise typer.BadParameter(
+            f"CMD must be a command name ({names}) or a code 0..255, not {text!r}"
+        ) from None
     if not 0 <= code <= 0xFF:
         raise typer.BadParameter(f"CMD={code} is out of range: allowed 0..255")
     return code
@@ -188,6 +194,7 @@ _SUMMARY_HEADERS = ("sid", "device", "req", "rep", "unanswered", "err", "Hz", "p
 
 
 def _summary(mon: BusMonitor, as_json: bool) -> None:
+    mon.finish()
     rows = []
     for t in sorted(mon.devices.values(), key=lambda d: d.sid):
         lat = sorted(t.latencies_s)

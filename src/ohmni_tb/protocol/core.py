@@ -11,7 +11,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from ohmni_tb.errors import MalformedReplyError, OutOfRangeError
+from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError, OutOfRangeError
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.framing import Packet
 from ohmni_tb.protocol.messages import ReadReply, read_request, write_request
@@ -157,6 +157,8 @@ def set_light_ring(
         OutOfRangeError: A component is outside 0..255.
     """
     for name, component in (("hue", hue), ("saturation", saturation), ("value", value)):
-        if not isinstance(component, int) or not 0 <= component <= 0xFF:
+        if isinstance(component, bool) or not isinstance(component, int):
+            raise InvalidArgumentError(f"{name} must be an int 0..255, not {component!r}")
+        if not 0 <= component <= 0xFF:
             raise OutOfRangeError(name, component, 0, 255)
     return write_request(DeviceId.CORE, profile.light_ring_addr, bytes((hue, saturation, value)))

@@ -270,12 +270,19 @@ def reply_expected(cmd: int, sid: int, ack_policy: int = AckPolicy.READS) -> boo
 
 def reply_matches(request: Packet, reply: Packet) -> bool:
     """Whether ``reply`` answers ``request``: same sid, the reply code, and for reads the
-    same address (and length, unless the request asked for length 0)."""
+    same address, a length byte that fits the payload, and the length asked for (unless
+    the request asked for length 0).
+
+    The checksums ignore bit 0, so a line error can leave a reply whose length byte
+    disagrees with its bytes; such a reply answers nothing, and the read is retried.
+    """
     if reply.sid != request.sid or reply.cmd != request.cmd | REPLY_FLAG:
         return False
     if request.cmd in _READS:
         rd, qd = reply.data, request.data
         if len(rd) < _RW_OVERHEAD or len(qd) < _RW_OVERHEAD or rd[0] != qd[0]:
+            return False
+        if len(rd) != rd[1] + _RW_OVERHEAD + _STATUS_SIZE:
             return False
         return qd[1] == 0 or rd[1] == qd[1]
     return True

@@ -70,6 +70,14 @@ class SimRobot:
         if not 0 <= soc_percent <= 100:
             raise ConfigError(f"soc={soc_percent} is out of range: allowed 0..100 %")
         reserved = {int(d) for d in DeviceId}
+        if len(set(ext_servo_ids)) != len(ext_servo_ids):
+            raise ConfigError(
+                f"external servo ids {ext_servo_ids} repeat an id; they would collide"
+            )
+        if not -(2**31) <= count_offset < 2**31:
+            raise ConfigError(
+                f"count_offset={count_offset} is out of range: allowed -2**31..2**31-1"
+            )
         for sid in ext_servo_ids:
             if sid in reserved or not 0 <= sid <= 0xFD:
                 raise ConfigError(f"external servo id {sid} clashes with a board or is not 0..253")

@@ -8,6 +8,7 @@ URLs understood:
 ``memory://``                                       a loopback: what you write, you read
 ``memory://NAME``                                   one end of a named in-process pipe; the
                                                     second open of NAME gets the other end
+                                                    (a third starts a new pair)
 ``sim://``                                          the simulated robot (:mod:`ohmni_tb.sim`)
 ==================================================  =============================================
 

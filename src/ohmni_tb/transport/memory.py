@@ -74,7 +74,8 @@ class MemoryTransport(Transport):
 
     @property
     def closed(self) -> bool:
-        return self._closed
+        peer = self._peer
+        return self._closed or (peer is not None and peer is not self and peer._closed)
 
     async def write(self, data: bytes) -> None:
         if self._closed:

@@ -112,6 +112,8 @@ class SerialTransport(Transport):
         try:
             data = await self._reader.read(_READ_CHUNK)
         except (serial.SerialException, OSError) as exc:
+            # An unplugged adapter fails every read from now on: the link is lost.
+            self._closed = True
             raise TransportError(f"read from {self.port} failed: {exc}") from exc
         if not data:
             self._closed = True
