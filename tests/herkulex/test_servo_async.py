@@ -17,6 +17,7 @@ from ohmni_tb.herkulex import (
     StatusError,
     TorqueControl,
     playtime_s_from_ticks,
+    ram_write,
 )
 from ohmni_tb.herkulex.servo import Servo, move_group
 from ohmni_tb.sim.clock import run_virtual
@@ -249,5 +250,38 @@ def test_group_move_is_one_packet_and_moves_both() -> None:
         assert (await ext1.position_raw(), await ext2.position_raw()) == (300, 700)
         status = await ext1.status()
         assert status.detail & StatusDetail.INPOSITION
+
+    on_sim(body)
+
+
+def test_acks_the_bus_did_not_expect_never_reach_the_next_read() -> None:
+    """The reference's mistake: stale replies left in the buffer under ACK policy 2."""
+
+    async def body(bus: Bus, _: SimTransport) -> None:
+        # Switch the servo to policy 2 behind the bus's back: its acks are unexpected.
+        await bus.send(ram_write(11, "ack_policy", 2))
+        await bus.send(ram_write(11, "led_control", 1))
+        servo = Servo(bus, 11)
+        assert await servo.read("acceleration_ratio") == 25
+        assert await servo.read("led_control") == 1
+        # The write that set policy 2 was answered under policy 1 (no ack); the LED write's
+        # ack was unexpected: counted, and never taken for the reads' replies.
+        assert bus.stats.devices[11].unmatched == 1
+
+    on_sim(body)
+
+
+def test_a_silent_servo_fails_fast_with_bounded_retries() -> None:
+    """The reference's mistake: blocking reads with no timeout, or a 1 s one."""
+
+    async def body(bus: Bus, _: SimTransport) -> None:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        with pytest.raises(BusTimeoutError) as err:
+            await Servo(bus, 40).read("temperature")
+        elapsed = loop.time() - t0
+        assert err.value.attempts == 1 + bus.retries
+        # Three attempts of the 25 ms default plus wire time: well under 1 s (virtual time).
+        assert elapsed < 0.15
 
     on_sim(body)

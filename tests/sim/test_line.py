@@ -315,3 +315,26 @@ def test_bad_options_are_refused_by_name(url: str, named: str) -> None:
 
     with pytest.raises(ConfigError, match=named):
         run_virtual(main())
+
+
+def test_realtime_off_answers_at_once_and_keeps_simulated_time() -> None:
+    """realtime=0: replies come without waiting; the simulated time still counts the wire."""
+
+    async def main(url: str) -> tuple[float, float]:
+        transport = await open_transport(url)
+        assert isinstance(transport, SimTransport)
+        async with Bus(transport, gap_s=0.0) as bus:
+            for _ in range(10):
+                await bus.read(3, 58, 2)
+            latency = bus.stats.devices[3].latency_p50_s
+            assert latency is not None
+            return latency, transport.line.now_s()
+
+    wire_s = (9 + 13) * 10 / 115_200
+    latency_rt, sim_rt = run_virtual(main("sim://?turnaround_us=0"))
+    latency_fast, sim_fast = run_virtual(main("sim://?turnaround_us=0&realtime=0"))
+    assert latency_rt == pytest.approx(wire_s)
+    assert latency_fast == 0.0
+    # Both simulated clocks counted the same ten reads on the wire.
+    assert sim_fast == pytest.approx(10 * wire_s)
+    assert sim_rt == pytest.approx(10 * wire_s)

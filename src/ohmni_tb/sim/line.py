@@ -33,6 +33,7 @@ from ohmni_tb.transport import (
     DEFAULT_BAUDRATE,
     MemoryTransport,
     Transport,
+    option_bool,
     option_int,
     register_transport,
     reject_unknown_options,
@@ -98,6 +99,10 @@ class SimLine:
         baudrate: Line speed; sets each byte's wire time.
         turnaround_s: Delay between a request's end and its reply's start.
         seed: Seed for the fault generator, so a faulty run can be repeated.
+        realtime: Deliver each reply when its last byte would arrive. With ``False`` replies
+            come at once and the simulated time runs ahead of the clock by the wire time
+            of the traffic (never behind it): bus traffic as fast as the CPU allows, for
+            throughput tests. Under :func:`~ohmni_tb.sim.clock.run_virtual` both are exact.
     """
 
     def __init__(
@@ -107,11 +112,13 @@ class SimLine:
         baudrate: int = DEFAULT_BAUDRATE,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         seed: int = 0,
+        realtime: bool = True,
     ) -> None:
         self.devices: list[SimDevice] = list(devices)
         self.baudrate = baudrate
         self.byte_s = _BITS_PER_BYTE / baudrate
         self.turnaround_s = turnaround_s
+        self.realtime = realtime
         self.faults = LineFaults()
         self.stats = LineStats()
         self._rng = random.Random(seed)
@@ -182,8 +189,10 @@ class SimLine:
         self._line_free_at = end
         self.stats.busy_s += end - start
         wait_s = end - self._elapsed_s()
-        if wait_s > 0:
+        if self.realtime and wait_s > 0:
             await asyncio.sleep(wait_s)
+        # The line was busy until the reply's last byte, whether or not we waited for it.
+        self._now_s = max(self._now_s, end)
         wire = self._apply_faults(wire)
         if not wire:
             return
@@ -283,11 +292,18 @@ def build_line(options: dict[str, str]) -> tuple[SimLine, SimRobot]:
         options, "turnaround_us", round(DEFAULT_TURNAROUND_S * 1e6), 0, 100_000
     )
     seed = option_int(options, "seed", 0, 0, 2**32 - 1)
+    realtime = option_bool(options, "realtime", True)
     drop = _option_rate(options, "drop")
     corrupt = _option_rate(options, "corrupt")
     silent = parse_ids("silent", options.pop("silent", ""))
     robot = SimRobot.from_options(options)
-    line = SimLine(robot.devices, baudrate=baudrate, turnaround_s=turnaround_us / 1e6, seed=seed)
+    line = SimLine(
+        robot.devices,
+        baudrate=baudrate,
+        turnaround_s=turnaround_us / 1e6,
+        seed=seed,
+        realtime=realtime,
+    )
     line.faults.drop_rate = drop
     line.faults.corrupt_rate = corrupt
     line.faults.silent = set(silent)

@@ -12,6 +12,8 @@ option              meaning                                                    d
 ``count_offset``    initial wheel count of both boards (int32 wrap tests)      ``0``
 ``baudrate``        line speed                                                 ``115200``
 ``turnaround_us``   device reply delay                                         ``500``
+``realtime``        1: replies take their wire time on the clock; 0: at once,  ``1``
+                    simulated time running ahead by the traffic's wire time
 ``drop``            share of bytes lost on the line, 0..1                      ``0``
 ``corrupt``         share of bytes garbled on the line, 0..1                   ``0``
 ``silent``          device ids that never answer, comma-separated              none
