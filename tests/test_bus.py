@@ -536,3 +536,13 @@ async def test_bus_settings_are_checked(
     with pytest.raises(OutOfRangeError) as info:
         Bus(memory_pair[0], **kwargs)  # type: ignore[arg-type]  # checked at run time
     assert info.value.name == name
+
+
+async def test_query_parses_a_codec_read_and_refuses_anything_else(rig: Rig) -> None:
+    rig.device.registers[3, 0x3A] = (777).to_bytes(2, "little")
+    async with Bus(rig.host, timeout_s=ON_TIME_S) as bus:
+        reply = await bus.query(read_request(3, 0x3A, 2))
+        assert int.from_bytes(reply.data, "little") == 777
+        with pytest.raises(InvalidArgumentError, match="read request"):
+            await bus.query(write_request(3, 0x3A, b"\x01"))
+    assert rig.device.received == [read_request(3, 0x3A, 2)]

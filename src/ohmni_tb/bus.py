@@ -328,7 +328,21 @@ class Bus:
             MalformedReplyError: The reply's layout does not fit the request.
             BusTimeoutError: No reply after every attempt.
         """
-        reply = await self.request(read_request(sid, addr, length, memory), expect_reply=True)
+        return await self.query(read_request(sid, addr, length, memory))
+
+    async def query(self, request: Packet) -> ReadReply:
+        """Send a read request built by a codec and return its parsed reply.
+
+        ``parse_count(await bus.query(read_count(0)))`` reads the left wheel count.
+
+        Raises:
+            InvalidArgumentError: ``request`` is not a RAM_READ or EEP_READ.
+            MalformedReplyError: The reply's layout does not fit the request.
+            BusTimeoutError: No reply after every attempt.
+        """
+        if request.cmd not in (Command.RAM_READ, Command.EEP_READ):
+            raise InvalidArgumentError(f"query() takes a read request, not {request!r}")
+        reply = await self.request(request, expect_reply=True)
         assert reply is not None  # expect_reply=True returns a packet or raises
         return ReadReply.parse(reply)
 

@@ -24,7 +24,7 @@ from ohmni_tb.herkulex import (
     ram_write,
     s_jog,
 )
-from ohmni_tb.protocol import Memory, ReadReply
+from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.core import parse_status, read_status
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId, device_name
 from ohmni_tb.protocol.drive import (
@@ -109,9 +109,7 @@ async def _servo_position(bus: Bus, sid: int) -> int:
 
 async def _battery(bus: Bus) -> None:
     try:
-        reply = await bus.request(read_status())
-        assert reply is not None
-        status = parse_status(ReadReply.parse(reply))
+        status = parse_status(await bus.query(read_status()))
     except OhmniError as exc:
         console.print(f"battery: [yellow]{exc}[/yellow]")
         return
@@ -124,12 +122,9 @@ async def _battery(bus: Bus) -> None:
 
 
 async def _counts(bus: Bus) -> tuple[int, int]:
-    counts = []
-    for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
-        reply = await bus.request(read_count(sid))
-        assert reply is not None
-        counts.append(parse_count(ReadReply.parse(reply)))
-    return counts[0], counts[1]
+    left = parse_count(await bus.query(read_count(DeviceId.LEFT_DRIVE)))
+    right = parse_count(await bus.query(read_count(DeviceId.RIGHT_DRIVE)))
+    return left, right
 
 
 def _metres(ticks: int) -> float:
