@@ -129,8 +129,7 @@ def monitor(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only the summary.")] = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Decode bus traffic: every packet with device and register names, then per-device
-    rates, latencies and errors.
+    """Decode bus traffic: packets by device and register name, rates, latencies, errors.
 
     Use --capture for bytes logged from the real robot (see docs/hardware.md), or --port
     on an adapter that listens to the line. Ctrl-C ends a live session.
