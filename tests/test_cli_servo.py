@@ -135,3 +135,10 @@ def test_version() -> None:
     code, out = invoke("version")
     assert code == 0
     assert out.strip().count(".") == 2
+
+
+def test_demo_moves_a_worm_neck_when_the_robot_has_one() -> None:
+    code, out = invoke("demo", "--port", "sim://?neck=worm")
+    assert code == 0, out
+    assert "firmware 'sim-worm-1.0'" in out
+    assert "worm neck: 0 → 60000" in out

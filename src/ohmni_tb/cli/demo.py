@@ -13,17 +13,10 @@ from ohmni_tb.bus import Bus
 from ohmni_tb.cli.common import PortOption, console, run, stats_rows
 from ohmni_tb.errors import BusTimeoutError, OhmniError
 from ohmni_tb.herkulex import (
-    JogTarget,
     TorqueControl,
     angle_deg_from_raw,
-    model_read,
-    parse_model,
-    parse_reply,
-    playtime_ticks_from_s,
-    ram_read,
-    ram_write,
-    s_jog,
 )
+from ohmni_tb.herkulex.servo import Servo
 from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.core import parse_status, read_status
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId, device_name
@@ -33,6 +26,7 @@ from ohmni_tb.protocol.drive import (
     read_count,
     wheel_command,
 )
+from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback, set_target
 from ohmni_tb.transport import open_transport
 
 __all__ = ["demo"]
@@ -41,6 +35,8 @@ __all__ = ["demo"]
 _TICKS_PER_WHEEL_TURN = MOTOR_POSITION_MODULUS * 30 / 11
 _WHEEL_RADIUS_M = 0.0760
 _NECK_FROM, _NECK_TO = 280, 650
+#: A worm-neck target inside its range (−127000 up … 120000 down): tilt down a little.
+_WORM_TARGET = 60_000
 
 
 def demo(
@@ -89,22 +85,15 @@ async def _scan(bus: Bus) -> None:
             answer = "[dim]no answer[/dim]"
         table.add_row(str(int(sid)), device_name(sid), answer)
     for servo_id in (DeviceId.HERKULEX_NECK, *DEFAULT_EXT_SERVO_IDS):
+        servo = Servo(bus, servo_id)
         try:
-            reply = await bus.request(model_read(servo_id))
-            assert reply is not None
-            model = parse_model(parse_reply(reply))
-            pos = await _servo_position(bus, servo_id)
+            model = await servo.model()
+            pos = await servo.position_raw()
             answer = f"{model.name} at {pos} ({angle_deg_from_raw(pos):+.1f}°)"
         except BusTimeoutError:
             answer = "[dim]no answer[/dim]"
         table.add_row(str(servo_id), device_name(servo_id), answer)
     console.print(table)
-
-
-async def _servo_position(bus: Bus, sid: int) -> int:
-    reply = await bus.request(ram_read(sid, "calibrated_position"))
-    assert reply is not None
-    return int.from_bytes(parse_reply(reply).data, "little") & 0x3FF
 
 
 async def _battery(bus: Bus) -> None:
@@ -159,28 +148,53 @@ async def _drive(bus: Bus, robot: object) -> None:
 
 
 async def _neck(bus: Bus) -> None:
-    sid = DeviceId.HERKULEX_NECK
+    neck = Servo(bus, DeviceId.HERKULEX_NECK, min_raw=_NECK_FROM, max_raw=_NECK_TO)
     try:
-        await bus.send(ram_write(sid, "torque_control", TorqueControl.ON))
-        await bus.send(s_jog(0, JogTarget(sid, _NECK_FROM)))
-        for _ in range(60):  # the servo needs < 1 s for any start position
-            if await _servo_position(bus, sid) == _NECK_FROM:
+        await neck.status()  # STAT is always answered: is a HerkuleX neck there?
+    except BusTimeoutError:
+        await _worm_neck(bus)
+        return
+    await neck.torque(TorqueControl.ON)
+    try:
+        await neck.move_to(_NECK_FROM, playtime_ticks=0)
+        for _ in range(60):  # the servo needs < 1 s from any start position
+            if await neck.position_raw() == _NECK_FROM:
                 break
             await asyncio.sleep(0.05)
+        console.print(f"neck: {_NECK_FROM} → {_NECK_TO} over 1.0 s")
+        await neck.move_to(_NECK_TO, playtime_s=1.0)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        samples = []
+        while loop.time() - t0 < 1.3:
+            samples.append((loop.time() - t0, await neck.position_raw()))
+            await asyncio.sleep(0.1)
+        line = "  ".join(f"{t:.1f}s:{pos}" for t, pos in samples)
+        console.print("  " + line, highlight=False)
+    finally:
+        # Holding torque overheats the neck: free it whatever happened, Ctrl-C included.
+        await asyncio.shield(neck.torque(TorqueControl.FREE))
+
+
+async def _worm_neck(bus: Bus) -> None:
+    try:
+        start = parse_feedback(await bus.query(read_feedback()))
     except BusTimeoutError:
-        console.print("neck: [dim]no HerkuleX neck answers[/dim]")
+        console.print("neck: [dim]neither a HerkuleX nor a worm-gear neck answers[/dim]")
         return
-    playtime = playtime_ticks_from_s(1.0)
-    console.print(f"neck: {_NECK_FROM} → {_NECK_TO} over {playtime} ticks (1.0 s)")
-    await bus.send(s_jog(playtime, JogTarget(sid, _NECK_TO)))
+    target = _WORM_TARGET if start.position != _WORM_TARGET else 0
+    console.print(f"worm neck: {start.position} → {target}")
+    await bus.send(set_target(target))
     loop = asyncio.get_running_loop()
     t0 = loop.time()
     samples = []
-    while loop.time() - t0 < 1.3:
-        samples.append((loop.time() - t0, await _servo_position(bus, sid)))
+    while loop.time() - t0 < 1.5:
+        feedback = parse_feedback(await bus.query(read_feedback()))
+        samples.append(f"{loop.time() - t0:.1f}s:{feedback.position}")
+        if not feedback.moving:
+            break
         await asyncio.sleep(0.1)
-    console.print("  " + "  ".join(f"{t:.1f}s:{pos}" for t, pos in samples), highlight=False)
-    await bus.send(ram_write(sid, "torque_control", TorqueControl.FREE))
+    console.print("  " + "  ".join(samples), highlight=False)
 
 
 def _show_stats(bus: Bus) -> None:
