@@ -546,3 +546,32 @@ async def test_query_parses_a_codec_read_and_refuses_anything_else(rig: Rig) -> 
         with pytest.raises(InvalidArgumentError, match="read request"):
             await bus.query(write_request(3, 0x3A, b"\x01"))
     assert rig.device.received == [read_request(3, 0x3A, 2)]
+
+
+async def test_a_wider_command_set_lets_a_vendor_reply_through() -> None:
+    vendor_reply = Packet(3, 0x4A, b"\x00\x00")  # a reply code outside the nine commands
+
+    async def device(end: MemoryTransport) -> None:
+        # Whatever arrives, answer with the vendor reply (the device's own decoding is not
+        # what this test is about).
+        while True:
+            await end.read()
+            await end.write(encode_packet(vendor_reply))
+
+    async def ask(commands: set[int] | None) -> tuple[Packet | None, int]:
+        host, end = MemoryTransport.pair("vendor")
+        task = asyncio.create_task(device(end))
+        try:
+            async with Bus(host, timeout_s=0.02, retries=0, commands=commands) as bus:
+                try:
+                    reply = await bus.request(Packet(3, 0x0A), expect_reply=True)
+                except BusTimeoutError:
+                    reply = None
+                return reply, bus.stats.decoder.unknown_commands
+        finally:
+            task.cancel()
+            await asyncio.wait({task})
+            await end.aclose()
+
+    assert await ask(None) == (None, 1)  # the default set refuses it, and counts it
+    assert await ask({0x0A, 0x4A}) == (vendor_reply, 0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Self
@@ -164,6 +165,8 @@ class Bus:
         retries: Extra attempts for reads and STAT after a timeout.
         gap_s: Quiet time before each request.
         max_packet_size: The largest packet sent or accepted (223 HerkuleX, 64 Ohmni).
+        commands: Command codes the receiver accepts (requests and replies); the nine
+            HerkuleX commands by default. Widen it if a capture shows a board using more.
     """
 
     def __init__(
@@ -174,6 +177,7 @@ class Bus:
         retries: int = DEFAULT_RETRIES,
         gap_s: float = DEFAULT_GAP_S,
         max_packet_size: int = MAX_PACKET_SIZE,
+        commands: Iterable[int] | None = None,
     ) -> None:
         _check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         _check_seconds("gap_s", gap_s, 0.0, 1.0)
@@ -184,7 +188,7 @@ class Bus:
         self.retries = retries
         self.gap_s = gap_s
         self._max_size = max_packet_size
-        self._decoder = PacketDecoder(max_size=max_packet_size)
+        self._decoder = PacketDecoder(max_size=max_packet_size, commands=commands)
         self._lock = asyncio.Lock()
         self._pending: tuple[Packet, asyncio.Future[Packet]] | None = None
         self._last_sent: Packet | None = None
