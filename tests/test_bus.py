@@ -575,3 +575,11 @@ async def test_a_wider_command_set_lets_a_vendor_reply_through() -> None:
 
     assert await ask(None) == (None, 1)  # the default set refuses it, and counts it
     assert await ask({0x0A, 0x4A}) == (vendor_reply, 0)
+
+
+async def test_a_bad_per_request_retry_count_is_refused_before_sending(rig: Rig) -> None:
+    async with Bus(rig.host, timeout_s=ON_TIME_S) as bus:
+        with pytest.raises(OutOfRangeError, match=r"retries=-1.*0\.\.10"):
+            await bus.request(read_request(3, 0x35, 1), retries=-1)
+        assert bus.stats.bytes_out == 0
+    assert rig.device.received == []

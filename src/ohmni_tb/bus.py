@@ -233,14 +233,17 @@ class Bus:
             return
         self._closed = True
         reader, self._reader = self._reader, None
-        if reader is not None:
-            reader.cancel()
-            # wait() does not re-raise the reader's own cancellation, while a
-            # cancellation of the caller still propagates.
-            await asyncio.wait({reader})
-        if self._pending is not None and not self._pending[1].done():
-            self._pending[1].set_exception(BusClosedError("the bus was closed"))
-        await self._transport.aclose()
+        try:
+            if reader is not None:
+                reader.cancel()
+                # wait() does not re-raise the reader's own cancellation, while a
+                # cancellation of the caller still propagates.
+                await asyncio.wait({reader})
+        finally:
+            # Even when the caller is cancelled mid-close, the port is released.
+            if self._pending is not None and not self._pending[1].done():
+                self._pending[1].set_exception(BusClosedError("the bus was closed"))
+            await self._transport.aclose()
 
     @property
     def closed(self) -> bool:
@@ -307,6 +310,8 @@ class Bus:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         _check_seconds("timeout_s", timeout, 0.0005, 10.0)
         extra = self.retries if retries is None else retries
+        if not isinstance(extra, int) or not 0 <= extra <= 10:
+            raise OutOfRangeError("retries", extra, 0, 10)
         attempts = 1 + (extra if packet.cmd in _IDEMPOTENT else 0)
         counters = self._counters(packet.sid)
         async with self._lock:
