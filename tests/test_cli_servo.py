@@ -74,11 +74,19 @@ def test_move_needs_torque_and_respects_the_range() -> None:
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime", "0.5")
     assert code == 0, out
     assert "→ 400" in out
-    code, out = invoke("servo", "move", "700", *SIM, "--max-raw", "650", "--torque-on")
+    # The neck (sid 3, the default) is held in its safe range 280..650 unless told otherwise.
+    code, out = invoke("servo", "move", "700", *SIM, "--torque-on")
     assert code == 1
-    assert "700" in out
-    assert "280" not in out  # the range is the one given: 21..650
-    assert "21..650" in out
+    assert "700 is out of range: allowed 280..650" in out
+    code, out = invoke("servo", "move", "250", *SIM, "--torque-on", "--min-raw", "200")
+    assert code == 0, out
+    # Other servos get the factory range, or the one given.
+    code, out = invoke("servo", "move", "1010", *SIM, "--sid", "11", "--torque-on")
+    assert code == 1
+    assert "21..1002" in out
+    code, out = invoke("servo", "move", "900", *SIM, "--sid", "11", "--max-raw", "800")
+    assert code == 1
+    assert "21..800" in out
     code, out = invoke("servo", "move", "400", *SIM, "--playtime", "9")
     assert code == 1
     assert "playtime" in out

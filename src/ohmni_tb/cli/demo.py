@@ -19,7 +19,12 @@ from ohmni_tb.herkulex import (
 from ohmni_tb.herkulex.servo import Servo
 from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.core import parse_status, read_status
-from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId, device_name
+from ohmni_tb.protocol.devices import (
+    DEFAULT_EXT_SERVO_IDS,
+    NECK_RAW_RANGE,
+    DeviceId,
+    device_name,
+)
 from ohmni_tb.protocol.drive import (
     MOTOR_POSITION_MODULUS,
     parse_count,
@@ -34,7 +39,7 @@ __all__ = ["demo"]
 #: Motor ticks per wheel turn: 16384 per motor turn through the 30/11 gear (inferred).
 _TICKS_PER_WHEEL_TURN = MOTOR_POSITION_MODULUS * 30 / 11
 _WHEEL_RADIUS_M = 0.0760
-_NECK_FROM, _NECK_TO = 280, 650
+_NECK_FROM, _NECK_TO = NECK_RAW_RANGE
 #: A worm-neck target inside its range (−127000 up … 120000 down): tilt down a little.
 _WORM_TARGET = 60_000
 

@@ -25,7 +25,7 @@ from ohmni_tb.herkulex import EEP, RAM, TorqueControl, parse_reply, stat
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import angle_deg_from_raw
 from ohmni_tb.protocol import Memory, flag_names
-from ohmni_tb.protocol.devices import DeviceId, device_name
+from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
 
 __all__ = ["app"]
 
@@ -41,13 +41,23 @@ _SCAN_TIMEOUT_S = 0.01
 
 
 def _with_servo(
-    port: str, sid_text: str, timeout_s: float, action: Callable[[Servo], Awaitable[T]]
+    port: str,
+    sid_text: str,
+    timeout_s: float,
+    action: Callable[[Servo], Awaitable[T]],
+    *,
+    min_raw: int | None = None,
+    max_raw: int | None = None,
 ) -> T:
+    """Run ``action`` on the servo; the neck (sid 3) defaults to its safe range 280..650."""
     sid = parse_int(sid_text, "--sid")
+    if sid == DeviceId.HERKULEX_NECK:
+        min_raw = NECK_RAW_RANGE[0] if min_raw is None else min_raw
+        max_raw = NECK_RAW_RANGE[1] if max_raw is None else max_raw
 
     async def main() -> T:
         async with await open_bus(port, timeout_s) as bus:
-            return await action(Servo(bus, sid))
+            return await action(Servo(bus, sid, min_raw=min_raw, max_raw=max_raw))
 
     return run(main)
 
@@ -202,8 +212,14 @@ def move(
     playtime: Annotated[
         float, typer.Option("--playtime", help="Seconds to get there (0..2.84).")
     ] = 1.0,
-    min_raw: Annotated[int, typer.Option(help="Lowest position allowed.")] = 21,
-    max_raw: Annotated[int, typer.Option(help="Highest position allowed.")] = 1002,
+    min_raw: Annotated[
+        int | None,
+        typer.Option(help="Lowest position allowed [default: 280 for the neck, else 21]."),
+    ] = None,
+    max_raw: Annotated[
+        int | None,
+        typer.Option(help="Highest position allowed [default: 650 for the neck, else 1002]."),
+    ] = None,
     torque_on: Annotated[
         bool, typer.Option("--torque-on", help="Turn the torque on first if it is off.")
     ] = False,
@@ -212,14 +228,13 @@ def move(
     """Move a servo to a position over a playtime (the neck's safe range is 280..650)."""
 
     async def action(servo: Servo) -> int:
-        servo.min_raw, servo.max_raw = min_raw, max_raw
         servo.target(position)  # range check before anything is sent
         if torque_on:
             await servo.torque(TorqueControl.ON)
         await servo.move_to(position, playtime_s=playtime)
         return await servo.position_raw()
 
-    start = _with_servo(port, sid, timeout, action)
+    start = _with_servo(port, sid, timeout, action, min_raw=min_raw, max_raw=max_raw)
     console.print(f"servo {sid}: moving {start} → {position} over {playtime:.2f} s")
 
 

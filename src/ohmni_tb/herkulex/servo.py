@@ -60,9 +60,7 @@ __all__ = ["Servo", "ServoStatus", "move_group"]
 _BLOCK = 64
 #: Errors that make a servo ignore jogs until they are cleared.
 _BLOCKING_ERRORS = StatusError.TEMPERATURE | StatusError.OVERLOAD | StatusError.DRIVER_FAULT
-#: The servos' factory position limits (RAM 20 / 22).
-_FACTORY_MIN_RAW = 21
-_FACTORY_MAX_RAW = 1002
+
 #: Time a servo needs after REBOOT before it answers (undocumented; drivers wait 1-2 s).
 REBOOT_SETTLE_S = 1.0
 
@@ -123,8 +121,8 @@ class Servo:
         max_raw: int | None = None,
     ) -> None:
         RAM["id"].check(sid)
-        low = _FACTORY_MIN_RAW if min_raw is None else min_raw
-        high = _FACTORY_MAX_RAW if max_raw is None else max_raw
+        low = _factory_default("min_position") if min_raw is None else min_raw
+        high = _factory_default("max_position") if max_raw is None else max_raw
         if not 0 <= low <= high <= 1023:
             raise InvalidArgumentError(
                 f"min_raw={low} and max_raw={high} must satisfy 0 <= min <= max <= 1023"
@@ -388,6 +386,14 @@ async def move_group(
     ticks = _ticks(playtime_s, playtime_ticks)
     targets = [servo.target(pos) for servo, pos in moves]
     await bus.send(s_jog(ticks, *targets))
+
+
+def _factory_default(register: str) -> int:
+    """A register's factory value from the register table (the one place it is written)."""
+    default = RAM[register].default
+    if default is None:
+        raise InvalidArgumentError(f"{register} has no factory default")
+    return default
 
 
 def _ticks(playtime_s: float | None, playtime_ticks: int | None) -> int:

@@ -9,7 +9,14 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["DEFAULT_EXT_SERVO_IDS", "DEVICE_MAP", "DeviceId", "DeviceInfo", "device_name"]
+__all__ = [
+    "DEFAULT_EXT_SERVO_IDS",
+    "DEVICE_MAP",
+    "NECK_RAW_RANGE",
+    "DeviceId",
+    "DeviceInfo",
+    "device_name",
+]
 
 
 class DeviceId(enum.IntEnum):
@@ -22,6 +29,9 @@ class DeviceId(enum.IntEnum):
     CORE = 20
     BROADCAST = 0xFE
 
+
+#: The HerkuleX neck's safe raw range (DESIGN §4): beyond it the head hits its stops.
+NECK_RAW_RANGE: tuple[int, int] = (280, 650)
 
 #: The vendor API lets clients address ids 11..19 as accessories; which two the external
 #: HerkuleX servos use is not public. **assumed**, configurable.
