@@ -24,7 +24,6 @@ __all__ = [
     "PWM_LIMIT",
     "DriveProfile",
     "DriveTorque",
-    "WheelCommand",
     "decode_wheel_command",
     "parse_count",
     "parse_motor_position",
@@ -81,14 +80,6 @@ class DriveProfile:
 
 #: The profile in use. ``assumed``: torque_addr, wheel_jog; the rest is confirmed.
 DRIVE_PROFILE = DriveProfile()
-
-
-@dataclass(frozen=True, slots=True)
-class WheelCommand:
-    """Raw PWM for both wheels as the boards take it (right already mirrored)."""
-
-    left_pwm: int
-    right_pwm: int
 
 
 def _check_drive_sid(sid: int) -> None:

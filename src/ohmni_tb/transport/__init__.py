@@ -44,8 +44,11 @@ __all__ = [
     "delay",
     "drop_bytes",
     "open_transport",
+    "option_bool",
+    "option_int",
     "register_transport",
     "registered_schemes",
+    "reject_unknown_options",
     "split",
 ]
 
