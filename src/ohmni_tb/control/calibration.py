@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ohmni_tb.control._checks import finite, positive
+from ohmni_tb._checks import finite, positive
 from ohmni_tb.control.defaults import DEFAULT_WHEEL_RADIUS_M, DEFAULT_WHEEL_SEPARATION_M
 from ohmni_tb.control.odometry import integrate_batch
 from ohmni_tb.errors import InvalidArgumentError

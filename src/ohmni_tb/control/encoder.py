@@ -23,7 +23,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from ohmni_tb.control._checks import finite, integer, positive
+from ohmni_tb._checks import finite, integer, positive
 from ohmni_tb.control.defaults import DEFAULT_TICKS_PER_REV, DEFAULT_WHEEL_RADIUS_M
 from ohmni_tb.errors import InvalidArgumentError
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb.control._checks import finite, positive, positive_or_inf
+from ohmni_tb._checks import finite, positive, positive_or_inf
 from ohmni_tb.control.defaults import (
     DEFAULT_MAX_ANGULAR_RADPS,
     DEFAULT_MAX_LINEAR_MPS,

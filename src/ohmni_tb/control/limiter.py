@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb.control._checks import finite, integer, positive, positive_or_inf
+from ohmni_tb._checks import finite, integer, positive, positive_or_inf
 from ohmni_tb.control.kinematics import Twist
 
 __all__ = [

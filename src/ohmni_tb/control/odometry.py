@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ohmni_tb.control._checks import finite, integer, non_negative, positive
+from ohmni_tb._checks import finite, integer, non_negative, positive
 from ohmni_tb.control.defaults import DEFAULT_WHEEL_SEPARATION_M
 from ohmni_tb.control.kinematics import Twist
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb.control._checks import finite, non_negative, positive
+from ohmni_tb._checks import finite, non_negative, positive
 from ohmni_tb.control.defaults import PWM_LIMIT
 from ohmni_tb.errors import InvalidArgumentError
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from typing import Final
 
+from ohmni_tb._checks import finite
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 
 __all__ = [
@@ -72,7 +73,7 @@ def angle_deg_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
     Raises:
         InvalidArgumentError: ``pos_raw`` is NaN or infinite.
     """
-    _finite("pos_raw", pos_raw)
+    finite("pos_raw", pos_raw)
     return (pos_raw - CENTRE_RAW - zero_offset_raw) * DEG_PER_COUNT
 
 
@@ -97,7 +98,7 @@ def pos_raw_from_deg(
         OutOfRangeError: The angle lies outside ``min_raw..max_raw``; the error gives
             the allowed range in degrees.
     """
-    _finite("angle_deg", angle_deg)
+    finite("angle_deg", angle_deg)
     pos_raw = round(angle_deg / DEG_PER_COUNT) + CENTRE_RAW + zero_offset_raw
     if not min_raw <= pos_raw <= max_raw:
         low = angle_deg_from_raw(min_raw, zero_offset_raw=zero_offset_raw)
@@ -124,7 +125,7 @@ def pos_raw_from_rad(
         InvalidArgumentError: ``angle_rad`` is NaN or infinite.
         OutOfRangeError: The angle lies outside ``min_raw..max_raw`` (given in rad).
     """
-    _finite("angle_rad", angle_rad)
+    finite("angle_rad", angle_rad)
     try:
         return pos_raw_from_deg(
             math.degrees(angle_rad),
@@ -140,7 +141,7 @@ def pos_raw_from_rad(
 
 def speed_dps_from_raw(diff_raw: int) -> float:
     """Convert a differential position (RAM 62, signed) to degrees per second."""
-    _finite("diff_raw", diff_raw)
+    finite("diff_raw", diff_raw)
     return diff_raw * DEG_S_PER_DIFF
 
 
@@ -151,7 +152,7 @@ def speed_rad_s_from_raw(diff_raw: int) -> float:
 
 def voltage_v_from_raw(voltage_raw: int) -> float:
     """Convert a voltage register value (RAM 54, EEP 12/13) to volts."""
-    _finite("voltage_raw", voltage_raw)
+    finite("voltage_raw", voltage_raw)
     return voltage_raw * VOLT_PER_COUNT
 
 
@@ -162,7 +163,7 @@ def voltage_raw_from_v(voltage_v: float) -> int:
         InvalidArgumentError: ``voltage_v`` is NaN or infinite.
         OutOfRangeError: The value does not fit the register's byte (0..18.87 V).
     """
-    _finite("voltage_v", voltage_v)
+    finite("voltage_v", voltage_v)
     voltage_raw = round(voltage_v / VOLT_PER_COUNT)
     if not 0 <= voltage_raw <= 0xFF:
         raise OutOfRangeError("voltage_v", voltage_v, 0.0, 0xFF * VOLT_PER_COUNT, "V")
@@ -177,7 +178,7 @@ def playtime_ticks_from_s(playtime_s: float) -> int:
         OutOfRangeError: The playtime rounds outside 0..254 ticks (0..2.8448 s); it is
             never wrapped to 8 bits nor clamped.
     """
-    _finite("playtime_s", playtime_s)
+    finite("playtime_s", playtime_s)
     ticks = round(playtime_s / TICK_S)
     if not 0 <= ticks <= MAX_PLAYTIME_TICKS:
         raise OutOfRangeError("playtime_s", playtime_s, 0.0, MAX_PLAYTIME_S, "s")
@@ -211,10 +212,3 @@ def check_playtime_ticks(playtime_ticks: int) -> int:
     if not 0 <= playtime_ticks <= MAX_PLAYTIME_TICKS:
         raise OutOfRangeError("playtime_ticks", playtime_ticks, 0, MAX_PLAYTIME_TICKS, "ticks")
     return playtime_ticks
-
-
-def _finite(name: str, value: float) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InvalidArgumentError(f"{name} must be a number, not {type(value).__name__}")
-    if not math.isfinite(value):
-        raise InvalidArgumentError(f"{name} must be finite, got {value!r}")

@@ -1,4 +1,4 @@
-"""Argument checks shared by the control modules; every error names the value."""
+"""Argument checks shared by the sans-IO modules; every error names the value."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 
 
 def finite(name: str, value: float, unit: str = "") -> float:
-    """Return ``value`` as a float, or raise if it is NaN or infinite."""
+    """Return ``value`` as a float, or raise if it is not a number, NaN or infinite."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"{name} must be a number, not {type(value).__name__}")
     if not math.isfinite(value):
         suffix = f" {unit}" if unit else ""
         raise InvalidArgumentError(f"{name}={value!r}{suffix} is not a finite number")
