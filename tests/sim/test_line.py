@@ -338,3 +338,38 @@ def test_realtime_off_answers_at_once_and_keeps_simulated_time() -> None:
     # Both simulated clocks counted the same ten reads on the wire.
     assert sim_fast == pytest.approx(10 * wire_s)
     assert sim_rt == pytest.approx(10 * wire_s)
+
+
+def test_on_a_lossy_line_every_read_returns_its_own_register_or_times_out() -> None:
+    """End to end: drops and late replies never hand one request another's data."""
+    # Distinct, known values: RAM 8 acceleration_ratio 25, 24..25 Kp 440, 26..27 Kd 8000,
+    # 44 in-position margin 3, 0 id 3.
+    expected = {
+        8: (1, b"\x19"),
+        24: (2, (440).to_bytes(2, "little")),
+        26: (2, (8000).to_bytes(2, "little")),
+        44: (1, b"\x03"),
+        0: (1, b"\x03"),
+    }
+
+    async def main() -> tuple[int, int]:
+        transport = await open_transport("sim://?drop=0.02&seed=5&ext=none")
+        ok = timeouts = 0
+        async with Bus(transport, timeout_s=0.005) as bus:
+            for i in range(400):
+                addr = list(expected)[i % len(expected)]
+                length, value = expected[addr]
+                try:
+                    reply = await bus.read(3, addr, length)
+                except BusTimeoutError:
+                    timeouts += 1
+                    continue
+                assert (reply.addr, reply.data) == (addr, value)
+                ok += 1
+            stats = bus.stats
+        assert stats.devices[3].retries > 0  # the faults did bite
+        return ok, timeouts
+
+    ok, timeouts = run_virtual(main())
+    assert ok + timeouts == 400
+    assert ok > 350
