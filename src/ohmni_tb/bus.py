@@ -52,6 +52,7 @@ from ohmni_tb.protocol import (
     reply_matches,
     write_request,
 )
+from ohmni_tb.protocol.framing import HEADER_SIZE
 from ohmni_tb.transport import Transport
 
 __all__ = [
@@ -77,9 +78,9 @@ DEFAULT_GAP_S = 0.001
 _BITS_PER_BYTE = 10
 #: Latency samples kept per device for the percentiles.
 _LATENCY_WINDOW = 1024
-#: A read reply is the request's header plus addr, len, the bytes and two status bytes.
-_READ_REPLY_OVERHEAD = 11
-_STATUS_REPLY_SIZE = 9
+#: A read reply is a header plus addr, len, the bytes and two status bytes.
+_READ_REPLY_OVERHEAD = HEADER_SIZE + 2 + 2
+_STATUS_REPLY_SIZE = HEADER_SIZE + 2
 
 _IDEMPOTENT = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import math
 from typing import Annotated
 
 import typer
@@ -11,6 +10,7 @@ from rich.table import Table
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.cli.common import PortOption, console, run, stats_rows
+from ohmni_tb.control import EncoderConfig
 from ohmni_tb.errors import BusTimeoutError, OhmniError
 from ohmni_tb.herkulex import (
     TorqueControl,
@@ -26,7 +26,6 @@ from ohmni_tb.protocol.devices import (
     device_name,
 )
 from ohmni_tb.protocol.drive import (
-    MOTOR_POSITION_MODULUS,
     parse_count,
     read_count,
     wheel_command,
@@ -36,9 +35,8 @@ from ohmni_tb.transport import open_transport
 
 __all__ = ["demo"]
 
-#: Motor ticks per wheel turn: 16384 per motor turn through the 30/11 gear (inferred).
-_TICKS_PER_WHEEL_TURN = MOTOR_POSITION_MODULUS * 30 / 11
-_WHEEL_RADIUS_M = 0.0760
+#: Ticks to metres with the configured wheel radius and ticks per wheel turn.
+_ENCODER = EncoderConfig()
 _NECK_FROM, _NECK_TO = NECK_RAW_RANGE
 #: A worm-neck target inside its range (−127000 up … 120000 down): tilt down a little.
 _WORM_TARGET = 60_000
@@ -121,10 +119,6 @@ async def _counts(bus: Bus) -> tuple[int, int]:
     return left, right
 
 
-def _metres(ticks: int) -> float:
-    return ticks / _TICKS_PER_WHEEL_TURN * 2 * math.pi * _WHEEL_RADIUS_M
-
-
 async def _drive(bus: Bus, robot: object) -> None:
     start = await _counts(bus)
     console.print(
@@ -139,8 +133,9 @@ async def _drive(bus: Bus, robot: object) -> None:
         await asyncio.shield(bus.send(wheel_command(0, 0)))
     await asyncio.sleep(0.5)
     end = await _counts(bus)
-    d_left = _metres(end[0] - start[0])
-    d_right = _metres(-(end[1] - start[1]))  # the right wheel counts mirrored
+    # The right wheel counts mirrored: negate before converting forward-positive ticks.
+    d_left = _ENCODER.ticks_to_m(end[0] - start[0])
+    d_right = _ENCODER.ticks_to_m(-(end[1] - start[1]))
     console.print(
         f"  wheel counts: left {end[0] - start[0]:+d}, right {end[1] - start[1]:+d} "
         f"(mirrored) → left {d_left:.3f} m, right {d_right:.3f} m"
