@@ -6,6 +6,10 @@ The stream mixes the bus's real traffic shapes (9-byte read requests, 15-byte wh
 replies, 16-byte jogs, 31-byte status blocks) with junk between 5 % of the packets, and is
 fed in chunks the size a serial read returns. The best of several runs is reported, since
 a shared machine only ever makes a run slower.
+
+The decoder is timed next to ``BaselineDecoder`` (``bench/_baseline_decoder.py``, the
+previous implementation) on the same chunks, their runs interleaved so that a slow spell
+of the machine hits both alike; the ratio of their best runs is the speed-up.
 """
 
 from __future__ import annotations
@@ -16,7 +20,9 @@ import platform
 import random
 import sys
 import time
+from collections.abc import Callable
 
+from _baseline_decoder import BaselineDecoder
 from ohmni_tb.protocol import Command, Packet, PacketDecoder, encode_packet
 
 #: 115200 baud, 8N1: ten bits a byte.
@@ -50,19 +56,21 @@ def make_stream(packets: list[Packet], rng: random.Random, junk_ratio: float) ->
     return b"".join(parts)
 
 
-def best_rate(fn: object, nbytes: int, seconds: float) -> float:
-    """Best bytes/s over repeated runs of ``fn`` within ``seconds``."""
-    assert callable(fn)
-    best = 0.0
-    deadline = time.perf_counter() + seconds
+def best_rates(
+    fns: dict[str, Callable[[], None]], nbytes: int, seconds: float
+) -> tuple[dict[str, float], int]:
+    """Best bytes/s of each function, and the runs each got, taking turns for ``seconds``."""
+    best = dict.fromkeys(fns, 0.0)
+    deadline = time.perf_counter() + seconds * len(fns)
     runs = 0
     while runs < 3 or time.perf_counter() < deadline:
-        t0 = time.perf_counter()
-        fn()
-        dt = time.perf_counter() - t0
-        best = max(best, nbytes / dt)
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            dt = time.perf_counter() - t0
+            best[name] = max(best[name], nbytes / dt)
         runs += 1
-    return best
+    return best, runs
 
 
 def main() -> int:
@@ -78,20 +86,35 @@ def main() -> int:
     chunks = [stream[i : i + args.chunk] for i in range(0, len(stream), args.chunk)]
     encoded_bytes = sum(p.size for p in packets)
 
-    def decode() -> None:
-        decoder = PacketDecoder()
-        n = 0
-        for c in chunks:
-            n += len(decoder.feed(c))
-        if n != len(packets):
-            raise SystemExit(f"decoded {n} packets, expected {len(packets)}")
+    # A speed-up only counts if both decoders say the same thing about the stream.
+    new, old = PacketDecoder(), BaselineDecoder()
+    for c in chunks:
+        if new.feed(c) != old.feed(c):
+            raise SystemExit("the decoder and the baseline disagree on the packets")
+    if new.stats != old.stats or new.stats.packets != len(packets):
+        raise SystemExit(f"stats differ or packets lost:\n{new.stats}\n{old.stats}")
+
+    def decoding(factory: Callable[[], PacketDecoder | BaselineDecoder]) -> Callable[[], None]:
+        def decode() -> None:
+            decoder = factory()
+            n = 0
+            for c in chunks:
+                n += len(decoder.feed(c))
+            if n != len(packets):
+                raise SystemExit(f"decoded {n} packets, expected {len(packets)}")
+
+        return decode
 
     def encode() -> None:
         for p in packets:
             encode_packet(p)
 
-    decode_bps = best_rate(decode, len(stream), args.seconds)
-    encode_bps = best_rate(encode, encoded_bytes, args.seconds)
+    decode_bps, runs = best_rates(
+        {"decode": decoding(PacketDecoder), "baseline": decoding(BaselineDecoder)},
+        len(stream),
+        args.seconds,
+    )
+    encode_bps = best_rates({"encode": encode}, encoded_bytes, args.seconds)[0]["encode"]
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -106,8 +129,11 @@ def main() -> int:
     )
     print(f"{'':8} {'bytes/s':>12} {'packets/s':>11} {'x wire (11,520 B/s)':>20}")
     avg = len(stream) / len(packets)
-    for name, bps in (("decode", decode_bps), ("encode", encode_bps)):
+    rows = (*decode_bps.items(), ("encode", encode_bps))
+    for name, bps in rows:
         print(f"{name:8} {bps:12,.0f} {bps / avg:11,.0f} {bps / WIRE_BYTES_PER_S:19,.0f}x")
+    ratio = decode_bps["decode"] / decode_bps["baseline"]
+    print(f"decode / baseline: {ratio:.2f}x (best of {runs} interleaved runs each)")
     return 0
 
 

@@ -18,7 +18,7 @@ import sys
 from ohmni_tb.bus import Bus
 from ohmni_tb.errors import BusTimeoutError, MalformedReplyError
 from ohmni_tb.sim.clock import run_virtual
-from ohmni_tb.sim.line import SimTransport
+from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import open_transport
 
 #: EEP 30..33 of a factory servo: Kp = 440, Kd = 8000 (4 bytes of known value).

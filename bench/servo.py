@@ -27,10 +27,10 @@ _REQUEST_BYTES = 9
 _REPLY_BYTES = 13  # 2-byte read: header 7 + addr, len + 2 bytes + 2 status bytes
 
 
-async def measure(seconds: float, gap_s: float, turnaround_us: int) -> tuple[float, float]:
+async def measure(seconds: float, guard_s: float, turnaround_us: int) -> tuple[float, float]:
     """Reads/s and the p99 latency (ms) of back-to-back reads of the neck's position."""
     transport = await open_transport(f"sim://?turnaround_us={turnaround_us}")
-    async with Bus(transport, gap_s=gap_s) as bus:
+    async with Bus(transport, guard_s=guard_s) as bus:
         loop = asyncio.get_running_loop()
         request = ram_read(3, "calibrated_position")
         for _ in range(20):  # warm up
@@ -55,13 +55,13 @@ def main() -> int:
     print(f"python {platform.python_version()}, {platform.machine()}")
     print(f"wire-limited maximum: {wire_max:.0f} reads/s ({wire_s * 1e3:.2f} ms a read)")
     print(f"{'gap':>6} {'turnaround':>11} {'clock':>8} {'reads/s':>9} {'x max':>7} {'p99 ms':>7}")
-    for gap_s, turnaround_us in ((0.001, 500), (0.0, 0)):
-        floor_s = wire_s + gap_s + turnaround_us * 1e-6
+    for guard_s, turnaround_us in ((0.001, 500), (0.0, 0)):
+        floor_s = wire_s + guard_s + turnaround_us * 1e-6
         for clock in ("real", "virtual"):
-            coro = measure(args.seconds, gap_s, turnaround_us)
+            coro = measure(args.seconds, guard_s, turnaround_us)
             rate, p99 = asyncio.run(coro) if clock == "real" else run_virtual(coro)
             print(
-                f"{gap_s * 1e3:4.1f}ms {turnaround_us:9d}us {clock:>8} {rate:9.0f} "
+                f"{guard_s * 1e3:4.1f}ms {turnaround_us:9d}us {clock:>8} {rate:9.0f} "
                 f"{rate / wire_max:7.2f} {p99:7.2f}"
             )
         print(f"{'':28}model floor {1 / floor_s:5.0f} reads/s for this gap and turnaround")

@@ -341,18 +341,19 @@ async def test_cancelled_request_leaves_the_bus_usable(rig: Rig) -> None:
         first.cancel()
         with pytest.raises(asyncio.CancelledError):
             await first
-        # Same register: only the quiet time after the cancel keeps the late reply
-        # (served=1) from being taken as this request's.
+        # Same register: the cancelled read still holds its reply window, and its reply
+        # (served=1) is counted as abandoned, never taken as this request's.
         reply = await bus.read(3, 0x40, 1)
         stats = bus.stats
     assert reply.data == b"\x02"
-    assert stats.unmatched == 1
+    assert stats.abandoned == 1
+    assert stats.unmatched == 0
     assert len(rig.device.received) == 2
 
 
 async def test_echo_of_our_own_request_is_counted(rig: Rig) -> None:
     rig.device.echo = True
-    async with Bus(rig.host, timeout_s=ON_TIME_S, gap_s=0.005) as bus:
+    async with Bus(rig.host, timeout_s=ON_TIME_S, guard_s=0.005) as bus:
         assert (await bus.read(3, 0x35, 1)).data == b"\x35"
         assert await bus.write(3, 0x35, b"\x07") is None
         assert (await bus.read(3, 0x35, 1)).data == b"\x07"
@@ -410,6 +411,8 @@ async def test_broadcast_never_waits(rig: Rig) -> None:
         forced = Packet(BROADCAST_ID, Command.RAM_WRITE, b"\x35\x01\x01")
         assert await bus.request(forced, expect_reply=True) is None
         await bus.send(Packet(BROADCAST_ID, Command.REBOOT))
+        # send() returns once the bytes are in the port; the device reads them after.
+        await rig.device.wait_received(3)
         stats = bus.stats
     assert [p.cmd for p in rig.device.received] == [Command.RAM_WRITE] * 2 + [Command.REBOOT]
     assert stats.devices[BROADCAST_ID].timeouts == 0
@@ -425,13 +428,13 @@ async def test_stat_to_broadcast_is_refused_before_sending(rig: Rig) -> None:
     assert rig.device.received == [Packet(3, Command.STAT)]
 
 
-async def test_gap_between_requests_is_honoured(rig: Rig) -> None:
-    gap_s = 0.02
+async def test_guard_between_requests_is_honoured(rig: Rig) -> None:
+    guard_s = 0.02
     sent: list[float] = []
     replied: list[float] = []
     rig.host.set_manipulator(write_times(sent))
     rig.device.transport.set_manipulator(write_times(replied))
-    async with Bus(rig.host, timeout_s=ON_TIME_S, gap_s=gap_s) as bus:
+    async with Bus(rig.host, timeout_s=ON_TIME_S, guard_s=guard_s) as bus:
         await bus.write(3, 0x35, b"\x01")
         await bus.write(3, 0x35, b"\x02")
         await bus.read(3, 0x35, 1)
@@ -439,10 +442,11 @@ async def test_gap_between_requests_is_honoured(rig: Rig) -> None:
         await bus.write(3, 0x35, b"\x03")
     assert len(sent) == 5
     assert len(replied) == 2
-    # After a write: the gap after the request. After a read: the gap after its reply.
+    # After a write: the guard after the request. After a read: the guard after its reply
+    # (this link has no baud rate, so nothing is pipelined).
     quiet_from = [sent[0], sent[1], replied[0], replied[1]]
     for start, next_request in zip(quiet_from, sent[1:], strict=True):
-        assert next_request - start >= gap_s - CLOCK_SLACK_S
+        assert next_request - start >= guard_s - CLOCK_SLACK_S
 
 
 @pytest.mark.parametrize(
@@ -525,7 +529,10 @@ async def test_closing_the_bus_fails_the_pending_request(rig: Rig) -> None:
     [
         ({"timeout_s": 0.0}, "timeout_s"),
         ({"timeout_s": 11.0}, "timeout_s"),
-        ({"gap_s": -0.001}, "gap_s"),
+        ({"guard_s": -0.001}, "guard_s"),
+        ({"turnaround_s": 2.0}, "turnaround_s"),
+        ({"max_wait_s": -1.0}, "max_wait_s"),
+        ({"stall_s": 0.0}, "stall_s"),
         ({"retries": 11}, "retries"),
         ({"retries": -1}, "retries"),
     ],

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from ohmni_tb import control, monitor
 from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError, OutOfRangeError
+from ohmni_tb.herkulex import JogMode, JogTarget, decode_jog
 from ohmni_tb.protocol import (
     BROADCAST_ID,
     REPLY_FLAG,
@@ -23,6 +27,12 @@ from ohmni_tb.protocol import (
     worm_neck,
 )
 from ohmni_tb.protocol.devices import DEVICE_MAP, DeviceId, device_name
+from ohmni_tb.protocol.drive import DriveProfile, WheelJogForm
+from ohmni_tb.sim import drive as sim_drive
+
+SRC = Path(control.__file__).resolve().parent.parent
+I_JOG_PROFILE = DriveProfile(wheel_form=WheelJogForm.I_JOG)
+UNMIRRORED = DriveProfile(right_mirrored=False)
 
 
 def _read_reply(
@@ -165,9 +175,104 @@ def test_wheel_command_reverse_sets_the_left_sign_bit() -> None:
     assert packet.data == bytes.fromhex("00 E8 43 02 00 E8 03 02 01")
 
 
-def test_wheel_command_without_mirroring() -> None:
-    packet = drive.wheel_command(100, 100, mirror_right=False)
-    assert drive.decode_wheel_command(packet) == {0: 100, 1: 100}
+def test_wheel_command_follows_the_profile_mirror() -> None:
+    packet = drive.wheel_command(100, 100, UNMIRRORED)
+    assert packet.data == bytes.fromhex("00 64 00 02 00 64 00 02 01")
+    assert drive.decode_wheel_command(packet, UNMIRRORED) == {0: 100, 1: 100}
+
+
+def test_wheel_command_as_one_i_jog_with_two_five_byte_tags() -> None:
+    packet = drive.wheel_command(250, 250, I_JOG_PROFILE)
+    assert packet.sid == BROADCAST_ID
+    assert packet.cmd == Command.I_JOG
+    # Per board: JOG LSB, JOG MSB, SET (0x02 turn), id, playtime 0.
+    assert packet.data == bytes.fromhex("FA 00 02 00 00 FA 40 02 01 00")
+    wire = encode_packet(packet)
+    assert len(wire) == 7 + 2 * 5
+    for packets in _decode_every_way(wire):
+        assert packets == [packet]
+
+
+@pytest.mark.parametrize(
+    ("profile", "wire_hex"),
+    [
+        (drive.DRIVE_PROFILE, "FF FF 10 FE 06 A8 56 00 2C 01 02 00 2C 41 02 01"),
+        (I_JOG_PROFILE, "FF FF 11 FE 05 AA 54 2C 01 02 00 00 2C 41 02 01 00"),
+    ],
+    ids=["S_JOG", "I_JOG"],
+)
+def test_the_wheel_command_examples_of_the_hardware_page(
+    profile: DriveProfile, wire_hex: str
+) -> None:
+    # docs/hardware.md shows these bytes for wheel_command(300, 300).
+    assert encode_packet(drive.wheel_command(300, 300, profile)) == bytes.fromhex(wire_hex)
+    page = (Path(__file__).parent.parent / "docs" / "hardware.md").read_text(encoding="utf-8")
+    assert wire_hex in " ".join(page.split())  # the page spaces the fields apart
+
+
+def test_the_wheel_forms_are_the_jog_command_codes() -> None:
+    assert int(WheelJogForm.S_JOG) == Command.S_JOG
+    assert int(WheelJogForm.I_JOG) == Command.I_JOG
+    assert drive.DRIVE_PROFILE.wheel_form is WheelJogForm.S_JOG
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("wheel_form", "S_JOG"), ("wheel_form", 6), ("wheel_form", True), ("right_mirrored", 1)],
+)
+def test_a_drive_profile_with_a_bad_entry_is_refused(field: str, value: object) -> None:
+    with pytest.raises(InvalidArgumentError, match=field):
+        DriveProfile(**{field: value})  # type: ignore[arg-type]  # what a hand edit might hold
+
+
+@given(
+    st.integers(-1000, 1000),
+    st.integers(-1000, 1000),
+    st.sampled_from(WheelJogForm),
+    st.booleans(),
+)
+def test_every_profile_round_trips_through_the_wire(
+    left: int, right: int, form: WheelJogForm, mirrored: bool
+) -> None:
+    profile = DriveProfile(wheel_form=form, right_mirrored=mirrored)
+    (packet,) = PacketDecoder().feed(encode_packet(drive.wheel_command(left, right, profile)))
+    assert drive.decode_wheel_command(packet, profile) == {
+        0: left,
+        1: -right if mirrored else right,
+    }
+
+
+@pytest.mark.parametrize(
+    ("built_with", "read_with"),
+    [(drive.DRIVE_PROFILE, I_JOG_PROFILE), (I_JOG_PROFILE, drive.DRIVE_PROFILE)],
+    ids=["S_JOG read as I_JOG", "I_JOG read as S_JOG"],
+)
+def test_a_wheel_command_of_another_form_is_not_read(
+    built_with: DriveProfile, read_with: DriveProfile
+) -> None:
+    with pytest.raises(MalformedReplyError, match=read_with.wheel_form.name):
+        drive.decode_wheel_command(drive.wheel_command(100, 100, built_with), read_with)
+
+
+def test_the_bus_monitor_reads_the_wheel_command_with_the_drive_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    i_jog_packet = drive.wheel_command(300, 300, I_JOG_PROFILE)
+    assert "wheels" not in monitor.describe(i_jog_packet)  # not the form the table assumes
+    # A capture that shows I_JOG: the table changes, and the monitor reads it.
+    monkeypatch.setattr(monitor, "DRIVE_PROFILE", I_JOG_PROFILE)
+    text = "I_JOG wheels: left pwm +300, right pwm -300 (board frame)"
+    assert monitor.describe(i_jog_packet) == text
+
+
+def test_the_wheel_command_is_a_herkulex_turn_jog() -> None:
+    # Both codecs read the same tags the same way: one jog codec, protocol.jog.
+    for profile in (drive.DRIVE_PROFILE, I_JOG_PROFILE):
+        targets = decode_jog(drive.wheel_command(300, 200, profile))
+        assert targets == (
+            JogTarget(0, 300, mode=JogMode.TURN),
+            JogTarget(1, -200, mode=JogMode.TURN),
+        )
 
 
 def test_wheel_command_is_one_frame_on_the_wire() -> None:
@@ -211,6 +316,19 @@ def test_decode_wheel_command_ignores_other_tags() -> None:
     assert drive.decode_wheel_command(Packet(BROADCAST_ID, Command.S_JOG, data)) == {0: 100}
 
 
+def test_decode_wheel_command_skips_invalid_and_position_tags_of_the_boards() -> None:
+    # Left: "jog invalid" (SET 0x22); right: position mode (SET 0x00).
+    data = bytes.fromhex("00 64 00 22 00 64 00 00 01")
+    assert drive.decode_wheel_command(Packet(BROADCAST_ID, Command.S_JOG, data)) == {}
+
+
+@pytest.mark.parametrize("tag", ["64 80 02 00", "64 00 42 00"], ids=["word bit 15", "SET bit 6"])
+def test_decode_wheel_command_refuses_reserved_bits_in_a_board_tag(tag: str) -> None:
+    packet = Packet(BROADCAST_ID, Command.S_JOG, bytes.fromhex("00 " + tag))
+    with pytest.raises(MalformedReplyError, match="reserved"):
+        drive.decode_wheel_command(packet)
+
+
 @pytest.mark.parametrize(
     "packet",
     [
@@ -222,6 +340,47 @@ def test_decode_wheel_command_ignores_other_tags() -> None:
 def test_decode_wheel_command_refuses_other_packets(packet: Packet) -> None:
     with pytest.raises(MalformedReplyError):
         drive.decode_wheel_command(packet)
+
+
+# -- drive boards: device facts defined once ----------------------------------------------
+
+
+def test_the_drive_facts_have_one_value_everywhere() -> None:
+    assert control.PWM_LIMIT == drive.PWM_LIMIT == 1000
+    assert control.MOTOR_TICKS_PER_REV == drive.MOTOR_POSITION_MODULUS == 2**14
+    assert sim_drive.TICKS_PER_MOTOR_TURN == drive.MOTOR_POSITION_MODULUS
+    assert control.DEFAULT_TICKS_PER_REV == drive.MOTOR_POSITION_MODULUS * 30 / 11
+
+
+def _literal_definitions(names: set[str]) -> list[str]:
+    """Every module-level ``NAME = <number>`` for ``names`` in the package source."""
+    found: list[str] = []
+    for path in sorted(SRC.rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign):
+                targets, value = node.targets, node.value
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets, value = [node.target], node.value
+            else:
+                continue
+            # A definition computes a number from literals; an alias names another constant.
+            if any(isinstance(n, ast.Name) for n in ast.walk(value)):
+                continue
+            found.extend(
+                f"{path.relative_to(SRC)}:{t.id}"
+                for t in targets
+                if isinstance(t, ast.Name) and t.id in names
+            )
+    return found
+
+
+def test_the_drive_facts_are_defined_once_in_the_drive_codec() -> None:
+    # control and the simulator alias these; only protocol/drive.py writes the numbers.
+    names = {"PWM_LIMIT", "MOTOR_POSITION_MODULUS", "MOTOR_TICKS_PER_REV", "TICKS_PER_MOTOR_TURN"}
+    assert sorted(_literal_definitions(names)) == [
+        "protocol/drive.py:MOTOR_POSITION_MODULUS",
+        "protocol/drive.py:PWM_LIMIT",
+    ]
 
 
 # -- core board ---------------------------------------------------------------------------

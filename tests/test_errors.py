@@ -11,8 +11,10 @@ from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
     ConfigError,
+    DeadlineMissedError,
     DeviceError,
     DeviceStatusError,
+    DeviceUnavailableError,
     InvalidArgumentError,
     MalformedReplyError,
     OhmniError,
@@ -27,8 +29,10 @@ ALL_ERRORS: list[type[OhmniError]] = [
     BusClosedError,
     BusTimeoutError,
     ConfigError,
+    DeadlineMissedError,
     DeviceError,
     DeviceStatusError,
+    DeviceUnavailableError,
     InvalidArgumentError,
     MalformedReplyError,
     OhmniError,
@@ -48,9 +52,11 @@ PARENT: dict[type[OhmniError], type[OhmniError] | None] = {
     MalformedReplyError: ProtocolError,
     DeviceError: OhmniError,
     BusTimeoutError: DeviceError,
+    DeviceUnavailableError: BusTimeoutError,
     DeviceStatusError: DeviceError,
     StateError: OhmniError,
     BusClosedError: StateError,
+    DeadlineMissedError: StateError,
     ConfigError: OhmniError,
     InvalidArgumentError: OhmniError,
     OutOfRangeError: InvalidArgumentError,
@@ -125,6 +131,22 @@ def test_bus_timeout_names_device_command_and_attempts() -> None:
     assert (err.sid, err.cmd, err.attempts, err.timeout_s) == (20, 0x04, 3, 0.025)
     with pytest.raises(TimeoutError):
         raise err
+
+
+def test_new_engine_errors_are_timeouts_with_their_figures() -> None:
+    missed = DeadlineMissedError(deadline=12.5, late_s=0.0031)
+    assert isinstance(missed, TimeoutError)
+    assert "3.1 ms late" in str(missed)
+    assert "nothing was sent" in str(missed)
+    assert (missed.deadline, missed.late_s) == (12.5, 0.0031)
+    gone = DeviceUnavailableError(sid=11, cmd=0x04, silent_s=None, retry_in_s=0.7)
+    assert isinstance(gone, BusTimeoutError)
+    assert "sid 11 (0x0B)" in str(gone)
+    assert "never answered" in str(gone)
+    assert "next probe in 0.7 s" in str(gone)
+    assert (gone.sid, gone.cmd, gone.attempts, gone.retry_in_s) == (11, 0x04, 0, 0.7)
+    quiet = DeviceUnavailableError(sid=3, cmd=0x07, silent_s=2.25, retry_in_s=0.1)
+    assert "no reply for 2.2 s" in str(quiet)
 
 
 def test_device_errors_carry_the_sid_and_status() -> None:

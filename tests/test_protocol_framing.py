@@ -13,10 +13,16 @@ stream.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import importlib.util
 import itertools
+import pickle
 import random
-from collections.abc import Iterator, Sequence
-from typing import cast
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, cast
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -29,13 +35,14 @@ from ohmni_tb.protocol import (
     MIN_PACKET_SIZE,
     REPLY_FLAG,
     Command,
+    DecoderStats,
     Packet,
     PacketDecoder,
     RejectReason,
     checksum,
     encode_packet,
 )
-from ohmni_tb.protocol.framing import MAX_DATA_SIZE
+from ohmni_tb.protocol.framing import HEADER, MAX_DATA_SIZE
 
 # -- golden vectors -----------------------------------------------------------------------
 
@@ -264,6 +271,84 @@ def test_packet_describes_itself() -> None:
     assert Command.STAT.reply == 0x47
     assert repr(reply) == "Packet(sid=3, cmd=RAM_READ reply, data='35 01')"
     assert "cmd=0x33" in repr(Packet(3, 0x33))
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TimedPacket(Packet):
+    """A packet with the loop times it was sent and received, the shape of a bus reply."""
+
+    sent_at: float
+    received_at: float
+
+
+PLAIN = Packet(3, Command.RAM_READ.reply, b"\x35\x01")
+TIMED = TimedPacket(3, Command.RAM_READ.reply, b"\x35\x01", sent_at=1.0, received_at=1.25)
+
+
+def test_a_subclass_with_more_fields_equals_the_plain_packet() -> None:
+    assert (TIMED.sid, TIMED.cmd, TIMED.data) == (PLAIN.sid, PLAIN.cmd, PLAIN.data)
+    assert (TIMED.sent_at, TIMED.received_at) == (1.0, 1.25)
+    assert TIMED == PLAIN
+    assert PLAIN == TIMED
+    assert not TIMED != PLAIN  # noqa: SIM202  # __ne__ is what is under test here
+    assert not PLAIN != TIMED  # noqa: SIM202  # the reflected __ne__, likewise
+    assert hash(TIMED) == hash(PLAIN)
+    assert len({PLAIN, TIMED}) == 1
+    in_a_list: list[Packet] = [TIMED]
+    assert in_a_list.index(PLAIN) == 0
+    # Content only, or equality would not be transitive through the plain packet.
+    later = TimedPacket(PLAIN.sid, PLAIN.cmd, PLAIN.data, sent_at=7.0, received_at=7.5)
+    assert later == TIMED
+    assert hash(later) == hash(TIMED)
+
+
+@pytest.mark.parametrize(
+    "other",
+    [
+        Packet(4, Command.RAM_READ.reply, b"\x35\x01"),
+        Packet(3, Command.RAM_READ, b"\x35\x01"),
+        Packet(3, Command.RAM_READ.reply, b"\x35\x02"),
+        TimedPacket(3, Command.RAM_READ.reply, b"\x35", sent_at=1.0, received_at=1.25),
+    ],
+    ids=["sid", "cmd", "data", "timed-data"],
+)
+def test_a_subclass_differs_where_the_content_does(other: Packet) -> None:
+    timed, plain = TIMED, PLAIN
+    assert other != timed
+    assert timed != other
+    assert other != plain
+    assert plain != other
+
+
+def test_a_packet_equals_no_other_type() -> None:
+    as_tuple = (PLAIN.sid, PLAIN.cmd, PLAIN.data)
+    for packet in (PLAIN, TIMED):
+        assert packet != as_tuple
+        assert as_tuple != packet
+        assert packet.__eq__(as_tuple) is NotImplemented
+
+
+def test_packets_stay_frozen_and_slotted() -> None:
+    for packet in (PLAIN, TIMED):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            packet.sid = 4  # type: ignore[misc]  # assigning is the point: it must raise
+        assert not hasattr(packet, "__dict__")
+    # vars(): mypy types a subclass's __slots__ as its base's.
+    assert vars(Packet)["__slots__"] == ("sid", "cmd", "data")
+    assert vars(TimedPacket)["__slots__"] == ("sent_at", "received_at")
+    assert repr(PLAIN) == "Packet(sid=3, cmd=RAM_READ reply, data='35 01')"
+
+
+def test_decoded_packets_are_plain_packets() -> None:
+    (decoded,) = PacketDecoder().feed(encode_packet(PLAIN))
+    assert type(decoded) is Packet
+    assert decoded == PLAIN == TIMED
+    assert hash(decoded) == hash(PLAIN)
+    assert repr(decoded) == repr(PLAIN)
+    assert pickle.loads(pickle.dumps(decoded)) == decoded
+    assert dataclasses.replace(decoded, sid=4) == Packet(4, PLAIN.cmd, PLAIN.data)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        decoded.data = b""  # type: ignore[misc]  # assigning is the point: it must raise
 
 
 # -- decoding the golden vectors ----------------------------------------------------------
@@ -697,3 +782,165 @@ def test_chunking_never_changes_the_outcome(parts: list[bytes], cuts: list[int])
     bytewise, by_byte = decode([stream[i : i + 1] for i in range(len(stream))], expire=True)
     assert whole == pieces == bytewise
     assert by_whole.stats == by_pieces.stats == by_byte.stats
+
+
+# -- the decoder against the previous implementation --------------------------------------
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+
+
+class Decoder(Protocol):
+    """What the differential test uses of a decoder; both implementations have it."""
+
+    @property
+    def stats(self) -> DecoderStats: ...
+
+    @property
+    def pending(self) -> int: ...
+
+    def feed(self, data: bytes) -> list[Packet]: ...
+
+    def expire(self) -> list[Packet]: ...
+
+    def reset(self) -> None: ...
+
+
+def load_baseline() -> Callable[..., Decoder]:
+    """``BaselineDecoder`` from bench/ (not a package, and not on the path when testing)."""
+    path = BENCH / "_baseline_decoder.py"
+    spec = importlib.util.spec_from_file_location("_baseline_decoder", path)
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    baseline: Callable[..., Decoder] = module.BaselineDecoder
+    return baseline
+
+
+BaselineDecoder = load_baseline()
+
+
+class HandlerError(Exception):
+    """Raised by a reject handler, to compare what a handler's exception leaves behind."""
+
+
+class Rejects:
+    """An ``on_reject`` handler that records each call with the stats seen from inside it.
+
+    It raises :class:`HandlerError` on its ``raise_at``-th call (once), if given.
+    """
+
+    def __init__(self, raise_at: int | None) -> None:
+        self.decoder: Decoder | None = None
+        self.calls: list[tuple[RejectReason, bytes, DecoderStats, int]] = []
+        self.raise_at = raise_at
+
+    def __call__(self, reason: RejectReason, held: bytes) -> None:
+        assert self.decoder is not None
+        assert type(held) is bytes
+        self.calls.append((reason, held, self.decoder.stats, self.decoder.pending))
+        if len(self.calls) - 1 == self.raise_at:
+            raise HandlerError
+
+
+Step = tuple[str, list[Packet] | None, DecoderStats, int]
+
+
+def run_steps(
+    decoder: Decoder, chunks: Sequence[bytes], after: Sequence[str], final_expire: bool
+) -> list[Step]:
+    """Feed ``chunks``, doing ``after[i]`` (expire, reset or nothing) after chunk ``i``."""
+
+    def step(name: str, call: Callable[[], list[Packet] | None]) -> Step:
+        try:
+            out = call()
+        except HandlerError:
+            name += " raised"
+            out = None
+        if out:
+            assert {type(p) for p in out} == {Packet}
+        stats = decoder.stats
+        assert stats.bytes_in == stats.bytes_consumed + stats.bytes_discarded + stats.bytes_pending
+        return (name, out, stats, decoder.pending)
+
+    log: list[Step] = []
+    for i, chunk in enumerate(chunks):
+        log.append(step("feed", functools.partial(decoder.feed, chunk)))
+        action = after[i] if i < len(after) else ""
+        if action == "expire":
+            log.append(step(action, decoder.expire))
+        elif action == "reset":
+            log.append(step(action, decoder.reset))
+    if final_expire:
+        log.append(step("expire", decoder.expire))
+    return log
+
+
+def flip(wire: bytes, where: int, xor: int) -> bytes:
+    corrupted = bytearray(wire)
+    corrupted[where % len(wire)] ^= xor
+    return bytes(corrupted)
+
+
+small_packets = st.builds(
+    Packet,
+    sid=st.integers(0, BROADCAST_ID),
+    cmd=st.sampled_from(DEFAULT_COMMANDS),
+    data=st.binary(max_size=24),
+)
+any_byte = st.integers(0, 0xFF)
+differential_parts = st.one_of(
+    small_packets.map(encode_packet),
+    st.binary(max_size=16),
+    # False headers: arbitrary ones (mostly a bad checksum pair), and ones whose pair is
+    # right, so the size, sid and command checks and long held frames all get their turn.
+    st.binary(min_size=5, max_size=5).map(lambda rest: HEADER + rest),
+    st.builds(raw_header, any_byte, any_byte, any_byte),
+    st.builds(raw_header, st.integers(20, MAX_PACKET_SIZE), st.integers(0, 0xFE), st.just(3)),
+    # Packets with a corrupted byte, and packets cut short.
+    st.builds(flip, small_packets.map(encode_packet), st.integers(0, 100), st.integers(1, 255)),
+    st.builds(lambda wire, n: wire[: n % len(wire)], small_packets.map(encode_packet), any_byte),
+    st.sampled_from([b"\xff", b"\xff\xff", b"\xff\xff\xff"]),
+)
+
+
+@settings(noisy_machine, max_examples=400)
+@given(
+    parts=st.lists(differential_parts, max_size=14),
+    how=st.sampled_from(["whole", "halves", "bytes", "cuts"]),
+    cuts=cut_points,
+    after=st.lists(st.sampled_from(["", "", "", "expire", "reset"]), max_size=40),
+    final_expire=st.booleans(),
+    max_size=st.one_of(st.just(MAX_PACKET_SIZE), st.integers(MIN_PACKET_SIZE, MAX_PACKET_SIZE)),
+    commands=st.one_of(st.none(), st.sets(any_byte, max_size=24)),
+    raise_at=st.one_of(st.none(), st.integers(0, 6)),
+)
+def test_decoder_matches_the_previous_implementation(
+    *,
+    parts: list[bytes],
+    how: str,
+    cuts: list[int],
+    after: list[str],
+    final_expire: bool,
+    max_size: int,
+    commands: set[int] | None,
+    raise_at: int | None,
+) -> None:
+    stream = b"".join(parts)
+    if how == "whole":
+        chunks = [stream]
+    elif how == "halves":
+        chunks = chunked(stream, [len(stream) // 2])
+    elif how == "bytes":
+        chunks = [stream[i : i + 1] for i in range(len(stream))]
+    else:
+        chunks = chunked(stream, cuts)
+    logs, rejects = [], []
+    for factory in (PacketDecoder, BaselineDecoder):
+        handler = Rejects(raise_at)
+        decoder: Decoder = factory(commands=commands, max_size=max_size, on_reject=handler)
+        handler.decoder = decoder
+        logs.append(run_steps(decoder, chunks, after, final_expire))
+        rejects.append(handler.calls)
+    assert logs[0] == logs[1]
+    assert rejects[0] == rejects[1]

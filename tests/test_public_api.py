@@ -9,10 +9,23 @@ import pytest
 PUBLIC = {
     "ohmni_tb.protocol": [
         "BROADCAST_ID", "MAX_PACKET_SIZE", "MIN_PACKET_SIZE", "REPLY_FLAG", "AckPolicy",
-        "Command", "DecoderStats", "Memory", "Packet", "PacketDecoder", "ReadReply",
-        "RejectReason", "StatusDetail", "StatusError", "StatusReply", "check_sid", "checksum",
-        "encode_packet", "flag_names", "read_request", "reply_expected", "reply_matches",
-        "write_request",
+        "BusConnection", "Command", "DecoderStats", "Memory", "Packet", "PacketDecoder",
+        "ReadReply", "RejectReason", "ReplyPacket", "StatusDetail", "StatusError",
+        "StatusReply", "check_sid", "checksum", "encode_packet", "flag_names", "read_request",
+        "reply_expected", "reply_matches", "transaction_cost_s", "wire_time_s", "write_request",
+    ],
+    "ohmni_tb.protocol.timing": [
+        "BITS_PER_BYTE", "DEFAULT_BAUDRATE", "DEFAULT_GUARD_S", "DEFAULT_TURNAROUND_S",
+        "reply_size_range", "transaction_cost_s", "wire_time_s",
+    ],
+    "ohmni_tb.protocol.connection": [
+        "DEFAULT_BREAKER_QUIET_S", "DEFAULT_BREAKER_TIMEOUTS", "DEFAULT_PROBE_INTERVAL_S",
+        "DEFAULT_TIMEOUT_S", "BreakerState", "BusConnection", "ConnectionStats", "DeviceStats",
+        "Event", "Exchange", "MissingReason", "ReplyMatcher", "ReplyMissing", "ReplyPacket",
+        "ReplyReceived", "StrayKind", "StrayPacket", "is_idempotent",
+    ],
+    "ohmni_tb.transport.base": [
+        "DEFAULT_WRITE_TIMEOUT_S", "LostHandler", "ReceiveBuffer", "Receiver", "Transport",
     ],
     "ohmni_tb.protocol.devices": [
         "DEFAULT_EXT_SERVO_IDS", "DEVICE_MAP", "NECK_RAW_RANGE", "DeviceId", "DeviceInfo",
@@ -20,8 +33,14 @@ PUBLIC = {
     ],
     "ohmni_tb.protocol.drive": [
         "DRIVE_PROFILE", "MOTOR_POSITION_MODULUS", "PWM_LIMIT", "DriveProfile", "DriveTorque",
-        "decode_wheel_command", "parse_count", "parse_motor_position", "read_count",
-        "read_firmware_tag", "read_motor_position", "set_torque", "wheel_command",
+        "WheelJogForm", "decode_wheel_command", "parse_count", "parse_motor_position",
+        "read_count", "read_firmware_tag", "read_motor_position", "set_torque",
+        "wheel_command",
+    ],
+    "ohmni_tb.protocol.jog": [
+        "I_JOG_TAG_SIZE", "MAX_JOG_POSITION", "MAX_TURN_MAGNITUDE", "S_JOG_TAG_SIZE",
+        "TURN_SIGN_BIT", "JogSet", "JogTag", "decode_jog_word", "encode_jog_word", "jog_data",
+        "jog_tags",
     ],
     "ohmni_tb.protocol.core": [
         "CELL_COUNT", "CORE_PROFILE", "CoreProfile", "TbcoreStatus", "encode_status",
@@ -38,14 +57,18 @@ PUBLIC = {
         "reject_unknown_options", "split",
     ],
     "ohmni_tb.bus": [
-        "DEFAULT_GAP_S", "DEFAULT_RETRIES", "DEFAULT_TIMEOUT_S", "Bus", "BusStats",
-        "DeviceStats",
+        "DEFAULT_CLOSE_TIMEOUT_S", "DEFAULT_GUARD_S", "DEFAULT_MAX_WAIT_S", "DEFAULT_RETRIES",
+        "DEFAULT_STALL_S", "DEFAULT_TIMEOUT_S", "DEFAULT_TURNAROUND_S", "BreakerState", "Bus",
+        "BusStats", "DeviceStats", "ReplyPacket", "transaction_cost_s",
     ],
-    "ohmni_tb.herkulex.servo": ["Servo", "ServoStatus", "move_group"],
+    "ohmni_tb.herkulex.servo": ["Requester", "Servo", "ServoStatus", "move_group"],
     "ohmni_tb.monitor": ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"],
     "ohmni_tb.sim.line": [
-        "LineFaults", "LineStats", "SimLine", "SimTransport", "build_line", "open_sim",
+        "DEFAULT_TURNAROUND_S", "MAX_USB_LATENCY_S", "USB_PACKET_PAYLOAD", "HostReceiver",
+        "LineFaults", "LineStats", "SimLine",
     ],
+    "ohmni_tb.sim.transport": ["SimTransport"],
+    "ohmni_tb.sim.url": ["build_line", "open_sim"],
     "ohmni_tb.sim.robot": ["NECK_CHOICES", "SimRobot"],
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
 }  # fmt: skip

@@ -1,173 +1,297 @@
-"""The async half-duplex request/response engine over a :class:`Transport`.
+"""The async bus engine: prioritised, deadline-aware, wire-timed slots on one half-duplex line.
 
-Every device shares one line, so the bus sends one request at a time and waits for its
-reply before the next. A reply is matched to its request by sid, reply code
-(``cmd | 0x40``) and, for reads, register address; anything else that arrives — a late
-reply to a request that timed out, an echo of our own bytes — is counted and dropped,
-never handed to the next request::
+The line's rules live in the sans-IO :class:`~ohmni_tb.protocol.connection.BusConnection`
+(matching, wire timing, holds, breaker, statistics); this module is the thin shell that
+drives it from the event loop. It runs no task of its own: received bytes arrive through
+the transport's readiness callback, and one ``loop.call_at`` timer wakes it when the
+line frees or a reply window closes::
 
     async with Bus(await open_transport("/dev/ttyUSB0")) as bus:
-        reply = await bus.read(0, 59, 4)          # left wheel count
-        print(int.from_bytes(reply.data, "little", signed=True))
+        reply = await bus.read(0, 59, 4)                    # left wheel count
+        left, right, _ = await bus.transact(                # one atomic slot
+            [read_count(0), read_count(1), wheel_command(200, 200)],
+            priority=10, deadline=loop.time() + 0.005,
+        )
 
-Timing on the wire: the reply timeout starts when the request has been written and is
-stretched by the request's and reply's own wire time at the transport's baud rate, so it
-means "device turnaround plus link latency" at any baud rate. A timed-out request has
-already waited its whole reply window; after a *cancelled* one the bus keeps quiet for one
-more reply window before the next request, so a late reply cannot collide with it on the
-line (and a late reply that does arrive is counted, never delivered).
+What it promises:
+
+* **Slots.** :meth:`Bus.transact` sends its packets back to back with nothing else in
+  between. Waiting slots go highest ``priority`` first, in order of arrival within a
+  priority; one that has waited ``max_wait_s`` goes next whatever its priority, so nothing
+  starves. A slot that cannot start before its ``deadline`` is dropped with
+  :class:`~ohmni_tb.errors.DeadlineMissedError`; retries of its reads go only while the
+  deadline allows.
+* **Wire-timed and pipelined.** The next request goes when the previous transaction's
+  time on the wire is up by the cost model (:mod:`ohmni_tb.protocol.timing`), not when
+  the host has read the reply: an adapter's latency delays replies, not the rate. A reply
+  answers only a request it fits and could have answered by then; a late or duplicate
+  reply is counted, never delivered.
+* **Silent devices cost little.** A device that stopped answering trips a breaker:
+  requests to it fail fast with :class:`~ohmni_tb.errors.DeviceUnavailableError`, with a
+  probe a second, until it answers.
+* **Stops jump the queue.** :meth:`Bus.send_now` waits only for the transaction on the
+  wire; :meth:`Bus.aclose` writes its ``final`` packets (the wheel stop) before the port
+  closes, even when the closing task is cancelled.
+* **A lost link is reported** (requests fail with :class:`~ohmni_tb.errors.TransportError`,
+  :meth:`Bus.wait_lost` returns) and :meth:`Bus.reconnect` reopens the port on the same
+  Bus, with backoff, keeping its statistics.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import Self, cast
 
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
+    DeadlineMissedError,
+    DeviceUnavailableError,
     InvalidArgumentError,
     OutOfRangeError,
+    StateError,
     TransportError,
 )
 from ohmni_tb.protocol import (
     BROADCAST_ID,
     MAX_PACKET_SIZE,
-    AckPolicy,
     Command,
     DecoderStats,
     Memory,
     Packet,
-    PacketDecoder,
     ReadReply,
     StatusReply,
-    encode_packet,
     read_request,
-    reply_expected,
-    reply_matches,
     write_request,
 )
-from ohmni_tb.protocol.framing import HEADER_SIZE
-from ohmni_tb.transport import Transport
+from ohmni_tb.protocol.connection import (
+    DEFAULT_BREAKER_QUIET_S,
+    DEFAULT_BREAKER_TIMEOUTS,
+    DEFAULT_PROBE_INTERVAL_S,
+    DEFAULT_TIMEOUT_S,
+    BreakerState,
+    BusConnection,
+    DeviceStats,
+    Event,
+    Exchange,
+    MissingReason,
+    ReplyMissing,
+    ReplyPacket,
+    ReplyReceived,
+    StrayPacket,
+    check_seconds,
+    is_idempotent,
+    percentile,
+)
+from ohmni_tb.protocol.timing import DEFAULT_GUARD_S, DEFAULT_TURNAROUND_S, transaction_cost_s
+from ohmni_tb.transport import Transport, open_transport
 
 __all__ = [
-    "DEFAULT_GAP_S",
+    "DEFAULT_CLOSE_TIMEOUT_S",
+    "DEFAULT_GUARD_S",
+    "DEFAULT_MAX_WAIT_S",
     "DEFAULT_RETRIES",
+    "DEFAULT_STALL_S",
     "DEFAULT_TIMEOUT_S",
+    "DEFAULT_TURNAROUND_S",
+    "BreakerState",
     "Bus",
     "BusStats",
     "DeviceStats",
+    "ReplyPacket",
+    "transaction_cost_s",
 ]
 
 _log = logging.getLogger(__name__)
 
-#: Device turnaround plus link latency allowed per attempt. The FTDI adapter alone may
-#: hold received bytes 16 ms unless its latency timer is lowered (docs/hardware.md).
-DEFAULT_TIMEOUT_S = 0.025
 #: Extra attempts for reads and STAT; writes are never repeated blindly.
 DEFAULT_RETRIES = 2
-#: Quiet time between the end of one transaction and the next request. The vendor's
-#: driver warns that back-to-back requests conflict; HerkuleX drivers leave 1-3 ms.
-DEFAULT_GAP_S = 0.001
-#: Bits per byte on an 8N1 line: start + 8 data + stop.
-_BITS_PER_BYTE = 10
-#: Latency samples kept per device for the percentiles.
-_LATENCY_WINDOW = 1024
-#: A read reply is a header plus addr, len, the bytes and two status bytes.
-_READ_REPLY_OVERHEAD = HEADER_SIZE + 2 + 2
-_STATUS_REPLY_SIZE = HEADER_SIZE + 2
+#: A waiting slot older than this goes next, whatever its priority.
+DEFAULT_MAX_WAIT_S = 0.5
+#: Bytes that stay queued in the port this long mean the other end is not reading.
+DEFAULT_STALL_S = 0.5
+#: How long :meth:`Bus.aclose` may take to put its final packets on the wire.
+DEFAULT_CLOSE_TIMEOUT_S = 0.5
+#: Queue-wait samples kept for the percentiles.
+_WAIT_WINDOW = 1024
+#: While bytes wait in the port, look again this often.
+_BACKLOG_POLL_S = 0.001
+_EPS = 1e-9
 
-_IDEMPOTENT = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})
-
-
-@dataclass(frozen=True, slots=True)
-class DeviceStats:
-    """Counters for one device id.
-
-    Attributes:
-        sid: The device id.
-        requests: Requests written (each retry counts).
-        replies: Replies matched to a request.
-        timeouts: Attempts that got no reply in time.
-        retries: Attempts after the first.
-        unmatched: Replies from this id that answered nothing pending (late, duplicate).
-        latency_p50_s: Median request-written → reply-received time, or ``None``.
-        latency_p99_s: 99th percentile of the same, or ``None``.
-    """
-
-    sid: int
-    requests: int
-    replies: int
-    timeouts: int
-    retries: int
-    unmatched: int
-    latency_p50_s: float | None
-    latency_p99_s: float | None
+#: Opens a fresh transport for :meth:`Bus.reconnect`.
+Reopen = Callable[[], Awaitable[Transport]]
 
 
 @dataclass(frozen=True, slots=True)
 class BusStats:
-    """Counters for the whole bus.
+    """Counters for the whole bus (a snapshot).
 
     Attributes:
         bytes_out: Bytes written.
+        bytes_in: Bytes received.
         echoes: Copies of our own requests read back (a line that echoes).
-        unmatched: Packets received that answered nothing pending, all devices.
+        foreign_requests: Requests seen that we did not send.
+        unmatched: Replies that answered nothing waiting (early, late, strays).
+        abandoned: Replies to requests whose callers gave up.
+        ambiguous: Requests given up because two look-alike replies came.
+        wire_busy_s: Line time carried since the start (every byte at the baud rate).
+        wire_utilisation: Share of the last second the line carried bytes.
+        reserved_utilisation: Share of the last second the cost model reserved.
+        transactions_per_s: Replies received in the last second.
+        slots: Slots started.
+        queue_wait_p50_s: Median wait from submission to the slot's start, or ``None``.
+        queue_wait_p99_s: 99th percentile of the same, or ``None``.
+        deadline_misses: Slots dropped (and retries not sent) because of their deadline.
+        promoted: Slots sent ahead of their priority after waiting ``max_wait_s``.
+        refused: Requests not sent because the device's breaker was open.
+        link_losses: Times the link was lost.
+        reconnects: Times it was reopened.
         decoder: The receive decoder's counters (junk, checksum errors…).
         devices: Per-device counters by sid.
     """
 
     bytes_out: int
+    bytes_in: int
     echoes: int
+    foreign_requests: int
     unmatched: int
+    abandoned: int
+    ambiguous: int
+    wire_busy_s: float
+    wire_utilisation: float
+    reserved_utilisation: float
+    transactions_per_s: float
+    slots: int
+    queue_wait_p50_s: float | None
+    queue_wait_p99_s: float | None
+    deadline_misses: int
+    promoted: int
+    refused: int
+    link_losses: int
+    reconnects: int
     decoder: DecoderStats
     devices: dict[int, DeviceStats]
 
 
-class _DeviceCounters:
-    __slots__ = ("latencies", "replies", "requests", "retries", "timeouts", "unmatched")
+class _Slot:
+    """One ``transact`` call: its packets, and what became of each."""
 
-    def __init__(self) -> None:
-        self.requests = 0
-        self.replies = 0
-        self.timeouts = 0
-        self.retries = 0
-        self.unmatched = 0
-        self.latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
+    __slots__ = (
+        "attempts",
+        "cancelled",
+        "deadline",
+        "exchanges",
+        "expect",
+        "future",
+        "packets",
+        "priority",
+        "refused",
+        "remaining",
+        "results",
+        "retries",
+        "seq",
+        "started",
+        "submitted_at",
+        "timeout_s",
+    )
 
-    def snapshot(self, sid: int) -> DeviceStats:
-        lat = sorted(self.latencies)
-        return DeviceStats(
-            sid=sid,
-            requests=self.requests,
-            replies=self.replies,
-            timeouts=self.timeouts,
-            retries=self.retries,
-            unmatched=self.unmatched,
-            latency_p50_s=_percentile(lat, 0.50),
-            latency_p99_s=_percentile(lat, 0.99),
-        )
+    def __init__(
+        self,
+        packets: list[Packet],
+        expect: list[bool],
+        *,
+        priority: int,
+        deadline: float | None,
+        retries: int,
+        timeout_s: float | None,
+        seq: int,
+        submitted_at: float,
+        future: asyncio.Future[list[ReplyPacket | None]],
+    ) -> None:
+        self.packets = packets
+        self.expect = expect
+        self.priority = priority
+        self.deadline = deadline
+        self.retries = retries
+        self.timeout_s = timeout_s
+        self.seq = seq
+        self.submitted_at = submitted_at
+        self.future = future
+        self.results: list[ReplyPacket | None] = [None] * len(packets)
+        self.attempts = [0] * len(packets)
+        self.refused: list[float | None] = [None] * len(packets)
+        self.exchanges: list[Exchange] = []
+        self.remaining = len(packets)
+        self.started = False
+        self.cancelled = False
+
+    def settle(self, index: int, result: ReplyPacket | None) -> None:
+        self.results[index] = result
+        self.remaining -= 1
+        if self.remaining <= 0 and not self.future.done():
+            self.future.set_result(self.results)
+
+    def fail(self, exc: BaseException) -> None:
+        if not self.future.done():
+            self.future.set_exception(exc)
+        self.remaining = 0
+
+
+class _Part:
+    """Packets of a slot to send back to back: the whole slot first, then single retries."""
+
+    __slots__ = ("indices", "pos", "seq", "slot", "submitted_at")
+
+    def __init__(self, slot: _Slot, indices: list[int], *, seq: int, submitted_at: float) -> None:
+        self.slot = slot
+        self.indices = indices
+        self.pos = 0
+        self.seq = seq
+        self.submitted_at = submitted_at
+
+
+class _Urgent:
+    __slots__ = ("future", "packet")
+
+    def __init__(self, packet: Packet, future: asyncio.Future[None] | None) -> None:
+        self.packet = packet
+        self.future = future
 
 
 class Bus:
-    """One request in flight on a shared half-duplex line.
+    """Prioritised, wire-timed request/reply slots on one shared line (module docstring).
 
-    Use it as an async context manager; it starts a reader task on entry and stops it,
-    and closes the transport, on exit.
+    Use it as an async context manager: it starts receiving on entry and closes the
+    transport on exit. :meth:`open` builds one from a URL that it can also reopen.
 
     Args:
         transport: The byte link. The bus closes it on :meth:`aclose`.
-        timeout_s: Per-attempt reply timeout, beyond the wire time of the bytes.
-        retries: Extra attempts for reads and STAT after a timeout.
-        gap_s: Quiet time before each request.
+        timeout_s: How long past a reply's latest time on the wire it is still waited
+            for: the adapter's and the host's receive latency.
+        retries: Extra attempts for reads and STAT.
+        guard_s: Quiet between transactions.
+        turnaround_s: The longest a device takes to start its reply (per device:
+            :meth:`set_turnaround`).
         max_packet_size: The largest packet sent or accepted (223 HerkuleX, 64 Ohmni).
-        commands: Command codes the receiver accepts (requests and replies); the nine
-            HerkuleX commands by default. Widen it if a capture shows a board using more.
+        commands: Command codes the receiver accepts; the nine HerkuleX ones by default.
+        pipelined: Send on the wire's timing (default), or wait until each reply is seen
+            or missing (request at a time).
+        max_wait_s: A slot waiting this long goes next, whatever its priority.
+        breaker_timeouts: Missing replies in a row before a device may be presumed gone.
+        breaker_quiet_s: Silence it needs as well.
+        probe_interval_s: How often a presumed-gone device is probed.
+        stall_s: Bytes queued in the port for this long fail the link.
+        close_timeout_s: The most :meth:`aclose` waits to put its final packets out.
+        reopen: How :meth:`reconnect` opens a fresh transport.
+
+    Raises:
+        OutOfRangeError: A setting is out of range; the message names it.
     """
 
     def __init__(
@@ -176,32 +300,82 @@ class Bus:
         *,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
-        gap_s: float = DEFAULT_GAP_S,
+        guard_s: float = DEFAULT_GUARD_S,
+        turnaround_s: float = DEFAULT_TURNAROUND_S,
         max_packet_size: int = MAX_PACKET_SIZE,
         commands: Iterable[int] | None = None,
+        pipelined: bool = True,
+        max_wait_s: float = DEFAULT_MAX_WAIT_S,
+        breaker_timeouts: int = DEFAULT_BREAKER_TIMEOUTS,
+        breaker_quiet_s: float = DEFAULT_BREAKER_QUIET_S,
+        probe_interval_s: float = DEFAULT_PROBE_INTERVAL_S,
+        stall_s: float = DEFAULT_STALL_S,
+        close_timeout_s: float = DEFAULT_CLOSE_TIMEOUT_S,
+        reopen: Reopen | None = None,
     ) -> None:
-        _check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
-        _check_seconds("gap_s", gap_s, 0.0, 1.0)
-        if not isinstance(retries, int) or not 0 <= retries <= 10:
-            raise OutOfRangeError("retries", retries, 0, 10)
+        _check_retries(retries)
+        check_seconds("max_wait_s", max_wait_s, 0.0, 3600.0)
+        check_seconds("stall_s", stall_s, 0.001, 60.0)
+        check_seconds("close_timeout_s", close_timeout_s, 0.0, 60.0)
+        self._conn = BusConnection(
+            baudrate=transport.baudrate,
+            turnaround_s=turnaround_s,
+            guard_s=guard_s,
+            timeout_s=timeout_s,
+            max_packet_size=max_packet_size,
+            commands=commands,
+            pipelined=pipelined,
+            breaker_timeouts=breaker_timeouts,
+            breaker_quiet_s=breaker_quiet_s,
+            probe_interval_s=probe_interval_s,
+        )
         self._transport = transport
-        self.timeout_s = timeout_s
         self.retries = retries
-        self.gap_s = gap_s
-        self._max_size = max_packet_size
-        self._decoder = PacketDecoder(max_size=max_packet_size, commands=commands)
-        self._lock = asyncio.Lock()
-        self._pending: tuple[Packet, asyncio.Future[Packet]] | None = None
-        self._last_sent: Packet | None = None
-        self._quiet_until = 0.0
-        self._reader: asyncio.Task[None] | None = None
-        self._failure: BaseException | None = None
+        self.max_wait_s = float(max_wait_s)
+        self.stall_s = float(stall_s)
+        self.close_timeout_s = float(close_timeout_s)
+        self._reopen = reopen
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._waiting: list[_Part] = []
+        # Every slot whose caller still waits, wherever its packets are.
+        self._active: set[_Slot] = set()
+        self._current: _Part | None = None
+        self._urgent: deque[_Urgent] = deque()
+        self._urgent_done: asyncio.Future[None] | None = None
+        self._wake: asyncio.TimerHandle | None = None
+        self._wake_at = math.inf
+        self._pumping = False
+        self._again = False
+        self._seq = 0
+        self._started = False
+        self._closing = False
         self._closed = False
-        self._ack_policy: dict[int, int] = {}
-        self._devices: dict[int, _DeviceCounters] = {}
-        self._bytes_out = 0
-        self._echoes = 0
-        self._unmatched = 0
+        self._failure: TransportError | None = None
+        self._lost: asyncio.Event | None = None
+        self._stall_since: float | None = None
+        self._waits: deque[float] = deque(maxlen=_WAIT_WINDOW)
+        self._slots = 0
+        self._deadline_misses = 0
+        self._promoted = 0
+        self._refused = 0
+        self._link_losses = 0
+        self._reconnects = 0
+
+    @classmethod
+    async def open(cls, url: str, **settings: object) -> Bus:
+        """Open the transport ``url`` names and a Bus on it that can :meth:`reconnect`.
+
+        ``settings`` are the constructor's keyword arguments.
+
+        Raises:
+            ConfigError: The URL is invalid.
+            TransportError: The port cannot be opened.
+        """
+
+        async def reopen() -> Transport:
+            return await open_transport(url)
+
+        return cls(await reopen(), reopen=reopen, **settings)  # type: ignore[arg-type]  # checked by the constructor
 
     # -- lifecycle -------------------------------------------------------------------
 
@@ -218,33 +392,83 @@ class Bus:
         await self.aclose()
 
     def start(self) -> None:
-        """Start the reader task (done by ``async with``). Idempotent.
+        """Start receiving (done by ``async with``). Idempotent.
 
         Raises:
             BusClosedError: The bus was closed.
         """
-        if self._closed:
+        if self._closed or self._closing:
             raise BusClosedError("the bus is closed")
-        if self._reader is None:
-            self._reader = asyncio.create_task(self._read_loop(), name="ohmni-bus-reader")
-
-    async def aclose(self) -> None:
-        """Stop the reader and close the transport. Idempotent."""
-        if self._closed:
+        if self._started:
             return
-        self._closed = True
-        reader, self._reader = self._reader, None
+        self._loop = asyncio.get_running_loop()
+        self._lost = asyncio.Event()
+        self._transport.start_receiving(self._on_data, self._on_lost)
+        self._started = True
+
+    async def aclose(self, final: Sequence[Packet] = ()) -> None:
+        """Write ``final`` packets, then close the transport. Idempotent.
+
+        The final packets (the wheel stop) go out as soon as the transaction on the wire
+        ends, ahead of anything queued, which fails with
+        :class:`~ohmni_tb.errors.BusClosedError`. They are written even if the caller is
+        cancelled meanwhile (the cancellation is raised afterwards), within
+        ``close_timeout_s``; one that cannot be written is logged as a warning.
+
+        Raises:
+            OutOfRangeError: A final packet cannot be encoded; nothing was done.
+        """
+        for packet in final:
+            self._conn.frame(packet)
+        if self._closed or self._closing:
+            return
+        self._closing = True
+        closing = BusClosedError("the bus was closed")
+        self._fail_all(closing)
+        cancelled: asyncio.CancelledError | None = None
         try:
-            if reader is not None:
-                reader.cancel()
-                # wait() does not re-raise the reader's own cancellation, while a
-                # cancellation of the caller still propagates.
-                await asyncio.wait({reader})
+            if final and self._started and self._failure is None:
+                loop = asyncio.get_running_loop()
+                for packet in final:
+                    self._urgent.append(_Urgent(packet, None))
+                self._pump()
+                deadline = loop.time() + self.close_timeout_s
+                while (self._urgent or self._transport.backlog) and self._failure is None:
+                    left = deadline - loop.time()
+                    if left <= 0:
+                        break
+                    try:
+                        await asyncio.wait_for(asyncio.shield(self._progress()), left)
+                    except TimeoutError:
+                        break
+                    except asyncio.CancelledError as exc:
+                        # The stop must still reach the wheels; the caller hears of its
+                        # cancellation once it has.
+                        cancelled = exc
+                if self._urgent or self._transport.backlog:
+                    _log.warning(
+                        "bus closing: %d final packet(s) and %d queued bytes not sent "
+                        "within %.3f s",
+                        len(self._urgent),
+                        self._transport.backlog,
+                        self.close_timeout_s,
+                    )
         finally:
-            # Even when the caller is cancelled mid-close, the port is released.
-            if self._pending is not None and not self._pending[1].done():
-                self._pending[1].set_exception(BusClosedError("the bus was closed"))
-            await self._transport.aclose()
+            self._closed = True
+            for urgent in self._urgent:
+                if urgent.future is not None and not urgent.future.done():
+                    urgent.future.set_exception(closing)
+            self._urgent.clear()
+            self._cancel_wake()
+            for exchange in self._conn.pending():
+                self._conn.abandon(exchange)
+            try:
+                await self._transport.aclose()
+            except asyncio.CancelledError as exc:
+                cancelled = exc
+                await self._transport.aclose()
+        if cancelled is not None:
+            raise cancelled
 
     @property
     def closed(self) -> bool:
@@ -252,15 +476,122 @@ class Bus:
         return self._closed
 
     @property
+    def connected(self) -> bool:
+        """Whether the link is up (started, not lost, not closed)."""
+        return self._started and not self._closed and self._failure is None
+
+    @property
     def transport(self) -> Transport:
-        """The byte link underneath."""
+        """The byte link underneath (a new one after :meth:`reconnect`)."""
         return self._transport
+
+    @property
+    def connection(self) -> BusConnection:
+        """The sans-IO line state this bus drives."""
+        return self._conn
+
+    async def wait_lost(self) -> TransportError:
+        """Wait until the link is lost and return why (at once if it is lost now).
+
+        Raises:
+            BusClosedError: The bus is closed or not started.
+        """
+        if self._failure is not None:
+            return self._failure
+        if self._closed or self._lost is None:
+            raise BusClosedError("the bus is closed or not started")
+        await self._lost.wait()
+        return self._lost_reason()
+
+    def _lost_reason(self) -> TransportError:
+        if self._failure is None:
+            raise BusClosedError("the bus was closed")
+        return self._failure
+
+    def _shutting(self) -> bool:
+        return self._closed or self._closing
+
+    async def reconnect(
+        self,
+        *,
+        attempts: int | None = None,
+        backoff_s: float = 0.1,
+        max_backoff_s: float = 5.0,
+    ) -> None:
+        """Close the transport and open a fresh one, retrying with a doubling backoff.
+
+        Statistics, ACK policies and turnaround budgets carry over; requests can be sent
+        again once it returns.
+
+        Args:
+            attempts: Give up after this many failed opens (``None``: keep trying).
+            backoff_s: The first wait between attempts.
+            max_backoff_s: The longest wait.
+
+        Raises:
+            StateError: The bus has no way to reopen (use :meth:`open` or ``reopen=``).
+            BusClosedError: The bus is closed.
+            TransportError: ``attempts`` opens failed; the last error.
+        """
+        if self._reopen is None:
+            raise StateError(
+                "this bus cannot reopen its port: create it with Bus.open(url) or "
+                "Bus(transport, reopen=...)"
+            )
+        if self._closed or self._closing:
+            raise BusClosedError("the bus is closed")
+        if attempts is not None and (not isinstance(attempts, int) or attempts < 1):
+            raise OutOfRangeError("attempts", attempts, 1, math.inf)
+        check_seconds("backoff_s", backoff_s, 0.0, 3600.0)
+        check_seconds("max_backoff_s", max_backoff_s, 0.0, 3600.0)
+        if self._failure is None:
+            self._on_lost(TransportError("reconnect requested"))
+        await self._transport.aclose()
+        delay = backoff_s
+        failures = 0
+        while True:
+            try:
+                transport = await self._reopen()
+                break
+            except TransportError as exc:
+                failures += 1
+                if attempts is not None and failures >= attempts:
+                    raise
+                _log.info("reopen failed (%s); again in %.2f s", exc, delay)
+                await asyncio.sleep(delay)
+                delay = min(max(delay * 2, 0.001), max_backoff_s)
+        if self._shutting():
+            await transport.aclose()
+            raise BusClosedError("the bus was closed while reconnecting")
+        self._transport = transport
+        if transport.baudrate != self._conn.baudrate:
+            _log.warning(
+                "reopened at %s baud, not %s: keeping the old timing",
+                transport.baudrate,
+                self._conn.baudrate,
+            )
+        self._failure = None
+        self._stall_since = None
+        self._lost = asyncio.Event()
+        transport.start_receiving(self._on_data, self._on_lost)
+        self._reconnects += 1
+        _log.info("bus reconnected on %r", transport)
 
     # -- configuration ---------------------------------------------------------------
 
+    @property
+    def timeout_s(self) -> float:
+        """The default reply timeout (past the reply's latest wire time)."""
+        return self._conn.timeout_s
+
+    @property
+    def guard_s(self) -> float:
+        """Quiet between transactions."""
+        return self._conn.guard_s
+
     def ack_policy(self, sid: int) -> int:
         """The ACK policy the bus assumes for ``sid`` (HerkuleX default: 1, reads only)."""
-        return self._ack_policy.get(sid, AckPolicy.READS)
+        return self._conn.ack_policy(sid)
 
     def set_ack_policy(self, sid: int, policy: int) -> None:
         """Tell the bus which ACK policy device ``sid`` runs, so it knows what answers.
@@ -268,11 +599,69 @@ class Bus:
         Raises:
             OutOfRangeError: ``policy`` is not 0, 1 or 2.
         """
-        if policy not in (0, 1, 2):
-            raise OutOfRangeError("ack policy", policy, 0, 2)
-        self._ack_policy[sid] = int(policy)
+        self._conn.set_ack_policy(sid, policy)
+
+    def set_turnaround(self, sid: int, turnaround_s: float | None) -> None:
+        """Give a slow device its own turnaround budget (``None``: the default).
+
+        Raises:
+            OutOfRangeError: Not 0..1 s.
+        """
+        self._conn.set_turnaround(sid, turnaround_s)
+
+    def cost_s(self, packet: Packet) -> float:
+        """Line time ``packet`` and its reply take on this bus, by the cost model."""
+        return transaction_cost_s(
+            packet,
+            baudrate=self._conn.baudrate or 1_000_000_000,
+            turnaround_s=self._conn.turnaround(packet.sid),
+            guard_s=self._conn.guard_s,
+            expect_reply=self._conn.expects_reply(packet),
+            max_packet_size=self._conn.max_packet_size,
+        )
 
     # -- requests --------------------------------------------------------------------
+
+    async def transact(
+        self,
+        packets: Sequence[Packet],
+        *,
+        priority: int = 0,
+        deadline: float | None = None,
+        retries: int | None = None,
+        timeout_s: float | None = None,
+    ) -> list[ReplyPacket | None]:
+        """Send ``packets`` as one atomic slot and return each one's reply.
+
+        Args:
+            packets: The requests, sent back to back with nothing else in between.
+            priority: Higher goes first among waiting slots.
+            deadline: An absolute ``loop.time()``: the slot is dropped if it cannot start
+                by then, and reads are retried only while it allows.
+            retries: Extra attempts for the reads and STATs of this slot.
+            timeout_s: Reply timeout for this slot.
+
+        Returns:
+            One entry per packet: its reply, or ``None`` when it gets none (no reply
+            expected, no reply in time, or its device's breaker is open).
+
+        Raises:
+            OutOfRangeError: A packet cannot be encoded; nothing was sent.
+            InvalidArgumentError: No packets, a STAT to broadcast, or two requests whose
+                replies could not be told apart; nothing was sent.
+            DeadlineMissedError: The slot could not start before ``deadline``.
+            BusClosedError: The bus is closed.
+            TransportError: The link is lost.
+        """
+        slot = self._submit(
+            packets,
+            None,
+            priority=priority,
+            deadline=deadline,
+            retries=retries,
+            timeout_s=timeout_s,
+        )
+        return await self._await(slot)
 
     async def request(
         self,
@@ -281,7 +670,9 @@ class Bus:
         expect_reply: bool | None = None,
         timeout_s: float | None = None,
         retries: int | None = None,
-    ) -> Packet | None:
+        priority: int = 0,
+        deadline: float | None = None,
+    ) -> ReplyPacket | None:
         """Send one request and return its reply, or ``None`` when none is expected.
 
         Args:
@@ -289,45 +680,56 @@ class Bus:
             expect_reply: Override whether to wait for a reply; by default
                 :func:`~ohmni_tb.protocol.reply_expected` decides from the command, the
                 sid and the device's ACK policy. A broadcast never waits.
-            timeout_s: Per-attempt timeout for this request.
+            timeout_s: Reply timeout for this request.
             retries: Extra attempts for this request (reads and STAT only).
+            priority: As for :meth:`transact`.
+            deadline: As for :meth:`transact`.
 
         Raises:
             OutOfRangeError: The packet cannot be encoded; nothing was sent.
             InvalidArgumentError: A STAT to broadcast (every device would answer at once).
             BusTimeoutError: No reply after every attempt.
+            DeviceUnavailableError: The device stopped answering; the request was not sent.
+            DeadlineMissedError: It could not start before ``deadline``.
             BusClosedError: The bus is closed.
             TransportError: The link failed.
         """
-        frame = encode_packet(packet, max_size=self._max_size)
-        if packet.sid == BROADCAST_ID:
-            if packet.cmd == Command.STAT:
-                raise InvalidArgumentError(
-                    "STAT to broadcast (0xFE): every device would answer at once"
-                )
-            expect_reply = False
-        elif expect_reply is None:
-            expect_reply = reply_expected(packet.cmd, packet.sid, self.ack_policy(packet.sid))
-        timeout = self.timeout_s if timeout_s is None else timeout_s
-        _check_seconds("timeout_s", timeout, 0.0005, 10.0)
-        extra = self.retries if retries is None else retries
-        if not isinstance(extra, int) or not 0 <= extra <= 10:
-            raise OutOfRangeError("retries", extra, 0, 10)
-        attempts = 1 + (extra if packet.cmd in _IDEMPOTENT else 0)
-        counters = self._counters(packet.sid)
-        async with self._lock:
-            self._check_usable()
-            for attempt in range(attempts):
-                if attempt:
-                    counters.retries += 1
-                reply = await self._transact(packet, frame, expect_reply, timeout, counters)
-                if reply is not None or not expect_reply:
-                    return reply
-        raise BusTimeoutError(sid=packet.sid, cmd=packet.cmd, attempts=attempts, timeout_s=timeout)
+        slot = self._submit(
+            [packet],
+            None if expect_reply is None else [expect_reply],
+            priority=priority,
+            deadline=deadline,
+            retries=retries,
+            timeout_s=timeout_s,
+        )
+        reply = (await self._await(slot))[0]
+        if reply is None and slot.expect[0]:
+            self._raise_missing(slot, 0)
+        return reply
 
     async def send(self, packet: Packet) -> None:
         """Send a request that gets no reply (a jog, a write under ACK policy 0/1)."""
         await self.request(packet, expect_reply=False)
+
+    async def send_now(self, packet: Packet) -> None:
+        """Send ``packet`` ahead of everything queued: the stop path.
+
+        It waits only for the transaction on the wire to end, not for waiting slots or
+        retries, and jumps into the middle of an atomic slot if one is being sent. It
+        returns once the bytes are handed to the port; a reply it gets is not waited for
+        (it is counted). Once called, the packet goes out even if the caller is cancelled.
+
+        Raises:
+            OutOfRangeError: The packet cannot be encoded; nothing was sent.
+            BusClosedError: The bus is closed.
+            TransportError: The link is lost.
+        """
+        self._conn.frame(packet)
+        self._check_usable()
+        future: asyncio.Future[None] = self._loop_().create_future()
+        self._urgent.append(_Urgent(packet, future))
+        self._pump()
+        await asyncio.shield(future)
 
     async def read(
         self, sid: int, addr: int, length: int, memory: Memory = Memory.RAM
@@ -346,14 +748,20 @@ class Bus:
         ``parse_count(await bus.query(read_count(0)))`` reads the left wheel count.
 
         Raises:
-            InvalidArgumentError: ``request`` is not a RAM_READ or EEP_READ.
+            InvalidArgumentError: ``request`` is not a read to one device (RAM_READ or
+                EEP_READ, not broadcast).
             MalformedReplyError: The reply's layout does not fit the request.
             BusTimeoutError: No reply after every attempt.
         """
         if request.cmd not in (Command.RAM_READ, Command.EEP_READ):
             raise InvalidArgumentError(f"query() takes a read request, not {request!r}")
+        if request.sid == BROADCAST_ID:
+            raise InvalidArgumentError(
+                "query() of broadcast (0xFE): no device answers a broadcast read"
+            )
         reply = await self.request(request, expect_reply=True)
-        assert reply is not None  # expect_reply=True returns a packet or raises
+        if reply is None:  # pragma: no cover - expect_reply=True returns a packet or raises
+            raise InvalidArgumentError(f"no reply to {request!r}")
         return ReadReply.parse(reply)
 
     async def write(
@@ -368,140 +776,461 @@ class Bus:
     @property
     def stats(self) -> BusStats:
         """A snapshot of every counter."""
+        now = self._loop.time() if self._loop is not None else 0.0
+        line = self._conn.stats(now)
+        waits = sorted(self._waits)
         return BusStats(
-            bytes_out=self._bytes_out,
-            echoes=self._echoes,
-            unmatched=self._unmatched,
-            decoder=self._decoder.stats,
-            devices={sid: c.snapshot(sid) for sid, c in sorted(self._devices.items())},
+            bytes_out=line.bytes_out,
+            bytes_in=line.bytes_in,
+            echoes=line.echoes,
+            foreign_requests=line.foreign_requests,
+            unmatched=line.unmatched,
+            abandoned=line.abandoned,
+            ambiguous=line.ambiguous,
+            wire_busy_s=line.wire_busy_s,
+            wire_utilisation=line.wire_utilisation,
+            reserved_utilisation=line.reserved_utilisation,
+            transactions_per_s=line.transactions_per_s,
+            slots=self._slots,
+            queue_wait_p50_s=percentile(waits, 0.50),
+            queue_wait_p99_s=percentile(waits, 0.99),
+            deadline_misses=self._deadline_misses,
+            promoted=self._promoted,
+            refused=self._refused,
+            link_losses=self._link_losses,
+            reconnects=self._reconnects,
+            decoder=line.decoder,
+            devices=line.devices,
         )
 
-    # -- private ---------------------------------------------------------------------
+    # -- submission ------------------------------------------------------------------
 
-    def _counters(self, sid: int) -> _DeviceCounters:
-        counters = self._devices.get(sid)
-        if counters is None:
-            counters = self._devices[sid] = _DeviceCounters()
-        return counters
+    def _loop_(self) -> asyncio.AbstractEventLoop:
+        if self._loop is None:
+            raise BusClosedError("the bus is not started: use `async with Bus(...)`")
+        return self._loop
 
     def _check_usable(self) -> None:
-        if self._closed:
+        if self._closed or self._closing:
             raise BusClosedError("the bus is closed")
-        if self._failure is not None:
-            raise TransportError(f"the bus link failed: {self._failure}") from self._failure
-        if self._reader is None:
+        if not self._started:
             raise BusClosedError("the bus is not started: use `async with Bus(...)`")
+        if self._failure is not None:
+            raise TransportError(
+                f"the bus link failed: {self._failure}; call reconnect()"
+            ) from self._failure
 
-    def _wire_s(self, nbytes: int) -> float:
-        baud = self._transport.baudrate
-        return 0.0 if not baud else nbytes * _BITS_PER_BYTE / baud
-
-    async def _transact(
+    def _submit(
         self,
-        packet: Packet,
-        frame: bytes,
-        expect_reply: bool,
-        timeout_s: float,
-        counters: _DeviceCounters,
-    ) -> Packet | None:
-        """One attempt: wait for quiet, write, wait for the reply. ``None`` on timeout."""
-        loop = asyncio.get_running_loop()
-        quiet_s = self._quiet_until - loop.time()
-        if quiet_s > 0:
-            await asyncio.sleep(quiet_s)
+        packets: Sequence[Packet],
+        expect: list[bool] | None,
+        *,
+        priority: int,
+        deadline: float | None,
+        retries: int | None,
+        timeout_s: float | None,
+    ) -> _Slot:
+        conn = self._conn
+        packets = list(packets)
+        if not packets:
+            raise InvalidArgumentError("transact() needs at least one packet")
+        if isinstance(priority, bool) or not isinstance(priority, int):
+            raise InvalidArgumentError(f"priority must be an int, not {priority!r}")
+        extra = self.retries if retries is None else retries
+        _check_retries(extra)
+        if timeout_s is not None:
+            check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
+        if deadline is not None and (
+            isinstance(deadline, bool)
+            or not isinstance(deadline, int | float)
+            or not math.isfinite(deadline)
+        ):
+            raise InvalidArgumentError(f"deadline must be a loop.time() value, not {deadline!r}")
+        wants: list[bool] = []
+        keys: set[tuple[int, int, bytes]] = set()
+        for i, packet in enumerate(packets):
+            conn.frame(packet)  # raises OutOfRangeError before anything is queued
+            if packet.sid == BROADCAST_ID:
+                if packet.cmd == Command.STAT:
+                    raise InvalidArgumentError(
+                        "STAT to broadcast (0xFE): every device would answer at once"
+                    )
+                wants.append(False)
+                continue
+            want = conn.expects_reply(packet) if expect is None else bool(expect[i])
+            wants.append(want)
+            if want:
+                key = (packet.sid, packet.cmd, packet.data[:1])
+                if key in keys:
+                    raise InvalidArgumentError(
+                        f"one slot cannot wait for two replies that look alike: {packet!r}"
+                    )
+                keys.add(key)
         self._check_usable()
-        future: asyncio.Future[Packet] = loop.create_future()
-        # Registered before the write, with no await between, so a fast reply is never
-        # mistaken for an unmatched one.
-        if expect_reply:
-            self._pending = (packet, future)
-        sent_at = loop.time()
-        done = False
-        try:
-            await self._transport.write(frame)
-            self._bytes_out += len(frame)
-            self._last_sent = packet
-            counters.requests += 1
-            request_wire_s = self._wire_s(len(frame))
-            if not expect_reply:
-                done = True
-                self._quiet_until = loop.time() + request_wire_s + self.gap_s
-                return None
-            budget = request_wire_s + self._wire_s(_reply_size(packet)) + timeout_s
-            try:
-                async with asyncio.timeout(budget):
-                    reply = await future
-            except TimeoutError:
-                counters.timeouts += 1
-                # A frame cut short will not be completed now; rescan what is held.
-                self._route(self._decoder.expire())
-                done = True
-                self._quiet_until = loop.time() + self.gap_s
-                _log.debug(
-                    "timeout: sid %d cmd 0x%02X after %.1f ms", packet.sid, packet.cmd, budget * 1e3
+        loop = self._loop_()
+        now = loop.time()
+        slot = _Slot(
+            packets,
+            wants,
+            priority=priority,
+            deadline=deadline,
+            retries=extra,
+            timeout_s=timeout_s,
+            seq=self._next_seq(),
+            submitted_at=now,
+            future=loop.create_future(),
+        )
+        if len(packets) == 1 and wants[0]:
+            # Fail fast for a device known to be gone (a probe may still go).
+            retry_in = conn.refusal(packets[0].sid, now)
+            if retry_in is not None:
+                self._refused += 1
+                raise DeviceUnavailableError(
+                    sid=packets[0].sid,
+                    cmd=packets[0].cmd,
+                    silent_s=conn.silent_for(packets[0].sid, now),
+                    retry_in_s=retry_in,
                 )
-                return None
-            received_at = loop.time()
-            counters.replies += 1
-            counters.latencies.append(received_at - sent_at)
-            done = True
-            self._quiet_until = received_at + self.gap_s
-            return reply
-        finally:
-            if expect_reply:
-                self._pending = None
-            if not done:
-                # Cancelled or failed mid-transaction: the device may still answer, so
-                # keep the line quiet for one reply window before the next request.
-                self._quiet_until = max(self._quiet_until, sent_at + timeout_s + self.gap_s)
+        self._active.add(slot)
+        slot.future.add_done_callback(lambda _: self._active.discard(slot))
+        self._waiting.append(_Part(slot, list(range(len(packets))), seq=slot.seq, submitted_at=now))
+        self._pump()
+        return slot
 
-    async def _read_loop(self) -> None:
-        transport = self._transport
+    async def _await(self, slot: _Slot) -> list[ReplyPacket | None]:
+        try:
+            return await slot.future
+        except asyncio.CancelledError:
+            self._cancel(slot)
+            raise
+
+    def _raise_missing(self, slot: _Slot, index: int) -> None:
+        packet = slot.packets[index]
+        retry_in = slot.refused[index]
+        if retry_in is not None:
+            now = self._loop_().time()
+            raise DeviceUnavailableError(
+                sid=packet.sid,
+                cmd=packet.cmd,
+                silent_s=self._conn.silent_for(packet.sid, now),
+                retry_in_s=retry_in,
+            )
+        timeout = self._conn.timeout_s if slot.timeout_s is None else slot.timeout_s
+        raise BusTimeoutError(
+            sid=packet.sid, cmd=packet.cmd, attempts=max(1, slot.attempts[index]), timeout_s=timeout
+        )
+
+    def _cancel(self, slot: _Slot) -> None:
+        slot.cancelled = True
+        self._waiting = [p for p in self._waiting if p.slot is not slot]
+        if self._current is not None and self._current.slot is slot:
+            self._current = None
+        for exchange in slot.exchanges:
+            if not exchange.done:
+                self._conn.abandon(exchange)
+        self._pump()
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    def _fail_all(self, error: BaseException) -> None:
+        self._waiting.clear()
+        self._current = None
+        for slot in list(self._active):
+            slot.fail(error)
+        self._active.clear()
+
+    # -- the engine ------------------------------------------------------------------
+
+    def _on_data(self, data: bytes) -> None:
+        loop = self._loop
+        if loop is None or self._closed:
+            return
+        self._handle(self._conn.receive_data(data, loop.time()))
+        self._pump()
+
+    def _on_lost(self, exc: TransportError) -> None:
+        if self._failure is not None or self._closed:
+            return
+        loop = self._loop
+        now = loop.time() if loop is not None else 0.0
+        self._failure = exc
+        self._link_losses += 1
+        if not self._closing:
+            _log.warning("bus link lost: %s", exc)
+        self._conn.link_lost(now)
+        error = TransportError(f"the bus link was lost: {exc}")
+        error.__cause__ = exc
+        self._fail_all(error)
+        for slot_exchange in list(self._urgent):
+            if slot_exchange.future is not None and not slot_exchange.future.done():
+                slot_exchange.future.set_exception(error)
+        self._urgent.clear()
+        self._resolve_progress()
+        if self._lost is not None:
+            self._lost.set()
+
+    def _on_wake(self) -> None:
+        self._wake = None
+        self._wake_at = math.inf
+        self._pump()
+
+    def _cancel_wake(self) -> None:
+        if self._wake is not None:
+            self._wake.cancel()
+            self._wake = None
+            self._wake_at = math.inf
+
+    def _arm(self, when: float) -> None:
+        if when == math.inf or self._closed:
+            return
+        if self._wake is not None:
+            if self._wake_at <= when + _EPS:
+                return
+            self._wake.cancel()
+        self._wake_at = when
+        self._wake = self._loop_().call_at(when, self._on_wake)
+
+    def _progress(self) -> asyncio.Future[None]:
+        if self._urgent_done is None or self._urgent_done.done():
+            self._urgent_done = self._loop_().create_future()
+        return self._urgent_done
+
+    def _resolve_progress(self) -> None:
+        if self._urgent_done is not None and not self._urgent_done.done():
+            self._urgent_done.set_result(None)
+
+    def _pump(self) -> None:
+        """Send whatever may go now; arm the timer for the next thing that may."""
+        if self._pumping:
+            self._again = True
+            return
+        loop = self._loop
+        if loop is None or self._closed:
+            return
+        self._pumping = True
         try:
             while True:
-                data = await transport.read()
-                self._route(self._decoder.feed(data))
+                self._again = False
+                self._run(loop.time())
+                if not self._again:
+                    break
+        finally:
+            self._pumping = False
+
+    def _run(self, now: float) -> None:
+        conn = self._conn
+        self._handle(conn.poll(now))
+        wake = math.inf
+        while self._failure is None and not self._closed:
+            backlog = self._transport.backlog
+            if backlog:
+                # The port has not taken the last bytes: the wire model is off until it
+                # does, and a port that never does has lost its peer.
+                if self._stall_since is None:
+                    self._stall_since = now
+                elif now - self._stall_since >= self.stall_s:
+                    self._on_lost(
+                        TransportError(
+                            f"{self._transport!r}: {backlog} bytes not sent after "
+                            f"{now - self._stall_since:.2f} s (is the other end reading?)"
+                        )
+                    )
+                    return
+                wake = min(wake, now + _BACKLOG_POLL_S)
+                break
+            self._stall_since = None
+            if self._urgent:
+                if now + _EPS < conn.free_at:
+                    wake = min(wake, conn.free_at)
+                    break
+                self._send_urgent(self._urgent.popleft(), now)
+                if not self._urgent:
+                    self._resolve_progress()
+                continue
+            if self._closing:
+                break
+            self._drop_hopeless(now)
+            if now + _EPS < conn.free_at:
+                # Choose only when the line is free: a slot that arrives meanwhile with a
+                # higher priority must still be able to go first.
+                wake = min(wake, conn.free_at, self._next_wake(now))
+                break
+            part = self._current or self._pick(now)
+            if part is None:
+                wake = min(wake, self._next_wake(now))
+                break
+            self._send_next(part, now)
+        deadline = conn.next_deadline()
+        if deadline is not None:
+            wake = min(wake, deadline)
+        self._arm(wake)
+
+    def _drop_hopeless(self, now: float) -> None:
+        """Drop waiting parts that can no longer start before their deadlines."""
+        start_at = max(now, self._conn.free_at)
+        if not any(
+            part.slot.future.done()
+            or (part.slot.deadline is not None and start_at > part.slot.deadline + _EPS)
+            for part in self._waiting
+        ):
+            return
+        kept: list[_Part] = []
+        for part in self._waiting:
+            slot = part.slot
+            if slot.future.done():
+                continue
+            if slot.deadline is not None and start_at > slot.deadline + _EPS:
+                self._miss_deadline(part, start_at)
+                continue
+            kept.append(part)
+        self._waiting = kept
+
+    def _pick(self, now: float) -> _Part | None:
+        """Start the best waiting part that may go now (holds respected), if any."""
+        conn = self._conn
+        best: _Part | None = None
+        best_key: tuple[int, int, int] | None = None
+        for part in self._waiting:
+            slot = part.slot
+            if any(
+                conn.blocked_until(slot.packets[i], now) > now + _EPS
+                for i in part.indices
+                if slot.expect[i]
+            ):
+                continue
+            promoted = now - part.submitted_at >= self.max_wait_s
+            key = (1 if promoted else 0, slot.priority, -part.seq)
+            if best_key is None or key > best_key:
+                best, best_key = part, key
+        if best is None or best_key is None:
+            return None
+        self._waiting.remove(best)
+        if best_key[0] and any(p.slot.priority > best.slot.priority for p in self._waiting):
+            self._promoted += 1
+        slot = best.slot
+        if not slot.started:
+            slot.started = True
+            self._slots += 1
+            self._waits.append(now - best.submitted_at)
+        self._current = best
+        return best
+
+    def _next_wake(self, now: float) -> float:
+        """When a waiting part next may go or must be dropped (nothing may go now)."""
+        wake = math.inf
+        for part in self._waiting:
+            slot = part.slot
+            if slot.deadline is not None:
+                wake = min(wake, slot.deadline + 2 * _EPS)
+            for i in part.indices:
+                if slot.expect[i]:
+                    until = self._conn.blocked_until(slot.packets[i], now)
+                    if now < until < math.inf:
+                        # A hold ends then (an outstanding twin resolves by an event).
+                        wake = min(wake, until)
+            promote_at = part.submitted_at + self.max_wait_s
+            if promote_at > now:
+                wake = min(wake, promote_at)
+        return max(wake, now)
+
+    def _miss_deadline(self, part: _Part, start_at: float) -> None:
+        slot = part.slot
+        self._deadline_misses += 1
+        if not slot.started:
+            assert slot.deadline is not None
+            slot.fail(DeadlineMissedError(deadline=slot.deadline, late_s=start_at - slot.deadline))
+            return
+        for index in part.indices:
+            slot.settle(index, None)
+
+    def _send_next(self, part: _Part, now: float) -> None:
+        slot = part.slot
+        index = part.indices[part.pos]
+        part.pos += 1
+        if part.pos >= len(part.indices):
+            self._current = None
+        packet = slot.packets[index]
+        expect = slot.expect[index]
+        if expect:
+            retry_in = self._conn.refusal(packet.sid, now)
+            if retry_in is not None:
+                self._refused += 1
+                slot.refused[index] = retry_in
+                slot.settle(index, None)
+                return
+        attempt = slot.attempts[index]
+        slot.attempts[index] = attempt + 1
+        exchange = self._conn.send(
+            packet,
+            now,
+            expect_reply=expect,
+            timeout_s=slot.timeout_s,
+            attempt=attempt,
+            token=(slot, index),
+        )
+        if not self._write(exchange.frame):
+            return
+        if expect:
+            slot.exchanges.append(exchange)
+        else:
+            slot.settle(index, None)
+
+    def _send_urgent(self, urgent: _Urgent, now: float) -> None:
+        conn = self._conn
+        packet = urgent.packet
+        expect = conn.expects_reply(packet)
+        if expect and conn.blocked_until(packet, now) > now + _EPS:
+            # Its reply could not be told from another's: send it and ignore the answer.
+            expect = False
+        exchange = conn.send(packet, now, expect_reply=expect)
+        if expect:
+            conn.abandon(exchange)
+        if self._write(exchange.frame) and urgent.future is not None and not urgent.future.done():
+            urgent.future.set_result(None)
+
+    def _write(self, frame: bytes) -> bool:
+        try:
+            self._transport.write_nowait(frame)
         except TransportError as exc:
-            self._fail(exc)
-            if not self._closed:
-                _log.warning("bus link failed: %s", exc)
-        except Exception as exc:
-            # A bug must not leave requests waiting for a reader that is gone.
-            self._fail(exc)
-            _log.exception("bus reader crashed")
+            self._on_lost(exc)
+            return False
+        return True
 
-    def _fail(self, exc: BaseException) -> None:
-        self._failure = exc
-        pending = self._pending
-        if pending is not None and not pending[1].done():
-            pending[1].set_exception(exc)
+    def _handle(self, events: list[Event]) -> None:
+        for event in events:
+            if isinstance(event, ReplyReceived):
+                slot, index = cast(tuple[_Slot, int], event.exchange.token)
+                slot.settle(index, event.reply)
+            elif isinstance(event, ReplyMissing):
+                self._missing(event)
+            elif isinstance(event, StrayPacket):
+                _log.debug("%s: %r", event.kind.value, event.packet)
 
-    def _route(self, packets: list[Packet]) -> None:
-        for packet in packets:
-            pending = self._pending
-            if pending is not None and not pending[1].done() and reply_matches(pending[0], packet):
-                pending[1].set_result(packet)
-            elif not packet.is_reply and packet == self._last_sent:
-                self._echoes += 1
-            else:
-                self._unmatched += 1
-                self._counters(packet.sid).unmatched += 1
-                _log.debug("unmatched packet dropped: %r", packet)
-
-
-def _reply_size(request: Packet) -> int:
-    if request.cmd in (Command.RAM_READ, Command.EEP_READ) and len(request.data) >= 2:
-        return _READ_REPLY_OVERHEAD + request.data[1]
-    return _STATUS_REPLY_SIZE
-
-
-def _percentile(sorted_values: list[float], q: float) -> float | None:
-    if not sorted_values:
-        return None
-    index = min(len(sorted_values) - 1, max(0, round(q * (len(sorted_values) - 1))))
-    return sorted_values[index]
+    def _missing(self, event: ReplyMissing) -> None:
+        token = event.exchange.token
+        if not isinstance(token, tuple):
+            return
+        slot, index = token
+        assert isinstance(slot, _Slot)
+        if slot.future.done() or slot.cancelled:
+            return
+        packet = slot.packets[index]
+        now = self._loop_().time()
+        may_retry = (
+            event.reason is not MissingReason.LINK_LOST
+            and is_idempotent(packet)
+            and slot.attempts[index] <= slot.retries
+            and (slot.deadline is None or now <= slot.deadline)
+            and not self._closing
+        )
+        if not may_retry:
+            slot.settle(index, None)
+            return
+        self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
 
 
-def _check_seconds(name: str, value: float, low: float, high: float) -> None:
-    if not isinstance(value, int | float) or not low <= value <= high:
-        raise OutOfRangeError(name, value, low, high, "s")
+def _check_retries(retries: object) -> None:
+    if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
+        raise OutOfRangeError("retries", retries, 0, 10)

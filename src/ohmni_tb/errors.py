@@ -11,9 +11,12 @@ catches the right thing::
     │   └── MalformedReplyError     a reply whose layout does not fit its request
     ├── DeviceError                 a device on the bus misbehaved          (.sid)
     │   ├── BusTimeoutError         no reply in time    (+ TimeoutError)    (.sid, .cmd)
+    │   │   └── DeviceUnavailableError  silent for a while: fails fast until it answers
     │   └── DeviceStatusError       a reply carried error bits (.status_error, .status_detail)
     ├── StateError                  the call does not fit the object's state
-    │   └── BusClosedError          the bus is closed
+    │   ├── BusClosedError          the bus is closed
+    │   └── DeadlineMissedError     a slot could not start before its deadline
+    │                                                     (+ TimeoutError)  (.deadline, .late_s)
     ├── ConfigError                 bad settings or URL             (+ ValueError)
     └── InvalidArgumentError        a bad argument; nothing was sent (+ ValueError)
         └── OutOfRangeError         a value outside its allowed range (.name, .value, .low, .high)
@@ -28,8 +31,10 @@ __all__ = [
     "BusClosedError",
     "BusTimeoutError",
     "ConfigError",
+    "DeadlineMissedError",
     "DeviceError",
     "DeviceStatusError",
+    "DeviceUnavailableError",
     "InvalidArgumentError",
     "MalformedReplyError",
     "OhmniError",
@@ -94,6 +99,33 @@ class BusTimeoutError(DeviceError, TimeoutError):
         self.timeout_s = timeout_s
 
 
+class DeviceUnavailableError(BusTimeoutError):
+    """A device has stopped answering, so requests to it fail at once, unsent.
+
+    After several timeouts in a row with no reply for a while, the bus opens a breaker
+    for the device: one request a second goes through as a probe, and the rest fail fast
+    with this error until the device answers again.
+
+    Attributes:
+        sid: The silent device.
+        cmd: The command that was not sent.
+        retry_in_s: When the next probe may go, from now.
+    """
+
+    def __init__(self, *, sid: int, cmd: int, silent_s: float | None, retry_in_s: float) -> None:
+        since = "never answered" if silent_s is None else f"no reply for {silent_s:.1f} s"
+        DeviceError.__init__(
+            self,
+            f"sid {sid} (0x{sid:02X}) is not answering ({since}); command 0x{cmd:02X} "
+            f"not sent, next probe in {max(0.0, retry_in_s):.1f} s",
+            sid=sid,
+        )
+        self.cmd = cmd
+        self.attempts = 0
+        self.timeout_s = 0.0
+        self.retry_in_s = retry_in_s
+
+
 class DeviceStatusError(DeviceError):
     """A device replied with error bits set.
 
@@ -115,6 +147,23 @@ class StateError(OhmniError):
 
 class BusClosedError(StateError):
     """The bus is closed; open a new one."""
+
+
+class DeadlineMissedError(StateError, TimeoutError):
+    """A bus slot could not start before its deadline, so nothing of it was sent.
+
+    Attributes:
+        deadline: The slot's deadline (``loop.time()`` seconds).
+        late_s: How far past the deadline the slot would have started.
+    """
+
+    def __init__(self, *, deadline: float, late_s: float, what: str = "slot") -> None:
+        super().__init__(
+            f"{what} dropped: it could not start before its deadline "
+            f"({late_s * 1000:.1f} ms late); nothing was sent"
+        )
+        self.deadline = deadline
+        self.late_s = late_s
 
 
 class ConfigError(OhmniError, ValueError):

@@ -24,8 +24,8 @@ from ohmni_tb.protocol import (
     ReadReply,
     StatusReply,
     flag_names,
-    reply_matches,
 )
+from ohmni_tb.protocol.connection import ReplyMatcher
 from ohmni_tb.protocol.core import CORE_PROFILE, parse_status
 from ohmni_tb.protocol.devices import DeviceId, device_name
 from ohmni_tb.protocol.drive import DRIVE_PROFILE, decode_wheel_command
@@ -34,6 +34,8 @@ from ohmni_tb.protocol.worm_neck import WORM_PROFILE, parse_feedback
 __all__ = ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"]
 
 _LATENCY_WINDOW = 1024
+#: Requests kept waiting for their replies; a capture of requests alone stays bounded.
+_PENDING_LIMIT = 16
 
 _BOARD_REGISTERS: dict[tuple[int, Memory, int], str] = {
     **{
@@ -122,14 +124,15 @@ def describe(packet: Packet) -> str:
             memory = Memory.RAM if base == Command.RAM_WRITE else Memory.EEP
             name = register_name(sid, memory, packet.data[0])
             return f"{cmd_name} {name} = {packet.data[2:].hex(' ')}"
-        if base == Command.S_JOG:
+        if base in (Command.S_JOG, Command.I_JOG):
             try:
-                wheels = decode_wheel_command(packet)
+                # Read as the drive profile says the boards take it (S_JOG or I_JOG).
+                wheels = decode_wheel_command(packet, DRIVE_PROFILE)
             except MalformedReplyError:
                 wheels = {}
             if wheels:
                 parts = ", ".join(f"{device_name(s)} pwm {v:+d}" for s, v in wheels.items())
-                return f"S_JOG wheels: {parts} (board frame)"
+                return f"{cmd_name} wheels: {parts} (board frame)"
         return f"{cmd_name} {packet.data.hex(' ')}".rstrip()
     try:
         if base in (Command.RAM_READ, Command.EEP_READ):
@@ -190,7 +193,12 @@ class BusMonitor:
 
     def __init__(self) -> None:
         self._decoder = PacketDecoder()
-        self._pending: tuple[Packet, float | None] | None = None
+        # The bus engine's own pairing rule: a reply answers the oldest request it fits,
+        # so a capture taken at the host, where requests run ahead of their replies,
+        # pairs as well as one taken on the wire.
+        self._pending: ReplyMatcher[tuple[Packet, float | None]] = ReplyMatcher(
+            limit=_PENDING_LIMIT
+        )
         self.devices: dict[int, DeviceTraffic] = {}
 
     @property
@@ -204,7 +212,7 @@ class BusMonitor:
 
     def finish(self) -> None:
         """The capture ended: a request still waiting for its answer counts as unanswered."""
-        self._close_pending()
+        self._unanswered(self._pending.clear())
 
     def _traffic(self, sid: int) -> DeviceTraffic:
         traffic = self.devices.get(sid)
@@ -212,33 +220,33 @@ class BusMonitor:
             traffic = self.devices[sid] = DeviceTraffic(sid)
         return traffic
 
-    def _close_pending(self) -> None:
-        if self._pending is not None and self._pending[0].cmd in _ANSWERED:
-            self._traffic(self._pending[0].sid).unanswered += 1
-        self._pending = None
+    def _unanswered(self, requests: list[tuple[Packet, float | None]]) -> None:
+        for request, _ in requests:
+            self._traffic(request.sid).unanswered += 1
 
     def _event(self, packet: Packet, t_s: float | None) -> MonitorEvent:
         latency: float | None = None
         traffic = self._traffic(packet.sid)
         if packet.is_reply:
             traffic.replies += 1
-            pending = self._pending
-            if pending is not None and reply_matches(pending[0], packet):
-                self._pending = None
-                if t_s is not None and pending[1] is not None:
-                    latency = t_s - pending[1]
+            answered, overtaken = self._pending.match(packet)
+            self._unanswered(overtaken)
+            if answered is not None:
+                sent_s = answered[1]
+                if t_s is not None and sent_s is not None:
+                    latency = t_s - sent_s
                     if len(traffic.latencies_s) < _LATENCY_WINDOW:
                         traffic.latencies_s.append(latency)
             if len(packet.data) >= 2 and packet.data[-2]:
                 traffic.error_replies += 1
         else:
-            self._close_pending()
             traffic.requests += 1
             if t_s is not None:
                 if traffic.first_s is None:
                     traffic.first_s = t_s
                 traffic.last_s = t_s
-            self._pending = (packet, t_s)
+            if packet.cmd in _ANSWERED:
+                self._unanswered(self._pending.add(packet, (packet, t_s)))
         return MonitorEvent(t_s, packet, device_name(packet.sid), describe(packet), latency)
 
 

@@ -21,8 +21,8 @@ from ohmni_tb.herkulex import (
 )
 from ohmni_tb.herkulex.servo import Servo, move_group
 from ohmni_tb.sim.clock import run_virtual
-from ohmni_tb.sim.line import SimTransport
-from ohmni_tb.sim.servo import SimServo
+from ohmni_tb.sim.servo import RESTART_S, SimServo
+from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import open_transport
 
 NECK = 3
@@ -196,12 +196,22 @@ def test_set_id_moves_the_handle_and_the_servo() -> None:
     on_sim(body)
 
 
+def test_a_servo_is_deaf_while_it_restarts() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 12)
+        await servo.reboot(settle_s=0.0)
+        with pytest.raises(BusTimeoutError):
+            await servo.read("acceleration_ratio")
+
+    on_sim(body)
+
+
 def test_persist_survives_a_reboot_and_plain_ram_does_not() -> None:
     async def body(bus: Bus, _: SimTransport) -> None:
         servo = Servo(bus, 12)
         await servo.write("acceleration_ratio", 10, persist=True)
         await servo.write("inposition_margin", 9)
-        await servo.reboot(settle_s=0.1)
+        await servo.reboot(settle_s=RESTART_S + 0.05)
         assert await servo.read("acceleration_ratio") == 10
         assert await servo.read("inposition_margin") == 3
 

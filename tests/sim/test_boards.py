@@ -17,14 +17,19 @@ from ohmni_tb.protocol import (
     Command,
     Memory,
     Packet,
+    PacketDecoder,
     ReadReply,
     StatusDetail,
     StatusError,
     StatusReply,
+    encode_packet,
 )
 from ohmni_tb.protocol.core import parse_status, read_status, set_light_ring
 from ohmni_tb.protocol.drive import (
+    DRIVE_PROFILE,
+    DriveProfile,
     DriveTorque,
+    WheelJogForm,
     parse_count,
     read_count,
     read_firmware_tag,
@@ -32,7 +37,8 @@ from ohmni_tb.protocol.drive import (
     wheel_command,
 )
 from ohmni_tb.sim.clock import run_virtual
-from ohmni_tb.sim.line import SimTransport
+from ohmni_tb.sim.drive import DriveTrain, SimDriveBoard
+from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import open_transport
 
 
@@ -211,6 +217,56 @@ def test_drive_torque_write_is_read_back_and_free_wheels_do_not_drive() -> None:
         assert sim.robot.pose.x > 0.1
 
     _on_sim("sim://", body)
+
+
+def _drive_train(profile: DriveProfile, packet: Packet, seconds: float = 1.0) -> DriveTrain:
+    """Both simulated drive boards on a train built with ``profile``, handed ``packet``
+    through the wire's bytes, then run for ``seconds``."""
+    train = DriveTrain(profile=profile)
+    boards = [SimDriveBoard(0, train), SimDriveBoard(1, train)]
+    (received,) = PacketDecoder().feed(encode_packet(packet))
+    for board in boards:
+        assert board.handle(received, 0.0) is None  # a broadcast: nobody answers
+    train.advance(seconds)
+    return train
+
+
+@pytest.mark.parametrize(
+    "profile",
+    [
+        DriveProfile(wheel_form=WheelJogForm.I_JOG),
+        DriveProfile(right_mirrored=False),
+        DriveProfile(wheel_form=WheelJogForm.I_JOG, right_mirrored=False),
+        DRIVE_PROFILE,
+    ],
+    ids=["I_JOG", "right not mirrored", "both", "default"],
+)
+def test_a_changed_drive_profile_changes_both_sides(profile: DriveProfile) -> None:
+    train = _drive_train(profile, wheel_command(600, 600, profile))
+    left_mps, right_mps = train.wheel_speeds_mps()
+    assert left_mps > 0.3
+    assert right_mps == pytest.approx(left_mps)
+    assert train.pose.x > 0.3
+    assert train.pose.yaw == pytest.approx(0.0, abs=1e-9)
+    # The right board counts mirrored exactly when the profile says so.
+    assert train.count(0) > 0
+    assert (train.count(1) < 0) is profile.right_mirrored
+
+
+@pytest.mark.parametrize(
+    ("board_profile", "host_profile"),
+    [
+        (DriveProfile(wheel_form=WheelJogForm.I_JOG), DRIVE_PROFILE),
+        (DRIVE_PROFILE, DriveProfile(wheel_form=WheelJogForm.I_JOG)),
+    ],
+    ids=["boards I_JOG, host S_JOG", "boards S_JOG, host I_JOG"],
+)
+def test_drive_boards_ignore_a_wheel_command_of_another_form(
+    board_profile: DriveProfile, host_profile: DriveProfile
+) -> None:
+    train = _drive_train(board_profile, wheel_command(600, 600, host_profile))
+    assert train.wheel_speeds_mps() == (0.0, 0.0)
+    assert train.pose.x == 0.0
 
 
 def test_a_torque_value_the_board_does_not_know_is_flagged() -> None:

@@ -32,8 +32,8 @@ from ohmni_tb.protocol.worm_neck import (
 )
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.drive import MotorModel, Pose
-from ohmni_tb.sim.line import SimTransport
 from ohmni_tb.sim.robot import SimRobot
+from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import open_transport
 
 TICKS_PER_WHEEL_TURN = 16384 * 30 / 11

@@ -43,7 +43,7 @@ from ohmni_tb.protocol import (
     encode_packet,
     write_request,
 )
-from ohmni_tb.sim.servo import SimServo
+from ohmni_tb.sim.servo import RESTART_S, SimServo
 
 NECK = 3
 GOLDEN_EEP_KP_KD_REPLY = bytes.fromhex("FF FF 0F FD 42 4C B2 1E 04 B8 01 40 1F 00 00")
@@ -363,16 +363,18 @@ def test_turn_mode_spins_and_reports_speed(neck: Bench) -> None:
     assert neck.ram("differential_position", at_s=0.3) == 0
 
 
-def test_mode_change_needs_torque_off_first(neck: Bench) -> None:
+def test_turn_mode_needs_torque_off_first(neck: Bench) -> None:
     neck.torque_on()
-    neck.send(i_jog(JogTarget(NECK, 300, mode=JogMode.TURN)), 0.0)
-    neck.send(i_jog(JogTarget(NECK, 500, playtime_ticks=10)), 0.1)  # ignored
-    assert neck.ram("current_control_mode", at_s=0.5) == JogMode.TURN
+    neck.send(i_jog(JogTarget(NECK, 500, playtime_ticks=10)), 0.0)
+    neck.send(i_jog(JogTarget(NECK, 300, mode=JogMode.TURN)), 0.5)  # ignored
+    assert neck.ram("current_control_mode", at_s=0.6) == JogMode.POSITION
+    assert neck.ram("calibrated_position") == 500
+    # Torque off first: then the turn JOG is obeyed, even sent after torque is on again.
     neck.send(ram_write(NECK, "torque_control", TorqueControl.FREE))
     neck.torque_on()
-    neck.send(i_jog(JogTarget(NECK, 500, playtime_ticks=10)), 0.6)
-    assert neck.ram("current_control_mode") == JogMode.POSITION
-    assert neck.ram("calibrated_position", at_s=2.0) == 500
+    neck.send(i_jog(JogTarget(NECK, 300, mode=JogMode.TURN)), 0.6)
+    assert neck.ram("current_control_mode") == JogMode.TURN
+    assert neck.ram("differential_position", at_s=0.7) > 0
 
 
 @pytest.mark.parametrize("torque", [TorqueControl.BRAKE, TorqueControl.FREE])
@@ -542,6 +544,7 @@ def test_reboot_restores_eep_values_to_ram(neck: Bench) -> None:
     neck.send(ram_write(NECK, "led_control", Led.BLUE))
     neck.torque_on()
     neck.send(reboot(NECK), 1.0)
+    neck.now_s = 1.0 + RESTART_S  # it answers again once restarted
     assert neck.ram("max_position") == 1002
     assert neck.ram("min_position") == 300
     assert neck.ram("led_control") == Led.NONE
@@ -551,20 +554,23 @@ def test_reboot_restores_eep_values_to_ram(neck: Bench) -> None:
 
 def test_reboot_ack_under_policy_2_then_policy_from_eep(neck: Bench) -> None:
     neck.send(ram_write(NECK, "ack_policy", AckPolicy.ALL))
-    assert neck.send(reboot(NECK)) is not None
-    # RAM 1 came back from EEP 7 (policy 1): writes are silent again.
-    assert neck.send(ram_write(NECK, "led_control", 1)) is None
+    assert neck.send(reboot(NECK), 1.0) is not None
+    # RAM 1 came back from EEP 7 (policy 1): writes are silent again, reads are not.
+    assert neck.send(ram_write(NECK, "led_control", 1), 1.0 + RESTART_S) is None
+    assert neck.ram("led_control") == 1
 
 
 def test_rollback_restores_factory_eep(neck: Bench) -> None:
     neck.send(eep_write(NECK, "position_kp", 100))
     neck.send(eep_write(NECK, "baud_rate", 0x22))
-    neck.send(rollback(NECK, keep_id=True, keep_baud=True))
+    neck.send(rollback(NECK, keep_id=True, keep_baud=True), 1.0)
+    neck.now_s = 1.0 + RESTART_S
     assert neck.eep("position_kp") == 440
     assert neck.eep("baud_rate") == 0x22
     assert neck.servo.sid == NECK
-    neck.send(rollback(NECK, keep_id=False, keep_baud=False))
+    neck.send(rollback(NECK, keep_id=False, keep_baud=False), 2.0)
     assert neck.servo.sid == 0xFD
+    neck.now_s = 2.0 + RESTART_S
     assert neck.eep("baud_rate") == 0x10
 
 

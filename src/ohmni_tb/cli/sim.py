@@ -14,9 +14,10 @@ import typer
 
 from ohmni_tb.cli.common import run
 from ohmni_tb.errors import ConfigError
-from ohmni_tb.sim.line import SimLine, build_line
+from ohmni_tb.sim.line import SimLine
 from ohmni_tb.sim.pty import open_pty_pair
 from ohmni_tb.sim.robot import SimRobot
+from ohmni_tb.sim.url import build_line
 
 __all__ = ["sim"]
 
@@ -33,7 +34,7 @@ def sim(
         typer.Option(
             "--url",
             help="Simulator options as a sim:// URL, e.g. 'sim://?neck=worm&docked=1' "
-            "(see ohmni_tb.sim.robot for every option).",
+            "(see ohmni_tb.sim.url for every option).",
         ),
     ] = "sim://",
 ) -> None:

@@ -1,6 +1,13 @@
-"""Robot defaults from DESIGN §4, in one place so a measured robot changes one line."""
+"""Robot defaults from DESIGN §4, in one place so a measured robot changes one line.
+
+The drive boards' own facts (the PWM range, the 14-bit motor position) are defined once,
+in :mod:`ohmni_tb.protocol.drive`, and only re-exported here under the names control uses.
+"""
 
 from __future__ import annotations
+
+from ohmni_tb.protocol.drive import MOTOR_POSITION_MODULUS as MOTOR_TICKS_PER_REV
+from ohmni_tb.protocol.drive import PWM_LIMIT
 
 __all__ = [
     "DEFAULT_MAX_ANGULAR_RADPS",
@@ -17,9 +24,8 @@ __all__ = [
 DEFAULT_WHEEL_RADIUS_M = 0.0760
 #: Distance between the wheel contact points; robots measure 0.330-0.332 m.
 DEFAULT_WHEEL_SEPARATION_M = 0.330
-#: Encoder ticks per motor turn: the drive board's 14-bit motor position.
-MOTOR_TICKS_PER_REV = 16384
-#: Ticks per wheel turn: 14-bit motor encoder behind a 30/11 gear (inferred, ≈44,684).
+#: Ticks per wheel turn: 14-bit motor encoder (``MOTOR_TICKS_PER_REV``, the drive board's
+#: motor position modulus) behind a 30/11 gear (inferred, ≈44,684).
 DEFAULT_TICKS_PER_REV = MOTOR_TICKS_PER_REV * 30 / 11
 #: No-load top speed of the robot.
 DEFAULT_MAX_LINEAR_MPS = 1.0
@@ -28,5 +34,3 @@ DEFAULT_MAX_LINEAR_MPS = 1.0
 DEFAULT_MAX_ANGULAR_RADPS = 2.0
 #: tb_control runs the wheel PIDs at 50 Hz.
 PID_RATE_HZ = 50.0
-#: Wheel PWM command range is -1000..1000 (tb_msgs).
-PWM_LIMIT = 1000.0

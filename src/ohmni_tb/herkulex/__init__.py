@@ -3,13 +3,22 @@
 Everything here builds or parses :class:`~ohmni_tb.protocol.Packet` objects and never
 touches a port or a clock::
 
-    from ohmni_tb.herkulex import JogTarget, Led, TorqueControl, i_jog, ram_write
+    from ohmni_tb.herkulex import (
+        JogTarget,
+        Led,
+        TorqueControl,
+        i_jog,
+        playtime_ticks_from_s,
+        ram_write,
+    )
 
-    ram_write(3, "torque_control", TorqueControl.ON)
-    i_jog(JogTarget(3, 650, led=Led.GREEN, playtime_ticks=playtime_ticks_from_s(1.0)))
+    torque_on = ram_write(3, "torque_control", TorqueControl.ON)
+    move = i_jog(JogTarget(3, 650, led=Led.GREEN, playtime_ticks=playtime_ticks_from_s(1.0)))
+    print(torque_on, move)
 
 Whether a request is answered is decided by :func:`reply_expected` alone (the same
-function as :func:`ohmni_tb.protocol.reply_expected`).
+function as :func:`ohmni_tb.protocol.reply_expected`). The bits of a jog tag are written
+once, in :mod:`ohmni_tb.protocol.jog`, which the drive boards' wheel command shares.
 """
 
 from __future__ import annotations

@@ -3,17 +3,10 @@
 Nothing here touches a port or a clock; every argument is checked before a
 :class:`~ohmni_tb.protocol.Packet` exists, so a bad value never reaches the wire.
 
-JOG tags (I_JOG: 5 bytes per servo, S_JOG: 4 bytes after one shared playtime byte)::
-
-    jog word (16 bits, little-endian)
-      position mode   bits 0..14 = goal (calibrated position, 0..1023)
-      turn mode       bit 14 (0x4000) = negative, bits 0..13 = PWM magnitude 0..1023
-      bit 15 is always 0
-    SET byte
-      bit 0 stop   bit 1 mode (0 position, 1 turn)   bits 2..4 LED green/blue/red
-      bit 5 "jog invalid" (the servo skips the tag)  bits 6..7 zero
-    I_JOG  per servo: jog_lsb jog_msb set id playtime
-    S_JOG  playtime, then per servo: jog_lsb jog_msb set id
+JOG tags (I_JOG: 5 bytes per servo, S_JOG: 4 bytes after one shared playtime byte) are
+encoded by :mod:`ohmni_tb.protocol.jog`, the one place their bits are written down (the
+drive boards' wheel command uses the same codec). On these models a position is
+0..1023 and a turn-mode PWM -1023..1023.
 
 Whether a request gets a reply is decided in one place, :func:`reply_expected`
 (re-exported from :mod:`ohmni_tb.protocol`).
@@ -49,6 +42,17 @@ from ohmni_tb.protocol import (
     write_request,
 )
 from ohmni_tb.protocol.framing import MAX_DATA_SIZE
+from ohmni_tb.protocol.jog import (
+    I_JOG_TAG_SIZE,
+    S_JOG_TAG_SIZE,
+    TURN_SIGN_BIT,
+    JogSet,
+    JogTag,
+    decode_jog_word,
+    encode_jog_word,
+    jog_data,
+    jog_tags,
+)
 
 __all__ = [
     "MAX_I_JOG_TARGETS",
@@ -76,25 +80,14 @@ __all__ = [
     "stat",
 ]
 
-#: Turn-mode jog words carry the sign here and the magnitude below it.
-TURN_SIGN_BIT: Final = 0x4000
 #: The largest PWM magnitude (and position) a jog word carries on these models.
 MAX_PWM: Final = 1023
 _MAX_POSITION: Final = 1023
-_I_JOG_TAG_SIZE: Final = 5
-_S_JOG_TAG_SIZE: Final = 4
 #: As many 5-byte tags as fit in one packet's data.
-MAX_I_JOG_TARGETS: Final = MAX_DATA_SIZE // _I_JOG_TAG_SIZE
+MAX_I_JOG_TARGETS: Final = MAX_DATA_SIZE // I_JOG_TAG_SIZE
 #: As many 4-byte tags as fit after the shared playtime byte.
-MAX_S_JOG_TARGETS: Final = (MAX_DATA_SIZE - 1) // _S_JOG_TAG_SIZE
+MAX_S_JOG_TARGETS: Final = (MAX_DATA_SIZE - 1) // S_JOG_TAG_SIZE
 
-_SET_STOP: Final = 0x01
-_SET_TURN: Final = 0x02
-_SET_LED_SHIFT: Final = 2
-_SET_JOG_INVALID: Final = 0x20
-_SET_RESERVED: Final = 0xC0
-_JOG_RESERVED: Final = 0x8000
-_TURN_MAGNITUDE: Final = TURN_SIGN_BIT - 1
 _READS: Final = frozenset({Command.RAM_READ, Command.EEP_READ})
 
 
@@ -157,18 +150,12 @@ class JogTarget:
     @property
     def jog_word(self) -> int:
         """The 16-bit jog value as sent (turn mode: sign bit 0x4000 plus magnitude)."""
-        if self.mode == JogMode.TURN and self.value < 0:
-            return TURN_SIGN_BIT | -self.value
-        return self.value
+        return encode_jog_word(self.value, turn=self.mode == JogMode.TURN)
 
     @property
     def set_byte(self) -> int:
         """The SET byte: stop, mode and LED bits."""
-        return (
-            (_SET_STOP if self.stop else 0)
-            | (_SET_TURN if self.mode == JogMode.TURN else 0)
-            | (int(self.led) << _SET_LED_SHIFT)
-        )
+        return JogSet(turn=self.mode == JogMode.TURN, stop=self.stop, led=int(self.led)).to_byte()
 
     @classmethod
     def from_wire(
@@ -179,30 +166,28 @@ class JogTarget:
         Raises:
             ProtocolError: Reserved bits are set or a field is out of range.
         """
-        if jog_word & _JOG_RESERVED or set_byte & _SET_RESERVED:
-            raise ProtocolError(
-                f"jog tag for sid {sid} sets reserved bits: word 0x{jog_word:04X}, "
-                f"set 0x{set_byte:02X}"
-            )
-        if set_byte & _SET_JOG_INVALID:
+        try:
+            flags = JogSet.from_byte(set_byte)
+            value = decode_jog_word(jog_word, turn=flags.turn)
+        except ProtocolError as exc:
+            raise ProtocolError(f"jog tag for sid {sid}: {exc}") from exc
+        if flags.invalid:
             return None
-        mode = JogMode.TURN if set_byte & _SET_TURN else JogMode.POSITION
-        value = jog_word
-        if mode == JogMode.TURN:
-            value = jog_word & _TURN_MAGNITUDE
-            if jog_word & TURN_SIGN_BIT:
-                value = -value
         try:
             return cls(
                 sid=sid,
                 value=value,
-                mode=mode,
-                led=Led((set_byte >> _SET_LED_SHIFT) & 0x07),
-                stop=bool(set_byte & _SET_STOP),
+                mode=JogMode.TURN if flags.turn else JogMode.POSITION,
+                led=Led(flags.led),
+                stop=flags.stop,
                 playtime_ticks=playtime_ticks,
             )
         except InvalidArgumentError as exc:
             raise ProtocolError(f"jog tag out of range: {exc}") from exc
+
+    def to_wire(self) -> JogTag:
+        """This target as a wire tag (:mod:`ohmni_tb.protocol.jog`)."""
+        return JogTag(self.jog_word, self.set_byte, self.sid, self.playtime_ticks)
 
 
 def i_jog(*targets: JogTarget) -> Packet:
@@ -217,11 +202,7 @@ def i_jog(*targets: JogTarget) -> Packet:
         OutOfRangeError: More than 43 targets.
     """
     sid = _jog_sid(targets, MAX_I_JOG_TARGETS)
-    data = bytearray()
-    for t in targets:
-        word = t.jog_word
-        data += bytes((word & 0xFF, word >> 8, t.set_byte, t.sid, t.playtime_ticks))
-    return Packet(sid, Command.I_JOG, bytes(data))
+    return Packet(sid, Command.I_JOG, jog_data(Command.I_JOG, [t.to_wire() for t in targets]))
 
 
 def s_jog(playtime_ticks: int, *targets: JogTarget) -> Packet:
@@ -238,16 +219,14 @@ def s_jog(playtime_ticks: int, *targets: JogTarget) -> Packet:
     """
     check_playtime_ticks(playtime_ticks)
     sid = _jog_sid(targets, MAX_S_JOG_TARGETS)
-    data = bytearray((playtime_ticks,))
     for t in targets:
         if t.playtime_ticks not in (0, playtime_ticks):
             raise InvalidArgumentError(
                 f"target sid {t.sid} has playtime_ticks={t.playtime_ticks}, but S_JOG uses "
                 f"one playtime for all ({playtime_ticks}); use i_jog for per-servo times"
             )
-        word = t.jog_word
-        data += bytes((word & 0xFF, word >> 8, t.set_byte, t.sid))
-    return Packet(sid, Command.S_JOG, bytes(data))
+    tags = [t.to_wire() for t in targets]
+    return Packet(sid, Command.S_JOG, jog_data(Command.S_JOG, tags, playtime_ticks=playtime_ticks))
 
 
 def decode_jog(packet: Packet) -> tuple[JogTarget, ...]:
@@ -259,22 +238,9 @@ def decode_jog(packet: Packet) -> tuple[JogTarget, ...]:
     Raises:
         ProtocolError: Not a jog, the data is not whole tags, or a tag is out of range.
     """
-    d = packet.data
-    if packet.cmd == Command.I_JOG:
-        playtime, tags, size = None, d, _I_JOG_TAG_SIZE
-    elif packet.cmd == Command.S_JOG:
-        if not d:
-            raise ProtocolError(f"S_JOG without a playtime byte: {packet!r}")
-        playtime, tags, size = d[0], d[1:], _S_JOG_TAG_SIZE
-    else:
-        raise ProtocolError(f"not a jog: {packet!r}")
-    if not tags or len(tags) % size:
-        raise ProtocolError(f"jog data is not whole {size}-byte tags: {packet!r}")
     out: list[JogTarget] = []
-    for i in range(0, len(tags), size):
-        tag = tags[i : i + size]
-        ticks = tag[4] if playtime is None else playtime
-        target = JogTarget.from_wire(tag[0] | tag[1] << 8, tag[2], tag[3], ticks)
+    for tag in jog_tags(packet):
+        target = JogTarget.from_wire(tag.word, tag.set_byte, tag.sid, tag.playtime_ticks)
         if target is not None:
             out.append(target)
     return tuple(out)

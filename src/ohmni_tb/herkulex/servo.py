@@ -2,16 +2,32 @@
 
 ::
 
-    async with Bus(await open_transport("sim://")) as bus:
-        neck = Servo(bus, 3)
-        await neck.torque(TorqueControl.ON)
-        await neck.move_to(650, playtime_s=1.0)
-        print(await neck.position_raw(), neck.last_status)
+    import asyncio
 
-Every reply updates :attr:`Servo.last_status`. A reply carrying error bits does not raise
-by itself — a latched fault must stay readable so it can be cleared — but the moves check
-the status first and raise :class:`~ohmni_tb.errors.DeviceStatusError` when the servo
-would ignore them.
+    from ohmni_tb.bus import Bus
+    from ohmni_tb.herkulex import TorqueControl
+    from ohmni_tb.herkulex.servo import Servo
+    from ohmni_tb.transport import open_transport
+
+    async def main() -> None:
+        async with Bus(await open_transport("sim://")) as bus:
+            neck = Servo(bus, 3, min_raw=280, max_raw=650)
+            await neck.torque(TorqueControl.ON)
+            await neck.move_to(650, playtime_s=1.0)
+            print(await neck.position_raw(), neck.last_status)
+
+    asyncio.run(main())
+
+A :class:`Servo` needs only a :class:`Requester` — the four calls it makes on whatever
+carries its packets. The :class:`~ohmni_tb.bus.Bus` is one; a Robot or a daemon client can
+be another.
+
+Every reply updates :attr:`Servo.last_status` and :attr:`Servo.last_status_at`. A reply
+carrying error bits does not raise by itself — a latched fault must stay readable so it
+can be cleared — but the moves check the status first and raise
+:class:`~ohmni_tb.errors.DeviceStatusError` when the servo would ignore them. That check
+uses the cached status when it is younger than ``status_max_age_s`` and shows torque on
+and no fault, and asks the servo (STAT) otherwise.
 """
 
 from __future__ import annotations
@@ -20,8 +36,8 @@ import asyncio
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
-from ohmni_tb.bus import Bus
 from ohmni_tb.errors import (
     DeviceStatusError,
     InvalidArgumentError,
@@ -52,9 +68,9 @@ from ohmni_tb.herkulex.units import (
     playtime_ticks_from_s,
     pos_raw_from_rad,
 )
-from ohmni_tb.protocol import Memory, Packet, StatusDetail, StatusError, flag_names
+from ohmni_tb.protocol import Command, Memory, Packet, StatusDetail, StatusError, flag_names
 
-__all__ = ["Servo", "ServoStatus", "move_group"]
+__all__ = ["Requester", "Servo", "ServoStatus", "move_group"]
 
 #: Largest block read in one request (the reply must fit the bus's packet limit).
 _BLOCK = 64
@@ -63,6 +79,47 @@ _BLOCKING_ERRORS = StatusError.TEMPERATURE | StatusError.OVERLOAD | StatusError.
 
 #: Time a servo needs after REBOOT before it answers (undocumented; drivers wait 1-2 s).
 REBOOT_SETTLE_S = 1.0
+
+#: How old a cached status may be for a move to go without a STAT first. A 30 Hz poll
+#: refreshes it every 33 ms, so 0.1 s survives two missed polls.
+DEFAULT_STATUS_MAX_AGE_S = 0.1
+#: The longest allowed: a fault that latched after the cached status goes unnoticed this
+#: long (the servo ignores the jog), so the cache is kept short.
+_MAX_STATUS_MAX_AGE_S = 1.0
+#: RAM registers whose write changes what the status bytes say (clearing RAM 48/49, torque).
+_STATUS_REGISTERS = tuple(RAM[name] for name in ("status_error", "status_detail", "torque_control"))
+
+
+@runtime_checkable
+class Requester(Protocol):
+    """What a :class:`Servo` and :func:`move_group` need from whatever carries packets.
+
+    :class:`~ohmni_tb.bus.Bus` has these four calls; anything else with them (a Robot
+    that schedules the bus, a client of the daemon) can carry a Servo too.
+    """
+
+    async def request(
+        self,
+        packet: Packet,
+        *,
+        expect_reply: bool | None = None,
+        timeout_s: float | None = None,
+        retries: int | None = None,
+    ) -> Packet | None:
+        """Send ``packet``; return its reply, or ``None`` when none is expected."""
+        ...
+
+    async def send(self, packet: Packet) -> None:
+        """Send ``packet`` and wait for no reply."""
+        ...
+
+    def ack_policy(self, sid: int) -> int:
+        """The ACK policy assumed for ``sid`` (what it answers)."""
+        ...
+
+    def set_ack_policy(self, sid: int, policy: int) -> None:
+        """Record that ``sid`` now runs ACK policy ``policy``."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,40 +156,66 @@ class ServoStatus:
 
 
 class Servo:
-    """One HerkuleX servo on a :class:`~ohmni_tb.bus.Bus`.
+    """One HerkuleX servo on a :class:`~ohmni_tb.bus.Bus` (or another :class:`Requester`).
 
     Args:
-        bus: The bus the servo is on.
+        requester: What carries the servo's packets: the bus it is on, or anything with
+            the :class:`Requester` calls.
         sid: Its id, 0..0xFD.
         zero_offset_raw: Raw counts added to the centre (512) to define 0 rad, like
             tb_control's ``set_servo_zero_offset``.
         min_raw: The lowest position a move may ask for (default: the servo's own
             factory minimum, 21). The neck uses 280.
         max_raw: The highest (default 1002). The neck uses 650.
+        status_max_age_s: How old (in loop time) a cached status may be for a move to
+            trust it instead of asking the servo first, 0..1 s (0: always ask).
+
+    Raises:
+        InvalidArgumentError: ``requester`` lacks the :class:`Requester` calls, or the
+            position range is inconsistent.
+        OutOfRangeError: ``sid`` or ``status_max_age_s`` is out of range.
     """
 
     def __init__(
         self,
-        bus: Bus,
+        requester: Requester,
         sid: int,
         *,
         zero_offset_raw: int = 0,
         min_raw: int | None = None,
         max_raw: int | None = None,
+        status_max_age_s: float = DEFAULT_STATUS_MAX_AGE_S,
     ) -> None:
+        given: object = requester  # typed, but callers may pass a transport or None
+        if not isinstance(given, Requester):
+            raise InvalidArgumentError(
+                f"a Servo needs a Requester (request, send, ack_policy, set_ack_policy), "
+                f"not {type(given).__name__}"
+            )
         RAM["id"].check(sid)
+        _check_status_max_age(status_max_age_s)
         low = _factory_default("min_position") if min_raw is None else min_raw
         high = _factory_default("max_position") if max_raw is None else max_raw
         if not 0 <= low <= high <= 1023:
             raise InvalidArgumentError(
                 f"min_raw={low} and max_raw={high} must satisfy 0 <= min <= max <= 1023"
             )
-        self._bus = bus
+        self._requester = requester
         self.sid = sid
         self.zero_offset_raw = zero_offset_raw
         self.min_raw = low
         self.max_raw = high
+        self.status_max_age_s = float(status_max_age_s)
+        #: The newest status bytes seen, from any reply or :meth:`note_status`.
         self.last_status: ServoStatus | None = None
+        #: The loop time :attr:`last_status` was received at.
+        self.last_status_at: float | None = None
+        # Whether last_status may stand in for a STAT. A command that may change the status
+        # without a reply (torque, clearing errors, reboot) withdraws the trust until a
+        # newer status comes: a reply (after it, in program order) or a fed status read
+        # strictly after it (equal loop times cannot be ordered).
+        self._status_trusted = False
+        self._status_changed_at = -math.inf
         self._torque_wanted = TorqueControl.FREE
 
     def __repr__(self) -> str:
@@ -167,7 +250,7 @@ class Servo:
         for packet in packets:
             await self._send(packet)
         if reg.name == "ack_policy":
-            self._bus.set_ack_policy(self.sid, value)
+            self._requester.set_ack_policy(self.sid, value)
         elif reg.name == "torque_control":
             self._torque_wanted = TorqueControl(value)
 
@@ -204,9 +287,40 @@ class Servo:
 
     async def status(self) -> ServoStatus:
         """Ask the servo for its two status bytes (STAT; always answered)."""
-        reply = await self._bus.request(stat(self.sid), expect_reply=True)
+        reply = await self._requester.request(stat(self.sid), expect_reply=True)
         assert reply is not None
         return self._note(parse_reply(reply))
+
+    def note_status(self, status: ServoStatus, at_s: float) -> None:
+        """Feed a status read elsewhere, e.g. by an owner that polls RAM 48.. at 30 Hz.
+
+        A move then trusts it while it is younger than ``status_max_age_s``, as it does
+        the status of the servo's own replies. A status older than the one held is
+        ignored.
+
+        Args:
+            status: The two status bytes.
+            at_s: The event loop's time (``loop.time()``) when they were received.
+
+        Raises:
+            InvalidArgumentError: ``status`` is not a :class:`ServoStatus`, or ``at_s`` is
+                not a number or lies in the loop's future.
+        """
+        given: tuple[object, object] = (status, at_s)  # typed, but checked at run time
+        if not isinstance(given[0], ServoStatus):
+            raise InvalidArgumentError(f"status must be a ServoStatus, not {status!r}")
+        when = given[1]
+        if isinstance(when, bool) or not isinstance(when, int | float) or math.isnan(when):
+            raise InvalidArgumentError(f"at_s must be a loop time in seconds, not {at_s!r}")
+        now = asyncio.get_running_loop().time()
+        if at_s > now:
+            raise InvalidArgumentError(
+                f"at_s={at_s!r} s is after the loop's time now ({now!r} s); pass the loop "
+                f"time the status was received at"
+            )
+        if self.last_status_at is not None and at_s < self.last_status_at:
+            return
+        self._store(status, float(at_s), trusted=at_s > self._status_changed_at)
 
     async def torque(self, mode: TorqueControl) -> None:
         """Set torque: FREE (limp), BRAKE (holds, ignores jogs) or ON."""
@@ -322,8 +436,22 @@ class Servo:
 
     # -- private ---------------------------------------------------------------------
 
+    def _trusted_status(self) -> ServoStatus | None:
+        """The cached status if it may stand in for a STAT now, else ``None``."""
+        status, at = self.last_status, self.last_status_at
+        if status is None or at is None or not self._status_trusted:
+            return None
+        # Strictly younger: a limit of 0 always asks, even within one loop instant.
+        if asyncio.get_running_loop().time() - at >= self.status_max_age_s:
+            return None
+        return status
+
     async def _ensure_can_move(self) -> None:
-        status = await self.status()
+        status = self._trusted_status()
+        if status is None or status.error & _BLOCKING_ERRORS or not status.torque_on:
+            # Only a good status is taken from the cache: a refusal always rests on the
+            # servo's own answer, in case the fault was cleared since.
+            status = await self.status()
         if status.error & _BLOCKING_ERRORS:
             raise DeviceStatusError(
                 f"servo {self.sid} has a latched fault ({flag_names(status.error)}); "
@@ -341,7 +469,7 @@ class Servo:
             )
 
     async def _read(self, packet: Packet) -> Reply:
-        reply = await self._bus.request(packet, expect_reply=True)
+        reply = await self._requester.request(packet, expect_reply=True)
         assert reply is not None
         parsed = parse_reply(reply)
         if parsed.memory is None:
@@ -350,14 +478,25 @@ class Servo:
         return parsed
 
     async def _send(self, packet: Packet) -> None:
-        reply = await self._bus.request(packet)
+        reply = await self._requester.request(packet)
+        if _changes_status(packet):
+            # The cached status may be wrong from here on; a reply (ACK policy 2) carries
+            # the new one and is noted just below.
+            self._status_changed_at = asyncio.get_running_loop().time()
+            self._status_trusted = False
         if reply is not None:
             self._note(parse_reply(reply))
 
     def _note(self, reply: Reply) -> ServoStatus:
         status = ServoStatus(reply.status_error, reply.status_detail)
-        self.last_status = status
+        # The servo's own answer is newer than anything it was sent before: trusted.
+        self._store(status, asyncio.get_running_loop().time(), trusted=True)
         return status
+
+    def _store(self, status: ServoStatus, at_s: float, *, trusted: bool) -> None:
+        self.last_status = status
+        self.last_status_at = at_s
+        self._status_trusted = trusted
 
 
 async def move_group(
@@ -380,12 +519,30 @@ async def move_group(
     """
     if not moves:
         raise InvalidArgumentError("move_group needs at least one (servo, position)")
-    bus = moves[0][0]._bus
-    if any(servo._bus is not bus for servo, _ in moves):
+    requester = moves[0][0]._requester
+    if any(servo._requester is not requester for servo, _ in moves):
         raise InvalidArgumentError("move_group: every servo must be on the same bus")
     ticks = _ticks(playtime_s, playtime_ticks)
     targets = [servo.target(pos) for servo, pos in moves]
-    await bus.send(s_jog(ticks, *targets))
+    await requester.send(s_jog(ticks, *targets))
+
+
+def _check_status_max_age(value: object) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"status_max_age_s must be seconds, not {value!r}")
+    # NaN fails the comparison too, so it gets the same error.
+    if not 0.0 <= value <= _MAX_STATUS_MAX_AGE_S:
+        raise OutOfRangeError("status_max_age_s", value, 0.0, _MAX_STATUS_MAX_AGE_S, "s")
+
+
+def _changes_status(packet: Packet) -> bool:
+    """Whether ``packet`` may change the servo's status bytes without answering."""
+    if packet.cmd in (Command.REBOOT, Command.ROLLBACK):
+        return True
+    if packet.cmd != Command.RAM_WRITE or len(packet.data) < 2:
+        return False
+    start, length = packet.data[0], packet.data[1]
+    return any(start <= reg.addr < start + length for reg in _STATUS_REGISTERS)
 
 
 def _factory_default(register: str) -> int:

@@ -5,6 +5,7 @@ Nothing here imports asyncio or serial or reads a clock: bytes in, packets out.
 
 from __future__ import annotations
 
+from ohmni_tb.protocol.connection import BusConnection, ReplyPacket
 from ohmni_tb.protocol.framing import (
     BROADCAST_ID,
     MAX_PACKET_SIZE,
@@ -32,6 +33,7 @@ from ohmni_tb.protocol.messages import (
     reply_matches,
     write_request,
 )
+from ohmni_tb.protocol.timing import transaction_cost_s, wire_time_s
 
 __all__ = [
     "BROADCAST_ID",
@@ -39,6 +41,7 @@ __all__ = [
     "MIN_PACKET_SIZE",
     "REPLY_FLAG",
     "AckPolicy",
+    "BusConnection",
     "Command",
     "DecoderStats",
     "Memory",
@@ -46,6 +49,7 @@ __all__ = [
     "PacketDecoder",
     "ReadReply",
     "RejectReason",
+    "ReplyPacket",
     "StatusDetail",
     "StatusError",
     "StatusReply",
@@ -56,5 +60,7 @@ __all__ = [
     "read_request",
     "reply_expected",
     "reply_matches",
+    "transaction_cost_s",
+    "wire_time_s",
     "write_request",
 ]

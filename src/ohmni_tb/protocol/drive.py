@@ -13,9 +13,22 @@ import enum
 import math
 from dataclasses import dataclass
 
-from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError, OutOfRangeError
+from ohmni_tb.errors import (
+    InvalidArgumentError,
+    MalformedReplyError,
+    OutOfRangeError,
+    ProtocolError,
+)
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.framing import BROADCAST_ID, Command, Packet
+from ohmni_tb.protocol.jog import (
+    JogSet,
+    JogTag,
+    decode_jog_word,
+    encode_jog_word,
+    jog_data,
+    jog_tags,
+)
 from ohmni_tb.protocol.messages import Memory, ReadReply, read_request, write_request
 
 __all__ = [
@@ -24,6 +37,7 @@ __all__ = [
     "PWM_LIMIT",
     "DriveProfile",
     "DriveTorque",
+    "WheelJogForm",
     "decode_wheel_command",
     "parse_count",
     "parse_motor_position",
@@ -34,14 +48,17 @@ __all__ = [
     "wheel_command",
 ]
 
+# The two device facts below are defined here and nowhere else: control.defaults and the
+# simulator import them, so a measurement changes one line.
+
 #: Largest PWM magnitude the drive boards take (tb_msgs: −1000..1000).
 PWM_LIMIT = 1000
-#: The motor position register is 14 bits and wraps.
+#: The motor position register is 14 bits and wraps once per motor turn, so this is also
+#: the encoder's ticks per motor turn.
 MOTOR_POSITION_MODULUS = 1 << 14
-#: JOG value bit that marks a negative PWM in continuous-rotation mode (HerkuleX layout).
-_JOG_SIGN = 0x4000
-#: SET byte bit that selects continuous rotation (HerkuleX layout).
-_SET_TURN_MODE = 0x02
+#: SET byte of a wheel tag: continuous rotation, no stop, LEDs off (HerkuleX layout).
+_WHEEL_SET = JogSet(turn=True).to_byte()
+_DRIVE_SIDS = (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)
 
 
 class DriveTorque(enum.IntEnum):
@@ -50,6 +67,20 @@ class DriveTorque(enum.IntEnum):
     FREE = 0x00
     BRAKE = 0x40
     ON = 0x60
+
+
+class WheelJogForm(enum.IntEnum):
+    """The packet the wheel command is assumed to be (**assumed**; a capture decides).
+
+    Either way it goes to broadcast, in continuous-rotation mode, with one tag per board
+    naming the board's id (see :mod:`ohmni_tb.protocol.jog`). The value is the command
+    code.
+    """
+
+    #: One S_JOG: a shared playtime byte (0), then a 4-byte tag per board.
+    S_JOG = int(Command.S_JOG)
+    #: One I_JOG: a 5-byte tag per board, each with its own playtime (0).
+    I_JOG = int(Command.I_JOG)
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,9 +94,16 @@ class DriveProfile:
         motor_position_size: Its size in bytes (confirmed).
         tag_addr: EEP address of the firmware tag, read with length 0 (confirmed).
         torque_addr: RAM address of the torque control (**assumed**: HerkuleX RAM 52).
-        wheel_jog: Whether the wheel command is one S_JOG in continuous-rotation mode to
-            both boards (**assumed**).
-        right_mirrored: The right wheel counts and is commanded mirrored (confirmed).
+        wheel_form: Which packet carries the wheel command (**assumed**: one S_JOG).
+            :func:`wheel_command` builds it and :func:`decode_wheel_command` (the
+            simulator, the bus monitor) reads it, so changing it changes both sides.
+        right_mirrored: The right wheel counts and is commanded mirrored (confirmed):
+            :func:`wheel_command` negates the right PWM, and the simulated right motor is
+            mounted mirrored.
+
+    Raises:
+        InvalidArgumentError: ``wheel_form`` is not a :class:`WheelJogForm`, or
+            ``right_mirrored`` is not a bool.
     """
 
     count_addr: int = 59
@@ -74,16 +112,27 @@ class DriveProfile:
     motor_position_size: int = 2
     tag_addr: int = 0xF1
     torque_addr: int = 52
-    wheel_jog: bool = True
+    wheel_form: WheelJogForm = WheelJogForm.S_JOG
     right_mirrored: bool = True
 
+    def __post_init__(self) -> None:
+        form: object = self.wheel_form  # typed, but a table edited by hand may hold anything
+        if not isinstance(form, WheelJogForm):
+            raise InvalidArgumentError(
+                f"wheel_form must be one of {[f.name for f in WheelJogForm]}, not {form!r}"
+            )
+        if not isinstance(self.right_mirrored, bool):
+            raise InvalidArgumentError(
+                f"right_mirrored must be a bool, not {self.right_mirrored!r}"
+            )
 
-#: The profile in use. ``assumed``: torque_addr, wheel_jog; the rest is confirmed.
+
+#: The profile in use. ``assumed``: torque_addr, wheel_form; the rest is confirmed.
 DRIVE_PROFILE = DriveProfile()
 
 
 def _check_drive_sid(sid: int) -> None:
-    if sid not in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+    if sid not in _DRIVE_SIDS:
         raise OutOfRangeError("drive sid", sid, 0, 1)
 
 
@@ -134,14 +183,15 @@ def set_torque(sid: int, torque: DriveTorque, profile: DriveProfile = DRIVE_PROF
     return write_request(sid, profile.torque_addr, bytes((DriveTorque(torque),)))
 
 
-def wheel_command(left_pwm: int, right_pwm: int, *, mirror_right: bool = True) -> Packet:
-    """One packet that sets both wheels' PWM (**assumed** layout).
+def wheel_command(left_pwm: int, right_pwm: int, profile: DriveProfile = DRIVE_PROFILE) -> Packet:
+    """One packet that sets both wheels' PWM (**assumed** layout, from ``profile``).
 
-    The boards are assumed to take a HerkuleX S_JOG in continuous-rotation mode, sent to
+    The boards are assumed to take a HerkuleX jog in continuous-rotation mode, sent to
     broadcast with both board ids in its tags, the PWM as magnitude plus the 0x4000
-    sign bit. ``left_pwm`` and ``right_pwm`` are *forward-positive*; the right wheel is
-    mirrored here, so ``wheel_command(250, 250)`` drives forward as the vendor's
-    ``manual_move +250 -250`` does.
+    sign bit; ``profile.wheel_form`` says whether it is an S_JOG or an I_JOG.
+    ``left_pwm`` and ``right_pwm`` are *forward-positive*; with ``profile.right_mirrored``
+    (the robot's case) the right wheel is mirrored here, so ``wheel_command(250, 250)``
+    drives forward as the vendor's ``manual_move +250 -250`` does.
 
     Raises:
         OutOfRangeError: A PWM is outside −1000..1000; nothing is built.
@@ -154,32 +204,40 @@ def wheel_command(left_pwm: int, right_pwm: int, *, mirror_right: bool = True) -
             raise InvalidArgumentError(f"{name} must be an int, not {value!r}")
         if not -PWM_LIMIT <= value <= PWM_LIMIT:
             raise OutOfRangeError(name, value, -PWM_LIMIT, PWM_LIMIT)
-    right_raw = -right_pwm if mirror_right else right_pwm
-    data = bytearray((0,))  # playtime: ignored in continuous rotation
-    for sid, pwm in ((DeviceId.LEFT_DRIVE, left_pwm), (DeviceId.RIGHT_DRIVE, right_raw)):
-        jog = abs(pwm) | (_JOG_SIGN if pwm < 0 else 0)
-        data += bytes((jog & 0xFF, jog >> 8, _SET_TURN_MODE, sid))
-    return Packet(BROADCAST_ID, Command.S_JOG, bytes(data))
+    right_raw = -right_pwm if profile.right_mirrored else right_pwm
+    tags = [
+        JogTag(encode_jog_word(pwm, turn=True), _WHEEL_SET, sid)
+        for sid, pwm in zip(_DRIVE_SIDS, (left_pwm, right_raw), strict=True)
+    ]
+    # Playtime 0: a jog in continuous rotation ignores it.
+    cmd = Command(profile.wheel_form)
+    return Packet(BROADCAST_ID, cmd, jog_data(cmd, tags))
 
 
-def decode_wheel_command(packet: Packet) -> dict[int, int]:
-    """The raw (board-side, not un-mirrored) PWM per drive sid in a wheel S_JOG.
+def decode_wheel_command(packet: Packet, profile: DriveProfile = DRIVE_PROFILE) -> dict[int, int]:
+    """The raw (board-side, not un-mirrored) PWM per drive sid in a wheel command.
 
-    Used by the simulator and the bus monitor. Tags for other ids are ignored.
+    Read as ``profile`` says the boards take it: the simulator's drive boards and the bus
+    monitor call this, so they follow the same table as :func:`wheel_command`. Tags for
+    other ids, tags in position mode and tags marked "jog invalid" are ignored.
 
     Raises:
-        MalformedReplyError: The packet is not an S_JOG of whole 4-byte tags.
+        MalformedReplyError: The packet is not the profile's jog, is not whole tags, or a
+            drive board's tag sets reserved bits.
     """
-    if packet.cmd != Command.S_JOG or (len(packet.data) - 1) % 4:
-        raise MalformedReplyError(f"not an S_JOG: {packet!r}")
+    form = profile.wheel_form
+    if packet.cmd != form:
+        raise MalformedReplyError(f"not a wheel command ({form.name} assumed): {packet!r}")
     out: dict[int, int] = {}
-    d = packet.data
-    for i in range(1, len(d), 4):
-        jog = d[i] | d[i + 1] << 8
-        set_byte, sid = d[i + 2], d[i + 3]
-        if sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE) and set_byte & _SET_TURN_MODE:
-            magnitude = jog & (_JOG_SIGN - 1)
-            out[sid] = -magnitude if jog & _JOG_SIGN else magnitude
+    try:
+        for tag in jog_tags(packet):
+            if tag.sid not in _DRIVE_SIDS:
+                continue
+            flags = JogSet.from_byte(tag.set_byte)
+            if flags.turn and not flags.invalid:
+                out[tag.sid] = decode_jog_word(tag.word, turn=True)
+    except ProtocolError as exc:
+        raise MalformedReplyError(f"bad wheel command: {exc}") from exc
     return out
 
 

@@ -18,6 +18,7 @@ port or a clock: bytes go into :meth:`PacketDecoder.feed`, packets come out, and
 from __future__ import annotations
 
 import enum
+import struct
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -75,9 +76,16 @@ class Command(enum.IntEnum):
         return self.value | REPLY_FLAG
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class Packet:
     """One bus packet, request or reply.
+
+    Two packets are equal when their sid, command and data are, whatever their class: a
+    subclass that carries more (a reply with the times it was sent and received) still
+    equals, and hashes like, the plain packet with the same content. Its extra fields take
+    no part in equality, so that equality stays transitive; a frozen, slotted dataclass
+    subclass gets this comparison and hash without declaring anything (it needs
+    ``kw_only=True`` for extra fields without defaults, since ``data`` has one).
 
     Attributes:
         sid: The device id (0..0xFD) or 0xFE for broadcast.
@@ -88,6 +96,23 @@ class Packet:
     sid: int
     cmd: int
     data: bytes = b""
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        # A dataclass subclass would otherwise get a generated __eq__ that refuses other
+        # classes and a __hash__ over its extra fields. The dataclass decorator keeps
+        # methods the class already has, and this runs before it.
+        super(Packet, cls).__init_subclass__(**kwargs)
+        for name in ("__eq__", "__hash__"):
+            if name not in cls.__dict__:
+                setattr(cls, name, getattr(Packet, name))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Packet):
+            return NotImplemented
+        return (self.sid, self.cmd, self.data) == (other.sid, other.cmd, other.data)
+
+    def __hash__(self) -> int:
+        return hash((self.sid, self.cmd, self.data))
 
     @property
     def is_reply(self) -> bool:
@@ -106,6 +131,13 @@ class Packet:
             name = f"0x{self.cmd:02X}"
         kind = " reply" if self.is_reply else ""
         return f"Packet(sid={self.sid}, cmd={name}{kind}, data={self.data.hex(' ')!r})"
+
+
+# The decoder builds packets through the slot descriptors: the frozen dataclass __init__
+# sets each field with object.__setattr__ by name, which takes twice as long.
+_set_sid: Callable[[Packet, int], None] = Packet.__dict__["sid"].__set__
+_set_cmd: Callable[[Packet, int], None] = Packet.__dict__["cmd"].__set__
+_set_data: Callable[[Packet, bytes], None] = Packet.__dict__["data"].__set__
 
 
 def checksum(size: int, sid: int, cmd: int, data: bytes | bytearray | memoryview) -> int:
@@ -190,6 +222,12 @@ class RejectReason(enum.Enum):
 RejectHandler = Callable[[RejectReason, bytes], None]
 
 
+#: ``FF FF size sid cmd cs1 cs2`` read in one call; the marker is 0xFFFF at a header.
+_unpack_header = struct.Struct("<H5B").unpack_from
+#: The only cs2 that goes with each cs1 (``cs1 ^ 0xFE``), or -1: an odd cs1 is never valid.
+_CS2_OF = tuple(-1 if cs1 & 1 else cs1 ^ 0xFE for cs1 in range(256))
+
+
 def _default_commands() -> frozenset[int]:
     codes = {int(c) for c in Command}
     return frozenset(codes | {c | REPLY_FLAG for c in codes})
@@ -237,7 +275,11 @@ class PacketDecoder:
                 raise OutOfRangeError("command code", code, 0, 0xFF)
         self._max_size = max_size
         self._on_reject = on_reject
-        self._buf = bytearray()
+        # The bytes held are self._buf[self._pos:]. _pos is 0 except while on_reject runs
+        # (or after it raised): the handler, and a caller catching its exception, then see
+        # the decoder as it stands at the rejected frame, without a copy of the buffer.
+        self._buf = b""
+        self._pos = 0
         self._bytes_in = 0
         self._packets = 0
         self._consumed = 0
@@ -256,7 +298,7 @@ class PacketDecoder:
             packets=self._packets,
             bytes_consumed=self._consumed,
             bytes_discarded=self._discarded,
-            bytes_pending=len(self._buf),
+            bytes_pending=len(self._buf) - self._pos,
             checksum_errors=self._checksum_errors,
             bad_headers=self._bad_headers,
             bad_sizes=self._bad_sizes,
@@ -265,15 +307,23 @@ class PacketDecoder:
         )
 
     @property
+    def discarded(self) -> int:
+        """Bytes dropped as junk so far (``stats.bytes_discarded``, without the snapshot)."""
+        return self._discarded
+
+    @property
     def pending(self) -> int:
         """Bytes held for an incomplete frame."""
-        return len(self._buf)
+        return len(self._buf) - self._pos
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Packet]:
         """Add received bytes and return every packet they complete, in order."""
         self._bytes_in += len(data)
-        self._buf += data
-        return self._scan()
+        held = self._buf
+        if self._pos:
+            held = held[self._pos :]
+        # bytes(data) is data itself when it already is bytes: no copy on the common path.
+        return self._scan(held + data if held else bytes(data), 0)
 
     def expire(self) -> list[Packet]:
         """Give up the incomplete frame held, if any, and rescan the bytes after its start.
@@ -286,71 +336,108 @@ class PacketDecoder:
         # The rescan can stop at a second incomplete frame (another false header further
         # in); it cannot complete either, so give it up too and keep rescanning, or a
         # packet behind it would be lost.
-        while self._buf:
-            if self._buf.startswith(HEADER):
+        while True:
+            held = self._buf[self._pos :] if self._pos else self._buf
+            if not held:
+                return out
+            if held.startswith(HEADER):
                 self._expired += 1
-                self._reject(RejectReason.EXPIRED, len(self._buf))
+                if self._on_reject is not None:
+                    self._on_reject(RejectReason.EXPIRED, held)
+                self._discarded += 1
+                out += self._scan(held, 1)
             else:
                 # A lone trailing FF: the first half of a header that never came.
-                self._drop(len(self._buf))
-            out += self._scan()
-        return out
+                self._discarded += len(held)
+                self._buf = b""
+                self._pos = 0
 
     def reset(self) -> None:
         """Drop any held bytes (counted as discarded). Counters are kept."""
-        self._discarded += len(self._buf)
-        self._buf.clear()
+        self._discarded += len(self._buf) - self._pos
+        self._buf = b""
+        self._pos = 0
 
     # -- private ---------------------------------------------------------------------
 
-    def _drop(self, n: int) -> None:
-        self._discarded += n
-        del self._buf[:n]
+    def _scan(self, buf: bytes, pos: int) -> list[Packet]:
+        """Decode ``buf`` from ``pos`` on and keep what is left as the bytes held.
 
-    def _reject(self, reason: RejectReason, held: int) -> None:
-        """Give up the candidate frame at the buffer start; rescan from its second byte."""
-        if self._on_reject is not None:
-            self._on_reject(reason, bytes(self._buf[:held]))
-        self._drop(1)
-
-    def _scan(self) -> list[Packet]:
+        The buffer is never modified: ``pos`` walks it. The counters live in locals until
+        the end, or until ``on_reject`` runs (it may read them); ``bytes_consumed`` is not
+        even counted, since every byte passed over is either consumed or discarded.
+        """
         out: list[Packet] = []
-        buf = self._buf
+        append = out.append
+        new, set_sid, set_cmd, set_data = object.__new__, _set_sid, _set_cmd, _set_data
+        find = buf.find
+        unpack_header = _unpack_header
         commands = self._commands
         max_size = self._max_size
+        on_reject = self._on_reject
+        end = len(buf)
+        base = pos
+        discarded = counted = 0
         while True:
-            start = buf.find(HEADER)
-            if start < 0:
-                # Keep a trailing FF: it may be the first half of a header.
-                keep = 1 if buf and buf[-1] == 0xFF else 0
-                if len(buf) > keep:
-                    self._drop(len(buf) - keep)
-                return out
-            if start:
-                self._drop(start)
-            if len(buf) < HEADER_SIZE:
-                return out
-            size, sid, cmd, cs1, cs2 = buf[2], buf[3], buf[4], buf[5], buf[6]
+            if end - pos >= HEADER_SIZE:
+                mark, size, sid, cmd, cs1, cs2 = unpack_header(buf, pos)
+            else:
+                mark = 0
+            if mark != 0xFFFF:
+                start = find(HEADER, pos)
+                if start < 0:
+                    # Keep a trailing FF: it may be the first half of a header.
+                    stop = end - 1 if pos < end and buf[-1] == 0xFF else end
+                    discarded += stop - pos
+                    pos = stop
+                    break
+                discarded += start - pos
+                pos = start
+                if end - pos < HEADER_SIZE:
+                    break
+                continue
             if not MIN_PACKET_SIZE <= size <= max_size:
                 self._bad_sizes += 1
-                self._reject(RejectReason.BAD_SIZE, HEADER_SIZE)
-                continue
-            if cs1 ^ cs2 != 0xFE or cs1 & 1 or sid == 0xFF:
+                reason, held = RejectReason.BAD_SIZE, HEADER_SIZE
+            elif _CS2_OF[cs1] != cs2 or sid == 0xFF:
                 self._bad_headers += 1
-                self._reject(RejectReason.BAD_HEADER, HEADER_SIZE)
-                continue
-            if cmd not in commands:
+                reason, held = RejectReason.BAD_HEADER, HEADER_SIZE
+            elif cmd not in commands:
                 self._unknown_commands += 1
-                self._reject(RejectReason.UNKNOWN_COMMAND, HEADER_SIZE)
-                continue
-            if len(buf) < size:
-                return out
-            data = bytes(buf[HEADER_SIZE:size])
-            if checksum(size, sid, cmd, data) & 0xFE != cs1:
+                reason, held = RejectReason.UNKNOWN_COMMAND, HEADER_SIZE
+            else:
+                stop = pos + size
+                if stop > end:
+                    break
+                data = buf[pos + HEADER_SIZE : stop]
+                x = size ^ sid ^ cmd
+                for b in data:
+                    x ^= b
+                if x & 0xFE == cs1:
+                    packet = new(Packet)
+                    set_sid(packet, sid)
+                    set_cmd(packet, cmd)
+                    set_data(packet, data)
+                    append(packet)
+                    pos = stop
+                    continue
                 self._checksum_errors += 1
-                self._reject(RejectReason.CHECKSUM, size)
-                continue
-            del buf[:size]
-            self._consumed += size
-            self._packets += 1
-            out.append(Packet(sid, cmd, data))
+                reason, held = RejectReason.CHECKSUM, size
+            if on_reject is not None:
+                # Bring the decoder up to date first, as if each byte had been handled
+                # on its own: the handler may read the stats, or raise out of feed().
+                self._buf, self._pos = buf, pos
+                self._discarded += discarded
+                self._consumed += pos - base - discarded
+                self._packets += len(out) - counted
+                base, discarded, counted = pos, 0, len(out)
+                on_reject(reason, buf[pos : pos + held])
+            # Resume one byte on: a packet may start inside the rejected bytes.
+            discarded += 1
+            pos += 1
+        self._buf = buf[pos:]
+        self._pos = 0
+        self._discarded += discarded
+        self._consumed += pos - base - discarded
+        self._packets += len(out) - counted
+        return out

@@ -8,7 +8,9 @@ byte array), and answers the way the project's assumed profile says:
   length 0 → the whole register (how the firmware tag at EEP 0xF1 is read);
 * a read of an unknown address → zero bytes with INVALID_PACKET / EXCEED_REG_RANGE set;
 * RAM_WRITE to a writable register → stored, no reply (ACK policy 1);
-* STAT → the two status bytes; anything to another id is ignored.
+* STAT → the two status bytes; anything to another id is ignored;
+* a frame for the board that fails its checksum, or is cut short, is flagged
+  (INVALID_PACKET with CHECKSUM_ERROR or GARBAGE_DETECTED) and not answered.
 """
 
 from __future__ import annotations
@@ -30,6 +32,13 @@ from ohmni_tb.protocol import (
 from ohmni_tb.sim.device import SimDevice
 
 __all__ = ["BoardRegister", "SimBoard"]
+
+#: Frames the boards flag, as a HerkuleX servo does: a bad checksum, and a frame cut
+#: short (the line went quiet before its last byte).
+_REJECT_DETAIL = {
+    RejectReason.CHECKSUM: StatusDetail.CHECKSUM_ERROR,
+    RejectReason.EXPIRED: StatusDetail.GARBAGE_DETECTED,
+}
 
 
 @dataclass(slots=True)
@@ -96,8 +105,9 @@ class SimBoard(SimDevice):
         return None
 
     def on_rejected(self, reason: RejectReason, frame: bytes, now_s: float) -> None:
-        if reason is RejectReason.CHECKSUM and len(frame) > 3 and frame[3] == self.sid:
-            self._flag_invalid(StatusDetail.CHECKSUM_ERROR)
+        detail = _REJECT_DETAIL.get(reason)
+        if detail is not None and len(frame) > 3 and frame[3] == self.sid:
+            self._flag_invalid(detail)
 
     # -- for subclasses --------------------------------------------------------------
 

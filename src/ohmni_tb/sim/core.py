@@ -87,7 +87,14 @@ class BatteryPack:
 
 
 class SimCoreBoard(SimBoard):
-    """The core board: battery/dock status block, light ring, firmware tag."""
+    """The core board: battery/dock status block, light ring, firmware tag.
+
+    Attributes:
+        load_sync: Brings the devices whose current the pack carries (the drive train,
+            through ``pack.extra_load``) to a time, called with the end of each battery
+            step. The line advances a device only when a packet concerns it, so without
+            this the pack would see the motors as they were at the last wheel packet.
+    """
 
     #: Integration step of the battery.
     STEP_S = 0.05
@@ -96,6 +103,7 @@ class SimCoreBoard(SimBoard):
         super().__init__(DeviceId.CORE, tag)
         self.pack = pack or BatteryPack()
         self.light_ring = bytearray((0, 0, 0))
+        self.load_sync: Callable[[float], None] | None = None
         self._now_s = 0.0
         p = CORE_PROFILE
         self.ram[p.status_addr] = BoardRegister(p.status_size, self._status_bytes_block)
@@ -118,6 +126,8 @@ class SimCoreBoard(SimBoard):
     def advance(self, now_s: float) -> None:
         while self._now_s < now_s:
             dt = min(self.STEP_S, now_s - self._now_s)
+            if self.load_sync is not None:
+                self.load_sync(self._now_s + dt)
             self.pack.step(dt)
             self._now_s += dt
 

@@ -13,8 +13,11 @@ The model is integrated in fixed 1 ms sub-steps; the pose integrates the true wh
 motion with exact arcs, so it is the ground truth that odometry is judged against.
 
 Board frame vs robot frame: each board counts up when driven with positive PWM. The
-right motor is mounted mirrored, so the right wheel moves the robot *forward* when its
-board turns *negative* — the vendor's ``move(700, -700)`` drives forward.
+right motor is mounted mirrored (``DriveProfile.right_mirrored``), so the right wheel
+moves the robot *forward* when its board turns *negative* — the vendor's
+``move(700, -700)`` drives forward. The boards read the wheel command with the same
+:class:`~ohmni_tb.protocol.drive.DriveProfile` as the host builds it with, so a change to
+the table changes both sides.
 """
 
 from __future__ import annotations
@@ -22,11 +25,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb.protocol import Command, Packet
+from ohmni_tb.errors import MalformedReplyError
+from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.drive import (
     DRIVE_PROFILE,
     MOTOR_POSITION_MODULUS,
     PWM_LIMIT,
+    DriveProfile,
     DriveTorque,
     decode_wheel_command,
 )
@@ -36,7 +41,8 @@ __all__ = ["DriveTrain", "MotorModel", "Pose", "SimDriveBoard"]
 
 #: Integration step of the motor model.
 _STEP_S = 0.001
-#: Motor encoder ticks per motor turn (14-bit).
+#: Motor encoder ticks per motor turn: the 14-bit motor position's modulus (an alias of
+#: the one definition in protocol.drive).
 TICKS_PER_MOTOR_TURN = MOTOR_POSITION_MODULUS
 #: Motor turns per wheel turn (30/11, inferred from measurements).
 GEAR_RATIO = 30 / 11
@@ -132,6 +138,8 @@ class DriveTrain:
         wheel_separation_m: True distance between the wheels.
         count_offsets: Initial accumulated counts (board frame) of the left and right
             boards, e.g. near 2**31 to exercise the int32 wrap.
+        profile: The drive boards' table: how they read the wheel command, and whether
+            the right motor is mounted mirrored. Both boards of the train use it.
     """
 
     def __init__(
@@ -140,8 +148,12 @@ class DriveTrain:
         *,
         wheel_separation_m: float = 0.330,
         count_offsets: tuple[int, int] = (0, 0),
+        profile: DriveProfile = DRIVE_PROFILE,
     ) -> None:
         self.model = model or MotorModel()
+        self.profile = profile
+        # Board frame → robot frame for the right wheel.
+        self._right_sign = -1.0 if profile.right_mirrored else 1.0
         self.wheel_separation_m = wheel_separation_m
         self.wheels = (_Wheel(count_offsets[0]), _Wheel(count_offsets[1]))
         self._x = 0.0
@@ -158,7 +170,7 @@ class DriveTrain:
     def wheel_speeds_mps(self) -> tuple[float, float]:
         """True forward speed of the left and right wheel (robot frame)."""
         left, right = self.wheels
-        return left.speed_mps, -right.speed_mps
+        return left.speed_mps, self._right_sign * right.speed_mps
 
     def set_duty(self, side: int, pwm: int) -> None:
         """Set a board's PWM (board frame, −1000..1000)."""
@@ -195,7 +207,7 @@ class DriveTrain:
             dt = min(_STEP_S, now_s - self._now_s)
             left, right = self.wheels
             d_left = left.step(self.model, dt)
-            d_right = -right.step(self.model, dt)
+            d_right = self._right_sign * right.step(self.model, dt)
             self.distance_m[0] += d_left
             self.distance_m[1] += d_right
             self._integrate(d_left, d_right)
@@ -230,7 +242,7 @@ class SimDriveBoard(SimBoard):
         super().__init__(side, tag)
         self.side = side
         self.train = train
-        p = DRIVE_PROFILE
+        p = train.profile
         self.ram[p.count_addr] = BoardRegister(
             p.count_size, lambda: train.count(side).to_bytes(4, "little", signed=True)
         )
@@ -254,14 +266,17 @@ class SimDriveBoard(SimBoard):
         self.status_detail = type(self.status_detail).NONE
 
     def handle_foreign(self, packet: Packet, now_s: float) -> Packet | None:
-        if packet.cmd == Command.S_JOG:
+        if packet.cmd == self.train.profile.wheel_form:
             self.handle_jog(packet, now_s)
         return None
 
     def handle_jog(self, packet: Packet, now_s: float) -> None:
-        if packet.cmd != Command.S_JOG or (len(packet.data) - 1) % 4:
+        try:
+            pwm = decode_wheel_command(packet, self.train.profile).get(self.side)
+        except MalformedReplyError:
+            # Not the wheel command the profile describes (or a broken one): a board
+            # skips what it cannot read, as it does a jog for a servo.
             return
-        pwm = decode_wheel_command(packet).get(self.side)
         if pwm is not None:
             self.train.set_duty(self.side, pwm)
 

@@ -1,52 +1,105 @@
-"""The simulated line: wire timing, device turnaround, collisions and faults.
+"""The simulated line: wire timing, device turnaround, collisions, faults and dispatch.
 
-:class:`SimLine` sits on the device side of a byte transport and plays every simulated
-device. It keeps the physics of a half-duplex 8N1 line:
+:class:`SimLine` plays every simulated device on one half-duplex 8N1 line. The host's end
+(:class:`~ohmni_tb.sim.transport.SimTransport`, or a pseudo-terminal through
+:meth:`SimLine.serve`) hands it the bytes the host writes with :meth:`SimLine.host_write`
+and gets the devices' bytes back through the callback given to :meth:`SimLine.attach`.
+Nothing runs in between: the line works out at once what happens on the wire and when,
+and asks the event loop to hand each reply over at its time. The rules:
 
-* a byte takes ``10 / baudrate`` seconds (86.8 µs at 115200); a device sees a request
-  only when its last byte has arrived, and the host sees a reply only when its last byte
-  has left the device;
-* a device answers ``turnaround_s`` after the request ends;
-* bytes written while the line is busy queue behind it, as they would in a UART;
-* when two devices answer the same packet their bytes collide and arrive garbled.
+* a byte takes ``10 / baudrate`` seconds (86.8 µs at 115200). The host's bytes go on the
+  wire when they are written, behind the host's own earlier bytes;
+* a device sees each packet when *that packet's* last byte has arrived — a write of three
+  requests is three moments — and answers ``turnaround_s`` later, or once the line is
+  quiet if someone else is still talking then (the replies of a batch queue one behind
+  the other, and behind the rest of the batch);
+* the host sees a reply when its last byte has left the device (or, with a USB latency
+  set, when the adapter passes it on: see below);
+* two devices answering the same packet collide: their bytes AND together (the dominant
+  level wins) and arrive garbled;
+* the host's UART does not listen before it talks: host bytes that reach the line while
+  a reply is on it collide with the reply the same way, both ways garbled, and are
+  counted in :attr:`LineStats.host_collisions`;
+* a device's decoder gives up an incomplete frame when no byte has arrived for the
+  HerkuleX packet garbage check period (:data:`~ohmni_tb.sim.servo.GARBAGE_TIMEOUT_S`,
+  201.6 ms; the boards are assumed to do the same), checked at the next bytes and by a
+  timer, so the device the frame names flags it on time.
+
+With ``realtime=False`` nothing waits for the clock: replies are handed over on the next
+pass of the event loop, the host's bytes queue behind whatever the line carries (there
+are no host collisions), and the simulated time runs ahead of the loop's clock by the
+traffic's wire time.
+
+**USB latency.** A real host reads the line through a USB serial adapter, which holds
+received bytes until its latency timer expires or until a USB packet's payload (62 bytes)
+is full. With ``usb_latency_s`` set, bytes for the host are held the same way: released
+on a grid of that period counted from the line's start, or as soon as 62 are waiting —
+so a reply may reach the host in two pieces, and two short replies in one.
 
 Faults are set on :attr:`SimLine.faults` at any time: drop or corrupt a share of the
 bytes in either direction, make devices silent, or pull the cable (nothing passes) and
 put it back. Time comes from the event loop's clock, so under a virtual-time loop a test
-runs hours of bus traffic in milliseconds.
+runs hours of bus traffic in milliseconds, and every time above is exact.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import random
-from collections.abc import Iterable, Sequence
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from urllib.parse import SplitResult
+from typing import Final
 
-from ohmni_tb.errors import ConfigError, TransportClosedError
-from ohmni_tb.protocol import Packet, PacketDecoder, RejectReason, encode_packet
-from ohmni_tb.sim.device import SimDevice
-from ohmni_tb.sim.robot import SimRobot, parse_ids
-from ohmni_tb.transport import (
-    DEFAULT_BAUDRATE,
-    MemoryTransport,
-    Transport,
-    option_bool,
-    option_int,
-    register_transport,
-    reject_unknown_options,
+from ohmni_tb.errors import OutOfRangeError, StateError, TransportClosedError, TransportError
+from ohmni_tb.protocol import (
+    BROADCAST_ID,
+    Command,
+    Packet,
+    PacketDecoder,
+    RejectReason,
+    encode_packet,
 )
+from ohmni_tb.protocol.jog import I_JOG_TAG_SIZE, S_JOG_TAG_SIZE
+from ohmni_tb.protocol.timing import BITS_PER_BYTE, DEFAULT_BAUDRATE
+from ohmni_tb.sim.device import SimDevice
+from ohmni_tb.sim.servo import GARBAGE_TIMEOUT_S
+from ohmni_tb.transport.base import Transport
 
-__all__ = ["LineFaults", "LineStats", "SimLine", "SimTransport", "build_line", "open_sim"]
+__all__ = [
+    "DEFAULT_TURNAROUND_S",
+    "MAX_USB_LATENCY_S",
+    "USB_PACKET_PAYLOAD",
+    "HostReceiver",
+    "LineFaults",
+    "LineStats",
+    "SimLine",
+]
 
 _log = logging.getLogger(__name__)
 
 #: A HerkuleX servo's reply delay is undocumented; captures of similar firmware show a few
 #: hundred microseconds between the request's stop bit and the reply's start bit.
-DEFAULT_TURNAROUND_S = 0.0005
-_BITS_PER_BYTE = 10
+DEFAULT_TURNAROUND_S: Final = 0.0005
+#: Bytes of one USB packet from an FTDI adapter to the host: 64 less two status bytes.
+USB_PACKET_PAYLOAD: Final = 62
+#: The adapter's latency timer goes up to 255 ms; the simulator offers 0..32 ms, the
+#: range a host would use on this bus (the default of Linux's ftdi_sio is 16 ms).
+MAX_USB_LATENCY_S: Final = 0.032
+
+#: Receives the bytes the line hands to the host.
+HostReceiver = Callable[[bytes], None]
+
+_HEADER: Final = b"\xff\xff"
+_MIN_FRAME: Final = 7
+#: Commands after which a device may answer to another id (so the routing is rebuilt).
+_ID_CHANGING: Final = frozenset(
+    {Command.RAM_WRITE, Command.EEP_WRITE, Command.REBOOT, Command.ROLLBACK}
+)
+#: Float slack when comparing a byte's arrival with a timer tick of the same time.
+_EPS_S: Final = 1e-12
 
 
 @dataclass(slots=True)
@@ -74,8 +127,10 @@ class LineStats:
         bytes_to_devices: Bytes the devices received.
         bytes_to_host: Bytes the host received.
         packets: Packets the devices decoded.
-        replies: Replies sent.
+        replies: Replies the devices sent (colliding replies count once).
         collisions: Packets answered by more than one device at once.
+        host_collisions: Host writes that reached the line while a reply was on it.
+        expired: Incomplete frames the devices gave up after the garbage timeout.
         dropped_bytes: Bytes lost to faults.
         corrupted_bytes: Bytes garbled by faults.
         busy_s: Time the line was carrying bytes.
@@ -86,23 +141,55 @@ class LineStats:
     packets: int = 0
     replies: int = 0
     collisions: int = 0
+    host_collisions: int = 0
+    expired: int = 0
     dropped_bytes: int = 0
     corrupted_bytes: int = 0
     busy_s: float = 0.0
 
 
+class _Reply:
+    """A reply on (or queued for) the wire. ``wire`` is garbled in place by collisions."""
+
+    __slots__ = ("end_s", "start_s", "wire")
+
+    def __init__(self, start_s: float, end_s: float, wire: bytearray) -> None:
+        self.start_s = start_s
+        self.end_s = end_s
+        self.wire = wire
+
+
+class _Chunk:
+    """Bytes handed to the host together: runs ``(reply, first index, count)`` of replies."""
+
+    __slots__ = ("done", "due_s", "handle", "parts", "size")
+
+    def __init__(self, due_s: float) -> None:
+        self.due_s = due_s
+        self.parts: list[tuple[_Reply, int, int]] = []
+        self.size = 0
+        self.handle: asyncio.Handle | None = None
+        self.done = False
+
+
 class SimLine:
-    """Every simulated device on one line, served over a byte transport.
+    """Every simulated device on one line (see the module docstring for the rules).
 
     Args:
         devices: The virtual firmware on the line.
         baudrate: Line speed; sets each byte's wire time.
         turnaround_s: Delay between a request's end and its reply's start.
         seed: Seed for the fault generator, so a faulty run can be repeated.
-        realtime: Deliver each reply when its last byte would arrive. With ``False`` replies
-            come at once and the simulated time runs ahead of the clock by the wire time
-            of the traffic (never behind it): bus traffic as fast as the CPU allows, for
-            throughput tests. Under :func:`~ohmni_tb.sim.clock.run_virtual` both are exact.
+        realtime: Hand each reply over when its last byte would arrive. With ``False``
+            replies come on the next pass of the loop and the simulated time runs ahead of
+            the clock by the wire time of the traffic (never behind it): bus traffic as
+            fast as the CPU allows, for throughput tests. Under
+            :func:`~ohmni_tb.sim.clock.run_virtual` both are exact.
+        usb_latency_s: The host adapter's latency timer (0: off, bytes reach the host as
+            they leave the line), up to :data:`MAX_USB_LATENCY_S`.
+
+    Raises:
+        OutOfRangeError: ``usb_latency_s`` is out of range.
     """
 
     def __init__(
@@ -113,72 +200,295 @@ class SimLine:
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         seed: int = 0,
         realtime: bool = True,
+        usb_latency_s: float = 0.0,
     ) -> None:
+        if not 0.0 <= usb_latency_s <= MAX_USB_LATENCY_S:
+            raise OutOfRangeError("usb_latency_s", usb_latency_s, 0.0, MAX_USB_LATENCY_S, "s")
         self.devices: list[SimDevice] = list(devices)
         self.baudrate = baudrate
-        self.byte_s = _BITS_PER_BYTE / baudrate
+        self.byte_s = BITS_PER_BYTE / baudrate
         self.turnaround_s = turnaround_s
         self.realtime = realtime
+        self.usb_latency_s = usb_latency_s
         self.faults = LineFaults()
         self.stats = LineStats()
         self._rng = random.Random(seed)
-        self._t0: float | None = None
-        self._line_free_at = 0.0
         self._decoder = PacketDecoder(on_reject=self._on_reject)
+        # Line time is loop time minus _t0; _now_s is the latest time the devices were
+        # taken to (or the clock was read at), so it never goes back.
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._t0 = 0.0
         self._now_s = 0.0
+        self._line_free_at = 0.0
+        self._host_free_at = 0.0
+        self._last_rx_s = 0.0
+        self._event_s = 0.0
+        self._deliver: HostReceiver | None = None
+        self._on_wire: deque[_Reply] = deque()
+        self._chunks: deque[_Chunk] = deque()
+        self._open: _Chunk | None = None
+        self._expiry: asyncio.TimerHandle | None = None
+        self._by_sid: dict[int, list[SimDevice]] = {}
+        self._anywhere: list[SimDevice] = []
+        self._routed: list[SimDevice] = []
+
+    # -- clock -------------------------------------------------------------------------
 
     def now_s(self) -> float:
         """Simulated time: seconds since the line started serving (never goes back)."""
-        return max(self._elapsed_s(), self._now_s)
-
-    def _elapsed_s(self) -> float:
-        """Loop time since the line started serving."""
-        loop = asyncio.get_running_loop()
-        if self._t0 is None:
-            self._t0 = loop.time()
-        return loop.time() - self._t0
+        loop = self._loop
+        if loop is not None:
+            elapsed = loop.time() - self._t0
+            self._now_s = max(self._now_s, elapsed)
+        return self._now_s
 
     def power_cycle(self) -> None:
         """Cycle the robot's power: every device reloads and forgets latched faults."""
         now = self.now_s()
         for device in self.devices:
             device.power_cycle(now)
+        self._route_table()
 
-    async def serve(self, transport: Transport) -> None:
-        """Play the devices on ``transport`` until it closes."""
-        self._elapsed_s()
-        while True:
-            try:
-                data = await transport.read()
-            except TransportClosedError:
-                return
-            await self._carry_to_devices(transport, data)
+    # -- the host's end ------------------------------------------------------------------
 
-    async def _carry_to_devices(self, transport: Transport, data: bytes) -> None:
+    @property
+    def attached(self) -> bool:
+        """Whether a host is connected (a transport, or a served pseudo-terminal)."""
+        return self._deliver is not None
+
+    def attach(self, deliver: HostReceiver) -> None:
+        """Connect the host: from now on the devices' bytes go to ``deliver``.
+
+        ``deliver`` is called from the event loop, never from inside :meth:`host_write`.
+        The line keeps its time across hosts: a host that connects after another one left
+        finds the devices where they were.
+
+        Raises:
+            StateError: Another host is connected (detach it first).
+        """
+        if self._deliver is not None:
+            raise StateError("the simulated line already has a host connected")
+        loop = asyncio.get_running_loop()
+        if self._loop is None:
+            self._t0 = loop.time()
+        elif loop is not self._loop:
+            # A new event loop (a new clock): carry the line's time over.
+            self._t0 = loop.time() - self._now_s
+        self._loop = loop
+        self._deliver = deliver
+        if self._decoder.pending:
+            self._arm_expiry()
+
+    def detach(self) -> None:
+        """Disconnect the host: what was on its way to it is lost, nothing stays scheduled."""
+        self._deliver = None
+        for chunk in self._chunks:
+            if chunk.handle is not None:
+                chunk.handle.cancel()
+        self._chunks.clear()
+        self._open = None
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
+
+    def host_write(self, data: bytes) -> None:
+        """The host writes ``data`` now: put it on the wire and let the devices act on it.
+
+        Raises:
+            StateError: No host is connected.
+        """
+        loop = self._loop
+        if self._deliver is None or loop is None:
+            raise StateError("no host is connected to the simulated line")
+        if not data:
+            return
+        if self.faults.unplugged:
+            self.stats.dropped_bytes += len(data)
+            return
         data = self._apply_faults(data)
         if not data:
             return
-        # The bytes occupy the line after whatever is on it now.
-        start = max(self._elapsed_s(), self._line_free_at)
-        end = start + len(data) * self.byte_s
-        self._line_free_at = end
-        self.stats.busy_s += end - start
-        self.stats.bytes_to_devices += len(data)
-        # The devices act at the moment the last byte arrives. Nothing can reach them
-        # before then (the line is busy), so there is no need to wait for it in real time:
-        # the one wait is for the reply, which keeps real-time runs close to the model.
-        self._now_s = max(self._now_s, end)
-        for packet in self._decoder.feed(data):
-            self.stats.packets += 1
-            await self._dispatch(transport, packet, end)
+        byte_s = self.byte_s
+        elapsed = loop.time() - self._t0
+        n = len(data)
+        if self.realtime:
+            start = max(elapsed, self._host_free_at)
+            end = start + n * byte_s
+            self.stats.busy_s += end - start
+            if self._on_wire:
+                data = self._meet_replies(data, start, end)
+        else:
+            # Simulated time runs ahead of the clock: the bytes wait for the line.
+            start = max(elapsed, self._line_free_at)
+            end = start + n * byte_s
+            self.stats.busy_s += end - start
+        self._host_free_at = end
+        self._line_free_at = max(self._line_free_at, end)
+        self.stats.bytes_to_devices += n
+        decoder = self._decoder
+        if decoder.pending and start + byte_s - self._last_rx_s >= GARBAGE_TIMEOUT_S - _EPS_S:
+            self._expire(self._last_rx_s + GARBAGE_TIMEOUT_S)
+        self._last_rx_s = end
+        self._feed(data, start)
+        if decoder.pending:
+            self._arm_expiry()
+        elif self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
 
-    async def _dispatch(self, transport: Transport, packet: Packet, at_s: float) -> None:
-        replies: list[bytes] = []
+    async def serve(self, transport: Transport) -> None:
+        """Play the devices on ``transport`` (read in pull mode) until it closes.
+
+        For a transport whose other end is the host, such as a pseudo-terminal.
+
+        Raises:
+            StateError: Another host is connected.
+        """
+
+        def deliver(chunk: bytes) -> None:
+            try:
+                transport.write_nowait(chunk)
+            except TransportError as exc:
+                _log.debug("host end went away before %d bytes: %s", len(chunk), exc)
+
+        self.attach(deliver)
+        try:
+            while True:
+                try:
+                    data = await transport.read()
+                except TransportClosedError:
+                    return
+                self.host_write(data)
+        finally:
+            self.detach()
+
+    # -- bytes to the devices ------------------------------------------------------------
+
+    def _feed(self, data: bytes, start_s: float) -> None:
+        """Decode ``data`` (on the wire from ``start_s``) packet by packet, each at its end.
+
+        A whole clean frame is fed in one piece; anything else byte by byte, so that every
+        packet (and every rejected frame) is seen when its own last byte arrives.
+        """
+        decoder = self._decoder
+        byte_s = self.byte_s
+        n = len(data)
+        pos = 0
+        while pos < n:
+            stop = pos + 1
+            if not decoder.pending and n - pos >= _MIN_FRAME and data[pos] == data[pos + 1] == 0xFF:
+                size = data[pos + 2]
+                # No FF FF inside: nothing else can start, let alone end, within the frame.
+                if (
+                    size >= _MIN_FRAME
+                    and pos + size <= n
+                    and data.find(_HEADER, pos + 1, pos + size) < 0
+                ):
+                    stop = pos + size
+            at_s = start_s + stop * byte_s
+            self._event_s = at_s
+            packets = decoder.feed(data[pos:stop] if pos or stop < n else data)
+            for packet in packets:
+                self._dispatch(packet, at_s)
+            pos = stop
+
+    def _expire(self, at_s: float) -> None:
+        """The quiet time ran out at ``at_s``: the devices give up the frame they hold."""
+        self._event_s = at_s
+        for packet in self._decoder.expire():
+            self._dispatch(packet, at_s)
+
+    def _arm_expiry(self) -> None:
+        loop = self._loop
+        if loop is None:
+            return
+        if self._expiry is not None:
+            self._expiry.cancel()
+        self._expiry = loop.call_at(
+            self._t0 + self._last_rx_s + GARBAGE_TIMEOUT_S, self._on_expiry_timer
+        )
+
+    def _on_expiry_timer(self) -> None:
+        self._expiry = None
+        if self._decoder.pending:
+            self._expire(self._last_rx_s + GARBAGE_TIMEOUT_S)
+
+    def _on_reject(self, reason: RejectReason, frame: bytes) -> None:
+        if reason is RejectReason.EXPIRED:
+            self.stats.expired += 1
+        at_s = max(self._event_s, self._now_s)
+        self._now_s = at_s
         for device in self.devices:
+            device.on_rejected(reason, frame, at_s)
+
+    # -- the devices -------------------------------------------------------------------
+
+    def _route_table(self) -> None:
+        """Index the devices by the id they answer to now."""
+        by_sid: dict[int, list[SimDevice]] = {}
+        anywhere: list[SimDevice] = []
+        for device in self.devices:
+            sid = getattr(device, "sid", None)
+            if isinstance(sid, int):
+                by_sid.setdefault(sid, []).append(device)
+            else:
+                anywhere.append(device)
+        self._by_sid = by_sid
+        self._anywhere = anywhere
+        self._routed = list(self.devices)
+
+    def _concerned(self, packet: Packet) -> list[SimDevice]:
+        """The devices a packet is for.
+
+        A jog made of whole tags concerns the ids its tags name, plus its own id unless
+        that is broadcast: the wheel command is a broadcast jog naming the two drive
+        boards, and a servo acts on a jog only where a tag names it. Any other packet
+        concerns its id, or every device when broadcast (a broken jog too, which the
+        devices flag).
+        """
+        if self._routed != self.devices:
+            self._route_table()
+        sid = packet.sid
+        cmd = packet.cmd
+        if cmd == Command.S_JOG or cmd == Command.I_JOG:  # noqa: PLR1714 - two ints, no set
+            data = packet.data
+            if cmd == Command.S_JOG:
+                whole = len(data) > 1 and (len(data) - 1) % S_JOG_TAG_SIZE == 0
+                # Each tag: jog word (2), SET, id; after the shared playtime byte.
+                named = data[4::S_JOG_TAG_SIZE] if whole else b""
+            else:
+                whole = len(data) > 0 and len(data) % I_JOG_TAG_SIZE == 0
+                # Each tag: jog word (2), SET, id, playtime.
+                named = data[3::I_JOG_TAG_SIZE] if whole else b""
+            if named:
+                wanted = set(named)
+                if sid != BROADCAST_ID:
+                    wanted.add(sid)
+                anywhere = self._anywhere
+                return [
+                    d for d in self.devices if d in anywhere or getattr(d, "sid", None) in wanted
+                ]
+        if sid == BROADCAST_ID:
+            return self.devices
+        addressed = self._by_sid.get(sid)
+        if not self._anywhere:
+            return addressed or []
+        return [d for d in self.devices if d in self._anywhere or (addressed and d in addressed)]
+
+    def _dispatch(self, packet: Packet, at_s: float) -> None:
+        """The devices ``packet`` concerns act on it at ``at_s``; a reply goes on the wire."""
+        self.stats.packets += 1
+        at_s = max(at_s, self._now_s)
+        self._now_s = at_s
+        silent = self.faults.silent
+        replies: list[bytes] = []
+        for device in self._concerned(packet):
             device.advance(at_s)
-            reply = device.handle(packet, at_s)
-            if reply is not None and reply.sid not in self.faults.silent:
-                replies.append(encode_packet(reply))
+            answer = device.handle(packet, at_s)
+            if answer is not None and answer.sid not in silent:
+                replies.append(encode_packet(answer))
+        if packet.cmd in _ID_CHANGING:
+            self._route_table()
         if not replies:
             return
         if len(replies) > 1:
@@ -188,20 +498,167 @@ class SimLine:
         end = start + len(wire) * self.byte_s
         self._line_free_at = end
         self.stats.busy_s += end - start
-        wait_s = end - self._elapsed_s()
-        if self.realtime and wait_s > 0:
-            await asyncio.sleep(wait_s)
-        # The line was busy until the reply's last byte, whether or not we waited for it.
-        self._now_s = max(self._now_s, end)
-        wire = self._apply_faults(wire)
-        if not wire:
-            return
         self.stats.replies += 1
-        self.stats.bytes_to_host += len(wire)
-        try:
-            await transport.write(wire)
-        except TransportClosedError:
-            _log.debug("host went away before a reply of %d bytes", len(wire))
+        reply = _Reply(start, end, bytearray(wire))
+        if self.realtime:
+            self._on_wire.append(reply)
+        else:
+            self._now_s = max(self._now_s, end)
+        self._plan([(reply, 0, len(wire))])
+
+    # -- the host meets the replies ----------------------------------------------------
+
+    def _meet_replies(self, data: bytes, start: float, end: float) -> bytes:
+        """Host bytes on ``[start, end)``: collide with a reply under way, defer the rest.
+
+        A device does not start a reply while the line is busy, so replies that have not
+        begun wait until the host's bytes are through; the one already on the line is hit.
+        """
+        on_wire = self._on_wire
+        while on_wire and on_wire[0].end_s <= start + _EPS_S:
+            on_wire.popleft()
+        if not on_wire:
+            return data
+        first = on_wire[0]
+        if first.start_s <= start + _EPS_S:
+            data = self._garble(data, start, first)
+            self.stats.host_collisions += 1
+            self.stats.busy_s -= min(end, first.end_s) - start
+            shifted = list(on_wire)[1:]
+        else:
+            shifted = list(on_wire)
+        free = end
+        moved: list[_Reply] = []
+        for reply in shifted:
+            if reply.start_s >= free - _EPS_S:
+                break
+            delay = free - reply.start_s
+            reply.start_s += delay
+            reply.end_s += delay
+            free = reply.end_s
+            moved.append(reply)
+        if moved:
+            self._line_free_at = max(self._line_free_at, free)
+            self._replan(moved[0])
+        return data
+
+    def _garble(self, data: bytes, start: float, reply: _Reply) -> bytes:
+        """AND the host's bytes with the reply's bytes they overlap in time, both ways."""
+        host = bytearray(data)
+        theirs = bytes(reply.wire)
+        offset = (start - reply.start_s) / self.byte_s
+        for i, mine in enumerate(data):
+            pos = i + offset
+            first = math.floor(pos)
+            for j in (first, first + 1) if pos - first > 1e-9 else (first,):
+                if 0 <= j < len(theirs):
+                    host[i] &= theirs[j]
+                    reply.wire[j] &= mine
+        return bytes(host)
+
+    # -- bytes to the host -------------------------------------------------------------
+
+    def _plan(self, runs: Sequence[tuple[_Reply, int, int]]) -> None:
+        """Put reply bytes on their way to the host: decide which chunks they go in, when."""
+        loop = self._loop
+        if loop is None or self._deliver is None:
+            return
+        latency = self.usb_latency_s
+        touched: list[_Chunk] = []
+        if not latency:
+            for run in runs:
+                chunk = _Chunk(run[0].end_s)
+                chunk.parts.append(run)
+                chunk.size = run[2]
+                self._chunks.append(chunk)
+                touched.append(chunk)
+        else:
+            byte_s = self.byte_s
+            for reply, first, count in runs:
+                index, stop = first, first + count
+                while index < stop:
+                    arrival = reply.start_s + (index + 1) * byte_s
+                    open_chunk = self._open
+                    if open_chunk is not None and arrival <= open_chunk.due_s + _EPS_S:
+                        chunk = open_chunk
+                    else:
+                        # The adapter's buffer was empty: the next tick of its timer.
+                        tick = math.ceil(arrival / latency - 1e-9) * latency
+                        chunk = _Chunk(max(tick, arrival))
+                        self._open = chunk
+                        self._chunks.append(chunk)
+                    by_tick = math.floor((chunk.due_s + _EPS_S - reply.start_s) / byte_s) - index
+                    take = min(USB_PACKET_PAYLOAD - chunk.size, stop - index, max(1, by_tick))
+                    chunk.parts.append((reply, index, take))
+                    chunk.size += take
+                    index += take
+                    if chunk.size >= USB_PACKET_PAYLOAD:
+                        # A full USB packet leaves at once, without waiting for the tick.
+                        chunk.due_s = reply.start_s + index * byte_s
+                        self._open = None
+                    if not touched or touched[-1] is not chunk:
+                        touched.append(chunk)
+        for chunk in touched:
+            if chunk.handle is not None:
+                chunk.handle.cancel()
+            if self.realtime:
+                chunk.handle = loop.call_at(self._t0 + chunk.due_s, self._hand_over, chunk)
+            else:
+                chunk.handle = loop.call_soon(self._hand_over, chunk)
+
+    def _replan(self, moved: _Reply) -> None:
+        """Replies from ``moved`` on start later now: plan their way to the host again.
+
+        The adapter's state depends only on the arrivals since its buffer was last empty,
+        so the chunks from the first one holding a moved byte are planned afresh.
+        """
+        chunks = self._chunks
+        index = next(
+            (i for i, chunk in enumerate(chunks) if any(p[0] is moved for p in chunk.parts)),
+            None,
+        )
+        if index is None:
+            return
+        redo = [chunks.pop() for _ in range(len(chunks) - index)][::-1]
+        runs: list[tuple[_Reply, int, int]] = []
+        for chunk in redo:
+            if chunk.handle is not None:
+                chunk.handle.cancel()
+            for reply, first, count in chunk.parts:
+                if runs and runs[-1][0] is reply and runs[-1][1] + runs[-1][2] == first:
+                    runs[-1] = (reply, runs[-1][1], runs[-1][2] + count)
+                else:
+                    runs.append((reply, first, count))
+        self._open = None
+        self._plan(runs)
+
+    def _hand_over(self, target: _Chunk) -> None:
+        """Hand ``target`` to the host, and any chunk before it that is still waiting."""
+        if target.done:
+            return
+        chunks = self._chunks
+        while chunks:
+            chunk = chunks.popleft()
+            chunk.done = True
+            if chunk.handle is not None and chunk is not target:
+                chunk.handle.cancel()
+            chunk.handle = None
+            if chunk is self._open:
+                self._open = None
+            parts = chunk.parts
+            if len(parts) == 1 and parts[0][1] == 0 and parts[0][2] == len(parts[0][0].wire):
+                data = bytes(parts[0][0].wire)
+            else:
+                data = b"".join(bytes(r.wire[i : i + n]) for r, i, n in parts)
+            data = self._apply_faults(data)
+            deliver = self._deliver
+            if data and deliver is not None:
+                self.stats.bytes_to_host += len(data)
+                deliver(data)
+            if chunk is target:
+                return
+
+    # -- faults ------------------------------------------------------------------------
 
     def _apply_faults(self, data: bytes) -> bytes:
         faults = self.faults
@@ -223,10 +680,6 @@ class SimLine:
                 out.append(byte)
         return bytes(out)
 
-    def _on_reject(self, reason: RejectReason, frame: bytes) -> None:
-        for device in self.devices:
-            device.on_rejected(reason, frame, self._now_s)
-
 
 def _collide(frames: Sequence[bytes]) -> bytes:
     """Two drivers on one line: the dominant (low) level wins, so bytes AND together."""
@@ -238,98 +691,3 @@ def _collide(frames: Sequence[bytes]) -> bytes:
         for i, b in enumerate(f):
             out[i] &= b
     return bytes(out)
-
-
-class SimTransport(Transport):
-    """The host's end of a simulated line: what ``open_transport("sim://")`` returns.
-
-    It owns the line's serving task and stops it on :meth:`aclose`.
-    """
-
-    def __init__(self, line: SimLine, *, robot: SimRobot | None = None, name: str = "sim") -> None:
-        self.line = line
-        self.robot = robot
-        if robot is not None:
-            robot.attach_clock(line.now_s)
-        self.baudrate = line.baudrate
-        self._host, self._device = MemoryTransport.pair(name, baudrate=line.baudrate)
-        self._task: asyncio.Task[None] | None = asyncio.create_task(
-            line.serve(self._device), name=f"ohmni-sim-{name}"
-        )
-
-    @property
-    def closed(self) -> bool:
-        return self._host.closed
-
-    async def write(self, data: bytes) -> None:
-        await self._host.write(data)
-
-    async def read(self) -> bytes:
-        return await self._host.read()
-
-    async def aclose(self) -> None:
-        task, self._task = self._task, None
-        await self._host.aclose()
-        await self._device.aclose()
-        if task is not None:
-            task.cancel()
-            # wait() does not re-raise the task's own cancellation; ours propagates.
-            await asyncio.wait({task})
-
-    def __repr__(self) -> str:
-        names = ", ".join(type(d).__name__ for d in self.line.devices)
-        return f"<SimTransport [{names}] @{self.baudrate}>"
-
-
-def build_line(options: dict[str, str]) -> tuple[SimLine, SimRobot]:
-    """Build a simulated robot and its line from ``sim://`` options, consuming them.
-
-    Raises:
-        ConfigError: An option's value is invalid; the message names it.
-    """
-    baudrate = option_int(options, "baudrate", DEFAULT_BAUDRATE, 1200, 4_000_000)
-    turnaround_us = option_int(
-        options, "turnaround_us", round(DEFAULT_TURNAROUND_S * 1e6), 0, 100_000
-    )
-    seed = option_int(options, "seed", 0, 0, 2**32 - 1)
-    realtime = option_bool(options, "realtime", True)
-    drop = _option_rate(options, "drop")
-    corrupt = _option_rate(options, "corrupt")
-    silent = parse_ids("silent", options.pop("silent", ""))
-    robot = SimRobot.from_options(options)
-    line = SimLine(
-        robot.devices,
-        baudrate=baudrate,
-        turnaround_s=turnaround_us / 1e6,
-        seed=seed,
-        realtime=realtime,
-    )
-    line.faults.drop_rate = drop
-    line.faults.corrupt_rate = corrupt
-    line.faults.silent = set(silent)
-    return line, robot
-
-
-async def open_sim(url: SplitResult, options: dict[str, str]) -> Transport:
-    """Open a simulated robot from a ``sim://`` URL (options: :mod:`ohmni_tb.sim.robot`)."""
-    if url.netloc or url.path.strip("/"):
-        raise ConfigError(f"sim:// takes options only, not {url.netloc + url.path!r}")
-    line, robot = build_line(options)
-    reject_unknown_options(url, options)
-    return SimTransport(line, robot=robot)
-
-
-def _option_rate(options: dict[str, str], key: str) -> float:
-    raw = options.pop(key, None)
-    if raw is None:
-        return 0.0
-    try:
-        value = float(raw)
-    except ValueError:
-        raise ConfigError(f"option {key}={raw!r} is not a number") from None
-    if not 0.0 <= value <= 1.0:
-        raise ConfigError(f"option {key}={value} is out of range: allowed 0..1")
-    return value
-
-
-register_transport("sim", open_sim)

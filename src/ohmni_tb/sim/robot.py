@@ -1,24 +1,9 @@
 """The simulated Ohmni: every device of the bus map on one simulated line.
 
-``open_transport("sim://")`` builds one from the URL's options:
-
-==================  =========================================================  ==========
-option              meaning                                                    default
-==================  =========================================================  ==========
-``neck``            ``0101`` / ``0201`` (HerkuleX at sid 3) or ``worm`` (sid 4) ``0101``
-``ext``             external servo ids, comma-separated, or ``none``           ``11,12``
-``soc``             battery state of charge at start, percent                  ``80``
-``docked``          start on the dock (1/0)                                    ``0``
-``count_offset``    initial wheel count of both boards (int32 wrap tests)      ``0``
-``baudrate``        line speed                                                 ``115200``
-``turnaround_us``   device reply delay                                         ``500``
-``realtime``        1: replies take their wire time on the clock; 0: at once,  ``1``
-                    simulated time running ahead by the traffic's wire time
-``drop``            share of bytes lost on the line, 0..1                      ``0``
-``corrupt``         share of bytes garbled on the line, 0..1                   ``0``
-``silent``          device ids that never answer, comma-separated              none
-``seed``            seed of the fault generator                                ``0``
-==================  =========================================================  ==========
+``open_transport("sim://")`` builds one from the URL's options; the table of every
+option (the robot's and the line's) is in :mod:`ohmni_tb.sim.url`. The robot's own are
+``neck`` (``0101``, ``0201`` or ``worm``), ``ext`` (external servo ids), ``soc``,
+``docked`` and ``count_offset``.
 
 The :class:`SimRobot` is reachable from the transport (``transport.robot``) for tests
 and tools: its ground-truth pose, the dock, the power switch.
@@ -90,6 +75,7 @@ class SimRobot:
         self.right = SimDriveBoard(DeviceId.RIGHT_DRIVE, self.train)
         self.core = SimCoreBoard(BatteryPack(soc=soc_percent / 100.0))
         self.core.pack.extra_load = self.train.motor_current_a
+        self.core.load_sync = self.train.advance
         self.core.set_docked(docked)
         self.neck: SimServo | SimWormNeck
         if neck == "worm":

@@ -57,7 +57,7 @@ TransportFactory = Callable[[SplitResult, dict[str, str]], Awaitable[Transport]]
 
 _FACTORIES: dict[str, TransportFactory] = {}
 #: Schemes whose module registers its factory when first imported.
-_LAZY: dict[str, str] = {"sim": "ohmni_tb.sim.line"}
+_LAZY: dict[str, str] = {"sim": "ohmni_tb.sim.url"}
 _MEMORY_ENDS: dict[str, MemoryTransport] = {}
 
 

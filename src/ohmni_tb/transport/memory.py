@@ -14,11 +14,10 @@ nothing drops the write; returning changed bytes corrupts it. Order is always ke
 from __future__ import annotations
 
 import asyncio
-from collections import deque
 from collections.abc import Callable, Iterable
 
 from ohmni_tb.errors import TransportClosedError
-from ohmni_tb.transport.base import Transport
+from ohmni_tb.transport.base import LostHandler, ReceiveBuffer, Receiver, Transport
 
 __all__ = [
     "Manipulator",
@@ -34,20 +33,26 @@ Manipulator = Callable[[bytes], Iterable[bytes | float]]
 
 
 class MemoryTransport(Transport):
-    """One end of an in-memory byte pipe. Make connected ends with :meth:`pair`."""
+    """One end of an in-memory byte pipe. Make connected ends with :meth:`pair`.
+
+    What one end writes reaches the other on the next pass of the event loop (never
+    inside the writer's own call), in order, through the manipulator if one is set.
+    :meth:`set_stalled` makes the peer stop taking bytes, like a device that does not
+    read: written bytes then wait in :attr:`backlog`.
+    """
 
     def __init__(self, name: str = "memory", *, baudrate: int | None = None) -> None:
         self.name = name
         self.baudrate = baudrate
         self._peer: MemoryTransport | None = None
-        # Chunks as delivered: one read returns one chunk, so a split write is seen split.
-        self._rx: deque[bytes] = deque()
-        self._rx_ready = asyncio.Event()
+        self._rx = ReceiveBuffer(name)
         self._closed = False
         self._manipulator: Manipulator | None = None
         # Delayed chunks must not overtake each other: each is due no earlier than the last.
         self._last_due = 0.0
         self._timers: set[asyncio.TimerHandle] = set()
+        self._stalled: list[bytes] | None = None
+        self._drained: asyncio.Event | None = None
         self.bytes_written = 0
         self.bytes_read = 0
 
@@ -72,24 +77,57 @@ class MemoryTransport(Transport):
         """Alter what this end writes from now on (``None`` restores a clean line)."""
         self._manipulator = manipulator
 
+    def set_stalled(self, stalled: bool) -> None:
+        """Hold what this end writes from now on (``True``), or let it all go (``False``)."""
+        if stalled:
+            if self._stalled is None:
+                self._stalled = []
+            return
+        held, self._stalled = self._stalled, None
+        for chunk in held or ():
+            self._send(chunk)
+        if self._drained is not None:
+            self._drained.set()
+
     @property
     def closed(self) -> bool:
         peer = self._peer
         return self._closed or (peer is not None and peer is not self and peer._closed)
 
-    async def write(self, data: bytes) -> None:
+    @property
+    def backlog(self) -> int:
+        return sum(map(len, self._stalled)) if self._stalled else 0
+
+    async def drain(self) -> None:
+        while self.backlog and not self._closed:
+            if self._drained is None:
+                self._drained = asyncio.Event()
+            self._drained.clear()
+            await self._drained.wait()
+
+    def write_nowait(self, data: bytes) -> None:
         if self._closed:
             raise TransportClosedError(f"{self.name} is closed")
         peer = self._peer
         if peer is None or peer._closed:
             raise TransportClosedError(f"{self.name}: the other end is closed")
         self.bytes_written += len(data)
+        if self._stalled is not None:
+            self._stalled.append(bytes(data))
+            return
+        self._send(bytes(data))
+
+    def _send(self, data: bytes) -> None:
+        peer = self._peer
+        if peer is None:
+            return
         items: Iterable[bytes | float] = (
-            (bytes(data),) if self._manipulator is None else self._manipulator(bytes(data))
+            (data,) if self._manipulator is None else self._manipulator(data)
         )
         loop = asyncio.get_running_loop()
         now = loop.time()
-        self._timers = {t for t in self._timers if t.when() > now}
+        if self._timers:
+            self._timers = {t for t in self._timers if t.when() > now}
         wait_s = 0.0
         for item in items:
             if isinstance(item, float):
@@ -98,34 +136,24 @@ class MemoryTransport(Transport):
             due = max(now + wait_s, self._last_due)
             self._last_due = due
             if due <= now:
-                peer._receive(bytes(item))
+                # Next pass of the loop, as a socket would: never inside the writer's call.
+                loop.call_soon(self._deliver_later, peer, bytes(item))
             else:
                 handle = loop.call_at(due, self._deliver_later, peer, bytes(item))
                 self._timers.add(handle)
 
     def _deliver_later(self, peer: MemoryTransport, chunk: bytes) -> None:
-        if not self._closed:
-            peer._receive(chunk)
-
-    def _receive(self, chunk: bytes) -> None:
-        if self._closed or not chunk:
-            return
-        self._rx.append(chunk)
-        self._rx_ready.set()
+        # Bytes already on their way arrive even if the writer closes meanwhile.
+        if not peer._closed and chunk:
+            peer.bytes_read += len(chunk)
+            peer._rx.deliver(chunk)
 
     async def read(self) -> bytes:
         """Return the next chunk delivered: one write, or one piece of a split write."""
-        while not self._rx:
-            if self._closed:
-                raise TransportClosedError(f"{self.name} is closed")
-            peer = self._peer
-            if peer is None or peer._closed:
-                raise TransportClosedError(f"{self.name}: the other end closed")
-            self._rx_ready.clear()
-            await self._rx_ready.wait()
-        data = self._rx.popleft()
-        self.bytes_read += len(data)
-        return data
+        return await self._rx.read()
+
+    def start_receiving(self, on_data: Receiver, on_lost: LostHandler) -> None:
+        self._rx.start(on_data, on_lost)
 
     async def aclose(self) -> None:
         if self._closed:
@@ -134,12 +162,17 @@ class MemoryTransport(Transport):
         for handle in self._timers:
             handle.cancel()
         self._timers.clear()
-        self._rx.clear()
-        self._rx_ready.set()
+        self._stalled = None
+        if self._drained is not None:
+            self._drained.set()
+        self._rx.close()
         peer = self._peer
         if peer is not None and peer is not self:
-            # Wake a reader blocked on the other end: it sees the closed peer.
-            peer._rx_ready.set()
+            # The other end sees the link go — after the bytes already on their way, as
+            # a socket's peer reads what was sent before the close.
+            asyncio.get_running_loop().call_soon(
+                peer._rx.lose, TransportClosedError(f"{peer.name}: the other end closed")
+            )
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

@@ -1,48 +1,69 @@
-"""A serial port as a :class:`Transport`, on pyserial-asyncio-fast.
+"""A serial port as a :class:`Transport`, on pyserial-asyncio-fast's asyncio Protocol API.
 
 pyserial-asyncio-fast drives the port from the event loop's readiness callbacks instead of
-blocking calls, so a 50 Hz control loop is never stalled by the port.
+blocking calls. This transport takes the bytes straight from that callback
+(``data_received``) and hands them to the bus's receiver, with no task and no stream
+buffer in between; writes go to the port at once and wait in its buffer only when the
+device does not take them.
+
+Closing never hangs on a peer that stopped reading: queued bytes get
+``close_timeout_s`` to leave, then they are discarded and the port is closed (its file
+descriptor and its exclusive lock released).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 
 import serial
 import serial_asyncio_fast
 
 from ohmni_tb.errors import TransportClosedError, TransportError
-from ohmni_tb.transport.base import Transport
+from ohmni_tb.protocol.timing import DEFAULT_BAUDRATE
+from ohmni_tb.transport.base import LostHandler, ReceiveBuffer, Receiver, Transport
 
 __all__ = ["DEFAULT_BAUDRATE", "SerialTransport"]
 
 _log = logging.getLogger(__name__)
 
-#: The Ohmni bus runs at 115200 8N1.
-DEFAULT_BAUDRATE = 115_200
-#: Largest chunk taken from the stream reader per read().
-_READ_CHUNK = 4096
-#: How long aclose() waits for the port to flush and close.
+#: How long aclose() lets queued bytes leave, then how long it waits for the port to close.
 _CLOSE_TIMEOUT_S = 1.0
+
+
+class _Protocol(asyncio.Protocol):
+    """Forwards the port's callbacks to the transport that owns it."""
+
+    def __init__(self, owner: SerialTransport) -> None:
+        self._owner = owner
+
+    def data_received(self, data: bytes) -> None:
+        self._owner._rx.deliver(data)
+
+    def pause_writing(self) -> None:
+        self._owner._drained.clear()
+
+    def resume_writing(self) -> None:
+        self._owner._drained.set()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._owner._connection_lost(exc)
 
 
 class SerialTransport(Transport):
     """A serial port. Open it with :meth:`open` (or ``open_transport("/dev/ttyUSB0")``)."""
 
-    def __init__(
-        self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
-        *,
-        port: str,
-        baudrate: int,
-    ) -> None:
-        self._reader = reader
-        self._writer = writer
+    def __init__(self, *, port: str, baudrate: int) -> None:
         self.port = port
         self.baudrate = baudrate
+        self._rx = ReceiveBuffer(f"serial port {port}")
+        self._serial: serial_asyncio_fast.SerialTransport | None = None
         self._closed = False
+        self._gone: asyncio.Future[None] | None = None
+        # Set while the port's write buffer is empty (the protocol's flow control).
+        self._drained = asyncio.Event()
+        self._drained.set()
 
     @classmethod
     async def open(
@@ -66,9 +87,14 @@ class SerialTransport(Transport):
         Raises:
             TransportError: The port cannot be opened; the message names it.
         """
+        transport = cls(port=port, baudrate=baudrate)
+        loop = asyncio.get_running_loop()
+        transport._gone = loop.create_future()
         try:
-            reader, writer = await serial_asyncio_fast.open_serial_connection(
-                url=port,
+            serial_transport, _ = await serial_asyncio_fast.create_serial_connection(
+                loop,
+                lambda: _Protocol(transport),
+                port,
                 baudrate=baudrate,
                 bytesize=serial.EIGHTBITS,
                 parity=serial.PARITY_NONE,
@@ -77,13 +103,15 @@ class SerialTransport(Transport):
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportError(f"cannot open serial port {port!r}: {exc}") from exc
-        transport = cls(reader, writer, port=port, baudrate=baudrate)
+        transport._serial = serial_transport
+        # Told of every byte left waiting (high water 0), so drain() needs no polling.
+        serial_transport.set_write_buffer_limits(high=0, low=0)
         if low_latency:
             transport._try_low_latency()
         return transport
 
     def _try_low_latency(self) -> None:
-        port = self._writer.transport.get_extra_info("serial")
+        port = self._port()
         setter = getattr(port, "set_low_latency_mode", None)
         if setter is None:
             _log.debug("%s: no low-latency mode on this platform", self.port)
@@ -93,44 +121,85 @@ class SerialTransport(Transport):
         except (OSError, ValueError, serial.SerialException) as exc:
             _log.debug("%s: low-latency mode refused: %s", self.port, exc)
 
+    def _port(self) -> serial.Serial | None:
+        if self._serial is None:
+            return None
+        port = self._serial.get_extra_info("serial")
+        return port if isinstance(port, serial.Serial) else None
+
     @property
     def closed(self) -> bool:
         return self._closed
 
-    async def write(self, data: bytes) -> None:
-        if self._closed:
+    @property
+    def backlog(self) -> int:
+        if self._serial is None or self._closed:
+            return 0
+        return self._serial.get_write_buffer_size()
+
+    async def drain(self) -> None:
+        if self.backlog and not self._closed:
+            await self._drained.wait()
+
+    def write_nowait(self, data: bytes) -> None:
+        if self._closed or self._serial is None or self._serial.is_closing():
             raise TransportClosedError(f"serial port {self.port} is closed")
         try:
-            self._writer.write(data)
-            await self._writer.drain()
+            self._serial.write(data)
         except (serial.SerialException, OSError) as exc:
             raise TransportError(f"write to {self.port} failed: {exc}") from exc
 
     async def read(self) -> bytes:
+        return await self._rx.read()
+
+    def start_receiving(self, on_data: Receiver, on_lost: LostHandler) -> None:
+        self._rx.start(on_data, on_lost)
+
+    def _connection_lost(self, exc: Exception | None) -> None:
+        if self._gone is not None and not self._gone.done():
+            self._gone.set_result(None)
+        self._drained.set()
         if self._closed:
-            raise TransportClosedError(f"serial port {self.port} is closed")
-        try:
-            data = await self._reader.read(_READ_CHUNK)
-        except (serial.SerialException, OSError) as exc:
-            # An unplugged adapter fails every read from now on: the link is lost.
-            self._closed = True
-            raise TransportError(f"read from {self.port} failed: {exc}") from exc
-        if not data:
-            self._closed = True
-            raise TransportClosedError(f"serial port {self.port} was closed or unplugged")
-        return data
+            return
+        # Not our own close: the adapter was unplugged or the port failed.
+        self._closed = True
+        reason = f": {exc}" if exc is not None else ""
+        lost = TransportClosedError(f"serial port {self.port} was closed or unplugged{reason}")
+        lost.__cause__ = exc
+        self._rx.lose(lost)
 
     async def aclose(self) -> None:
-        if self._closed and self._writer.is_closing():
+        if self._closed and (self._serial is None or self._serial.is_closing()):
+            await self._wait_gone()
             return
         self._closed = True
-        self._writer.close()
+        self._rx.close()
+        serial_transport = self._serial
+        if serial_transport is None:
+            return
+        if serial_transport.get_write_buffer_size():
+            # Give queued bytes (a final stop) their wire time, no more.
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(_CLOSE_TIMEOUT_S):
+                    await self._drained.wait()
+        port = self._port()
+        if port is not None and serial_transport.get_write_buffer_size():
+            # A peer that does not read would hold a flushing close forever.
+            with contextlib.suppress(OSError, serial.SerialException):
+                port.reset_output_buffer()
+        # abort() closes without the blocking flush of close(); the port is released
+        # once connection_lost has run.
+        serial_transport.abort()
+        await self._wait_gone()
+
+    async def _wait_gone(self) -> None:
+        if self._gone is None or self._gone.done():
+            return
         try:
             async with asyncio.timeout(_CLOSE_TIMEOUT_S):
-                await self._writer.wait_closed()
-        except (TimeoutError, serial.SerialException, OSError) as exc:
-            # The port is going away regardless; a failed flush on close is not news.
-            _log.debug("%s: close did not finish cleanly: %s", self.port, exc)
+                await asyncio.shield(self._gone)
+        except TimeoutError:
+            _log.warning("%s: the port did not close within %.1f s", self.port, _CLOSE_TIMEOUT_S)
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"

@@ -1,0 +1,683 @@
+"""The bus engine under a fixed-rate load, in virtual time: slots, priorities, deadlines,
+pipelining, the breaker, the stop path, reconnection — and never a stale reply.
+
+The device here keeps the wire's timing (each byte 10 bits at the baud rate, a
+turnaround, replies queued behind each other), counts a request that lands on the line
+while a reply is on it, and stamps every read reply with the number of reads it has
+served, so a reply handed to the wrong request shows.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any, TypeVar
+
+import pytest
+
+from ohmni_tb.bus import Bus, BusStats
+from ohmni_tb.errors import (
+    BusClosedError,
+    BusTimeoutError,
+    DeadlineMissedError,
+    DeviceUnavailableError,
+    InvalidArgumentError,
+    StateError,
+    TransportError,
+)
+from ohmni_tb.protocol import (
+    BROADCAST_ID,
+    REPLY_FLAG,
+    Command,
+    Packet,
+    PacketDecoder,
+    encode_packet,
+    read_request,
+)
+from ohmni_tb.protocol.connection import BreakerState
+from ohmni_tb.protocol.drive import read_count, wheel_command
+from ohmni_tb.protocol.timing import transaction_cost_s
+from ohmni_tb.sim.clock import run_virtual
+from ohmni_tb.transport import MemoryTransport, Transport, delay
+
+T = TypeVar("T")
+BAUD = 115_200
+
+
+def virtual(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    return run_virtual(main())
+
+
+class TimedDevice:
+    """Devices answering on the device end of a memory pair, with the wire's timing.
+
+    Reads of ``n`` bytes answer the number of reads served so far: big-endian in ``n``
+    bytes, and for 4-byte reads as two copies of a 2-byte stamp, so a value changed by the
+    checksum's blind bit shows; STAT answers zeros; writes are not answered (policy 1).
+    """
+
+    def __init__(
+        self,
+        end: MemoryTransport,
+        *,
+        sids: set[int] | None = None,
+        turnaround_s: float = 0.0005,
+        baudrate: int = BAUD,
+    ) -> None:
+        self.end = end
+        self.sids = {0, 1, 3, 11, 12, 20} if sids is None else sids
+        self.silent: set[int] = set()
+        self.turnaround_s = turnaround_s
+        self.turnaround_of: dict[int, float] = {}
+        self.byte_s = 10 / baudrate
+        self.served = 0
+        self.duplicate_next = False
+        self.log: list[tuple[float, Packet]] = []
+        self.collisions = 0
+        self._line_free_at = 0.0
+        self._replies: list[tuple[float, float]] = []
+        self._decoder = PacketDecoder()
+        end.start_receiving(self._on_data, lambda exc: None)
+
+    def _on_data(self, data: bytes) -> None:
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        # The request's bytes are on the line from now: they must not meet a reply.
+        start, end = now, now + len(data) * self.byte_s
+        for r_start, r_end in self._replies:
+            if start < r_end - 1e-12 and r_start < end - 1e-12:
+                self.collisions += 1
+        for packet in self._decoder.feed(data):
+            self.log.append((now, packet))
+            self._answer(packet, end, loop)
+
+    def _answer(self, packet: Packet, at: float, loop: asyncio.AbstractEventLoop) -> None:
+        if packet.sid not in self.sids or packet.sid in self.silent:
+            return
+        if packet.cmd in (Command.RAM_READ, Command.EEP_READ):
+            self.served += 1
+            length = packet.data[1] or 6
+            value = self.served.to_bytes(length, "big")
+            if length == 4:
+                value = (self.served % 65536).to_bytes(2, "big") * 2
+            reply = Packet(
+                packet.sid,
+                packet.cmd | REPLY_FLAG,
+                bytes([packet.data[0], length]) + value + b"\0\0",
+            )
+        elif packet.cmd == Command.STAT:
+            reply = Packet(packet.sid, packet.cmd | REPLY_FLAG, b"\0\0")
+        else:
+            return
+        frame = encode_packet(reply)
+        copies = 2 if self.duplicate_next else 1
+        self.duplicate_next = False
+        for _ in range(copies):
+            turnaround = self.turnaround_of.get(packet.sid, self.turnaround_s)
+            start = max(at + turnaround, self._line_free_at)
+            end = start + len(frame) * self.byte_s
+            self._line_free_at = end
+            self._replies.append((start, end))
+            loop.call_at(end, self._send, frame)
+
+    def _send(self, frame: bytes) -> None:
+        if not self.end.closed:
+            self.end.write_nowait(frame)
+
+    def sent(self, sid: int | None = None) -> list[Packet]:
+        return [p for _, p in self.log if sid is None or p.sid == sid]
+
+
+def pair(baudrate: int = BAUD) -> tuple[MemoryTransport, MemoryTransport]:
+    return MemoryTransport.pair("engine", baudrate=baudrate)
+
+
+def breaker(bus: Bus, sid: int) -> BreakerState:
+    """The breaker state now (a call, so a type checker does not pin it across awaits)."""
+    return bus.stats.devices[sid].breaker
+
+
+def connected(bus: Bus) -> bool:
+    return bus.connected
+
+
+def value(reply: Packet | None) -> int:
+    """The stamp in a read reply; -1 for a 4-byte stamp whose two copies disagree."""
+    assert reply is not None
+    data = reply.data[2:-2]
+    if len(data) == 4:
+        return int.from_bytes(data[:2], "big") if data[:2] == data[2:] else -1
+    return int.from_bytes(data, "big")
+
+
+# -- slots, priorities, deadlines ----------------------------------------------------------
+
+
+def test_waiting_slots_go_by_priority_then_arrival() -> None:
+    async def main() -> list[int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            # The first slot takes the line; the rest queue behind it.
+            tasks = [asyncio.ensure_future(bus.transact([read_count(0)]))]
+            await asyncio.sleep(0)
+            for sid, priority in ((1, 0), (3, 5), (20, 1), (11, 5)):
+                tasks.append(
+                    asyncio.ensure_future(
+                        bus.transact([read_request(sid, 48, 2)], priority=priority)
+                    )
+                )
+            await asyncio.gather(*tasks)
+        await end.aclose()
+        return [p.sid for p in device.sent()]
+
+    assert virtual(main) == [0, 3, 11, 20, 1]
+
+
+def test_a_low_priority_slot_is_not_starved() -> None:
+    async def main() -> tuple[float, BusStats]:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host, max_wait_s=0.05) as bus:
+            loop = asyncio.get_running_loop()
+            stop = loop.time() + 0.3
+
+            async def flood(sid: int) -> None:
+                # Always a high-priority slot waiting: the line is never idle.
+                while loop.time() < stop:
+                    await bus.transact([read_request(sid, 48, 20)], priority=10)
+
+            flooders = [asyncio.ensure_future(flood(sid)) for sid in (0, 1, 3)]
+            await asyncio.sleep(0.01)
+            t0 = loop.time()
+            await bus.transact([read_request(20, 0xA0, 18)], priority=0)
+            waited = loop.time() - t0
+            await asyncio.gather(*flooders)
+            stats = bus.stats
+        await end.aclose()
+        return waited, stats
+
+    waited, stats = virtual(main)
+    # Promoted after 50 ms; then at most the slot on the wire and its own transaction.
+    slot_s = transaction_cost_s(read_request(0, 48, 20))
+    assert 0.05 <= waited <= 0.05 + slot_s + transaction_cost_s(read_request(20, 0xA0, 18))
+    assert stats.promoted >= 1
+
+
+def test_a_slot_past_its_deadline_is_dropped_unsent() -> None:
+    async def main() -> tuple[list[Packet], BusStats]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            with pytest.raises(DeadlineMissedError) as info:
+                await bus.transact([read_count(0)], deadline=loop.time() - 0.001)
+            assert info.value.late_s == pytest.approx(0.001)
+            # A length-0 read budgets the largest reply (19 ms at 115200): a slot
+            # behind it that must start within 5 ms cannot.
+            tag = asyncio.ensure_future(bus.transact([read_request(20, 0xF1, 0)]))
+            await asyncio.sleep(0)
+            with pytest.raises(DeadlineMissedError):
+                await bus.transact([read_count(1)], deadline=loop.time() + 0.0001)
+            await tag
+            stats = bus.stats
+        await end.aclose()
+        return device.sent(), stats
+
+    sent, stats = virtual(main)
+    assert sent == [read_request(20, 0xF1, 0)]
+    assert stats.deadline_misses == 2
+
+
+def test_retries_stop_at_the_deadline() -> None:
+    async def main() -> tuple[list[Packet | None], int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        device.silent.add(3)
+        async with Bus(host, retries=5) as bus:
+            loop = asyncio.get_running_loop()
+            replies = await bus.transact(
+                [read_request(3, 48, 2), read_count(0)], deadline=loop.time() + 0.010
+            )
+        await end.aclose()
+        return list(replies), len(device.sent(3))
+
+    replies, attempts = virtual(main)
+    assert replies[0] is None
+    assert value(replies[1]) == 1
+    assert attempts == 1
+
+
+def test_an_atomic_slot_is_never_interleaved() -> None:
+    async def main() -> list[int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            tick = [read_count(0), read_count(1), wheel_command(100, 100)]
+            servos = [read_request(3, 48, 12), read_request(11, 48, 12), read_request(12, 48, 12)]
+            results = await asyncio.gather(
+                *(bus.transact(tick, priority=10) for _ in range(3)),
+                *(bus.transact(servos) for _ in range(3)),
+            )
+            for result in results:
+                assert result[-1] is None or result[-1].is_reply
+        await end.aclose()
+        return [p.sid for p in device.sent()]
+
+    sids = virtual(main)
+    # Each slot's packets are contiguous on the wire.
+    slots = [sids[i : i + 3] for i in range(0, len(sids), 3)]
+    assert slots.count([0, 1, BROADCAST_ID]) == 3
+    assert slots.count([3, 11, 12]) == 3
+
+
+def test_a_slot_refuses_two_lookalike_reads() -> None:
+    async def main() -> None:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus:
+            with pytest.raises(InvalidArgumentError, match="look alike"):
+                await bus.transact([read_count(0), read_count(0)])
+            with pytest.raises(InvalidArgumentError, match="at least one"):
+                await bus.transact([])
+            with pytest.raises(InvalidArgumentError, match="broadcast"):
+                await bus.query(Packet(BROADCAST_ID, Command.RAM_READ, b"\x3b\x04"))
+            assert bus.stats.bytes_out == 0
+        await end.aclose()
+
+    virtual(main)
+
+
+# -- pipelining ---------------------------------------------------------------------------
+
+
+def run_schedule(*, pipelined: bool, usb_latency_s: float) -> tuple[float, int, BusStats]:
+    """30 reads of different registers submitted at once; replies reach the host late."""
+    requests = [read_request(sid, addr, 4) for addr in range(10) for sid in (0, 1, 20)]
+
+    async def main() -> tuple[float, int, BusStats]:
+        host, end = pair()
+        device = TimedDevice(end)
+        if usb_latency_s:
+            end.set_manipulator(delay(usb_latency_s))
+        async with Bus(host, pipelined=pipelined) as bus:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            replies = await asyncio.gather(*(bus.transact([r]) for r in requests))
+            elapsed = loop.time() - t0
+            stats = bus.stats
+        await end.aclose()
+        # Each reply answers its own request, and the device served them in order.
+        assert [r[0].data[0] if r[0] else None for r in replies] == [r.data[0] for r in requests]
+        assert [value(r[0]) for r in replies] == list(range(1, 31))
+        return elapsed, device.collisions, stats
+
+    return virtual(main)
+
+
+def test_pipelined_slots_keep_the_wire_rate_when_replies_are_seen_late() -> None:
+    cost = sum(transaction_cost_s(read_request(sid, 0, 4)) for sid in (0, 1, 20)) * 10
+    fast, collisions, stats = run_schedule(pipelined=True, usb_latency_s=0.016)
+    # On the wire's timing; the adapter's 16 ms shows once, at the end.
+    assert fast <= cost + 0.016 + 0.001
+    assert collisions == 0
+    assert stats.unmatched == 0
+    slow, collisions, _ = run_schedule(pipelined=False, usb_latency_s=0.016)
+    # Request at a time pays the adapter's latency on every transaction.
+    assert slow >= 30 * 0.016
+    assert collisions == 0
+    assert slow / fast > 4
+
+
+# -- never a stale reply ------------------------------------------------------------------
+
+
+def fresh_reads(
+    setup: Callable[[TimedDevice, MemoryTransport, MemoryTransport], None],
+    reads: int,
+    **bus_settings: Any,
+) -> tuple[int, int, BusStats, int]:
+    """Sequential reads of one register: (fresh, timed out, stats, collisions).
+
+    A read is fresh when the reply's stamp was served after the read was called; a stale
+    reply (an earlier request's) fails the test at once. A stamp whose copies disagree
+    (a bit the checksum cannot see was flipped: a limit of the protocol, measured in
+    bench/faults.py) counts as neither.
+    """
+
+    async def main() -> tuple[int, int, BusStats, int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        setup(device, host, end)
+        fresh = timeouts = blind = 0
+        async with Bus(host, **bus_settings) as bus:
+            for _ in range(reads):
+                before = device.served
+                try:
+                    reply = await bus.request(read_count(0))
+                except BusTimeoutError:
+                    timeouts += 1
+                    continue
+                stamp = value(reply)
+                if stamp < 0:
+                    blind += 1
+                    continue
+                assert stamp > before, f"stale reply: stamp {stamp}, {before} served before"
+                fresh += 1
+            assert blind <= reads // 100
+            stats = bus.stats
+        await end.aclose()
+        return fresh, timeouts, stats, device.collisions
+
+    return virtual(main)
+
+
+def test_a_device_slower_than_the_timeout_never_answers_the_next_read() -> None:
+    def slow(device: TimedDevice, host: MemoryTransport, end: MemoryTransport) -> None:
+        device.turnaround_s = 0.030
+
+    fresh, timeouts, stats, _ = fresh_reads(slow, 50, breaker_timeouts=1000)
+    assert fresh == 0
+    assert timeouts == 50
+    assert stats.devices[0].late > 0
+    # Given its own turnaround budget, the same device is read fine.
+    fresh, timeouts, stats, collisions = fresh_reads(slow, 50, turnaround_s=0.035)
+    assert (fresh, timeouts, collisions) == (50, 0, 0)
+
+
+def test_a_duplicate_reply_is_counted_and_never_taken() -> None:
+    def duplicate(device: TimedDevice, host: MemoryTransport, end: MemoryTransport) -> None:
+        device.duplicate_next = True
+
+    fresh, timeouts, stats, _ = fresh_reads(duplicate, 100)
+    assert fresh + timeouts == 100
+    assert fresh >= 99
+    assert stats.unmatched >= 1
+
+
+@pytest.mark.parametrize("direction", ["replies", "requests", "both"])
+def test_a_corrupting_line_never_returns_an_earlier_reply(direction: str) -> None:
+    rng = random.Random(7)
+
+    def corrupt(data: bytes) -> list[bytes | float]:
+        out = bytearray(data)
+        for i in range(len(out)):
+            if rng.random() < 0.005:
+                out[i] ^= 1 << rng.randrange(8)
+        return [bytes(out)]
+
+    def noisy(device: TimedDevice, host: MemoryTransport, end: MemoryTransport) -> None:
+        if direction in ("replies", "both"):
+            end.set_manipulator(corrupt)
+        if direction in ("requests", "both"):
+            host.set_manipulator(corrupt)
+
+    fresh, timeouts, stats, _ = fresh_reads(noisy, 1000, breaker_timeouts=1000)
+    assert fresh + timeouts >= 990
+    assert fresh > 900
+    assert stats.decoder.checksum_errors + stats.decoder.bad_headers + stats.unmatched > 0
+
+
+# -- silent devices -----------------------------------------------------------------------
+
+
+def test_a_silent_device_trips_its_breaker_and_is_probed_until_it_answers() -> None:
+    async def main() -> None:
+        host, end = pair()
+        device = TimedDevice(end)
+        device.silent.add(11)
+        async with Bus(host, breaker_timeouts=3, breaker_quiet_s=0.05) as bus:
+            loop = asyncio.get_running_loop()
+            # One read's three attempts, and 0.1 s of silence: the breaker opens.
+            with pytest.raises(BusTimeoutError) as timed_out:
+                await bus.read(11, 48, 12)
+            assert type(timed_out.value) is BusTimeoutError
+            assert timed_out.value.attempts == 3
+            sent_before = len(device.sent(11))
+            t0 = loop.time()
+            with pytest.raises(DeviceUnavailableError, match="sid 11") as info:
+                await bus.read(11, 48, 12)
+            assert loop.time() == t0  # refused at once, nothing sent
+            assert len(device.sent(11)) == sent_before
+            assert info.value.retry_in_s == pytest.approx(1.0, abs=0.05)
+            assert breaker(bus, 11) is BreakerState.OPEN
+            # The other devices go on as before.
+            assert value(await bus.request(read_count(0))) >= 1
+            # It comes back; the next probe, a second after the breaker opened, closes it.
+            device.silent.discard(11)
+            await asyncio.sleep(info.value.retry_in_s)
+            assert (await bus.read(11, 48, 12)).length == 12
+            assert breaker(bus, 11) is BreakerState.CLOSED
+            assert bus.stats.refused == 1
+        await end.aclose()
+
+    virtual(main)
+
+
+def test_a_silent_device_costs_the_wheel_slot_nothing() -> None:
+    """Wheel slots at 50 Hz keep their rate while two servos read at 30 Hz are silent."""
+
+    async def main() -> tuple[int, int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        device.silent.update({11, 12})
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            ticks = 0
+
+            async def wheels() -> None:
+                nonlocal ticks
+                for k in range(100):
+                    due = t0 + k * 0.02
+                    await asyncio.sleep(max(0.0, due - loop.time()))
+                    replies = await bus.transact(
+                        [read_count(0), read_count(1), wheel_command(0, 0)],
+                        priority=10,
+                        deadline=due + 0.005,
+                    )
+                    if replies[0] is not None and replies[1] is not None:
+                        ticks += 1
+
+            async def servo(sid: int) -> None:
+                for k in range(60):
+                    await asyncio.sleep(max(0.0, t0 + k / 30 - loop.time()))
+                    with contextlib.suppress(BusTimeoutError, DeadlineMissedError):
+                        await bus.read(sid, 48, 12)
+
+            await asyncio.gather(wheels(), servo(3), servo(11), servo(12))
+        await end.aclose()
+        return ticks, device.collisions
+
+    ticks, collisions = virtual(main)
+    assert ticks == 100
+    assert collisions == 0
+
+
+# -- the stop path ------------------------------------------------------------------------
+
+
+def test_send_now_jumps_the_queue() -> None:
+    async def main() -> list[Packet]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            reads = [
+                asyncio.ensure_future(bus.transact([read_request(sid, 48, 12)]))
+                for sid in (0, 1, 3, 11, 12)
+            ]
+            await asyncio.sleep(0)
+            await bus.send_now(wheel_command(0, 0))
+            await asyncio.gather(*reads)
+        await end.aclose()
+        return device.sent()
+
+    sent = virtual(main)
+    # Only the read already on the wire went before the stop.
+    assert [p.sid for p in sent] == [0, BROADCAST_ID, 1, 3, 11, 12]
+
+
+def test_the_final_stop_goes_out_while_the_bus_closes_even_when_cancelled() -> None:
+    async def main() -> tuple[list[Packet], list[BaseException]]:
+        host, end = pair()
+        device = TimedDevice(end)
+        bus = Bus(host)
+        bus.start()
+        reads = [
+            asyncio.ensure_future(bus.transact([read_request(sid, 48, 12)]))
+            for sid in (0, 1, 3, 11)
+        ]
+        await asyncio.sleep(0)
+        closing = asyncio.ensure_future(bus.aclose(final=[wheel_command(0, 0)]))
+        await asyncio.sleep(0)
+        closing.cancel()  # the closer is cancelled before the line is free
+        with pytest.raises(asyncio.CancelledError):
+            await closing
+        results = await asyncio.gather(*reads, return_exceptions=True)
+        await asyncio.sleep(0.001)
+        await end.aclose()
+        assert bus.closed
+        assert host.closed
+        return device.sent(), [r for r in results if isinstance(r, BaseException)]
+
+    sent, errors = virtual(main)
+    assert sent == [read_request(0, 48, 12), wheel_command(0, 0)]
+    assert len(errors) == 4
+    assert all(isinstance(e, BusClosedError) for e in errors)
+
+
+def test_a_cancelled_read_at_9600_baud_keeps_its_whole_reply_window() -> None:
+    """A 20 ms device at 9600 baud: the next request must wait for the late reply's end."""
+
+    async def main() -> tuple[int, BusStats, list[tuple[float, Packet]]]:
+        host, end = pair(9600)
+        device = TimedDevice(end, baudrate=9600)
+        device.turnaround_of[3] = 0.020
+        async with Bus(host) as bus:
+            bus.set_turnaround(3, 0.025)
+            slow = asyncio.ensure_future(bus.read(3, 48, 12))
+            await asyncio.sleep(0.001)
+            slow.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await slow
+            reply = await bus.request(read_count(0))
+            await asyncio.sleep(0.1)
+            stats = bus.stats
+        await end.aclose()
+        assert value(reply) == 2
+        return device.collisions, stats, device.log
+
+    collisions, stats, log = virtual(main)
+    assert collisions == 0
+    assert stats.abandoned == 1
+    (t_slow, _), (t_next, _) = log
+    reply_end = t_slow + 9 * 10 / 9600 + 0.020 + 23 * 10 / 9600
+    assert t_next >= reply_end
+
+
+# -- the link -----------------------------------------------------------------------------
+
+
+def test_a_lost_link_is_reported_and_reconnect_reopens_it() -> None:
+    async def main() -> BusStats:
+        ends: list[MemoryTransport] = []
+        devices: list[TimedDevice] = []
+        failures = [2]
+
+        async def reopen() -> Transport:
+            if failures[0]:
+                failures[0] -= 1
+                raise TransportError("no such port (still plugging in)")
+            host, end = pair()
+            ends.append(end)
+            devices.append(TimedDevice(end))
+            devices[-1].served = devices[0].served
+            return host
+
+        first = await reopen_first(reopen, ends, devices)
+        bus = Bus(first, reopen=reopen)
+        async with bus:
+            assert value(await bus.request(read_count(0))) == 1
+            pending = asyncio.ensure_future(bus.read(3, 48, 2))
+            await asyncio.sleep(0)
+            await ends[0].aclose()  # the cable is pulled
+            lost = await bus.wait_lost()
+            assert "closed" in str(lost)
+            with pytest.raises(TransportError, match="lost"):
+                await pending
+            assert not connected(bus)
+            with pytest.raises(TransportError, match="reconnect"):
+                await bus.request(read_count(0))
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            await bus.reconnect(backoff_s=0.1)
+            assert loop.time() - t0 == pytest.approx(0.3)  # two failures: 0.1 s, 0.2 s
+            assert connected(bus)
+            assert value(await bus.request(read_count(0))) == 2
+            stats = bus.stats
+        for end in ends:
+            await end.aclose()
+        return stats
+
+    stats = virtual(main)
+    assert (stats.link_losses, stats.reconnects) == (1, 1)
+    assert stats.devices[0].replies == 2
+
+
+async def reopen_first(
+    reopen: Callable[[], Awaitable[Transport]],
+    ends: list[MemoryTransport],
+    devices: list[TimedDevice],
+) -> Transport:
+    host, end = pair()
+    ends.append(end)
+    devices.append(TimedDevice(end))
+    return host
+
+
+def test_reconnect_needs_a_way_to_reopen() -> None:
+    async def main() -> None:
+        host, end = pair()
+        async with Bus(host) as bus:
+            with pytest.raises(StateError, match="reopen"):
+                await bus.reconnect()
+        await end.aclose()
+
+    virtual(main)
+
+
+def test_a_port_that_stops_taking_bytes_fails_the_link_instead_of_hanging() -> None:
+    async def main() -> None:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host, stall_s=0.2) as bus:
+            host.set_stalled(True)
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            with pytest.raises(TransportError, match="not sent"):
+                await bus.request(read_count(0))
+            with pytest.raises(TransportError):
+                await bus.request(read_count(1))
+            assert loop.time() - t0 == pytest.approx(0.2, abs=0.01)
+        await end.aclose()
+
+    virtual(main)
+
+
+def test_a_length_zero_read_at_1200_baud_is_answered_not_unmatched() -> None:
+    async def main() -> BusStats:
+        host, end = pair(1200)
+        TimedDevice(end, baudrate=1200)
+        async with Bus(host) as bus:
+            for _ in range(3):
+                reply = await bus.read(20, 0xF1, 0)
+                assert reply.length == 6
+            stats = bus.stats
+        await end.aclose()
+        return stats
+
+    stats = virtual(main)
+    assert stats.unmatched == 0
+    assert stats.devices[20].timeouts == 0

@@ -1,0 +1,569 @@
+"""The sans-IO bus engine: wire timing, in-order matching, holds, breaker — no event loop.
+
+Every test drives :class:`BusConnection` with explicit times, the way the async shell
+does, and feeds the replies whole, in halves, or a byte at a time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TypeVar
+
+import pytest
+
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
+from ohmni_tb.protocol import (
+    BROADCAST_ID,
+    REPLY_FLAG,
+    Command,
+    Packet,
+    encode_packet,
+    read_request,
+    write_request,
+)
+from ohmni_tb.protocol.connection import (
+    BreakerState,
+    BusConnection,
+    Event,
+    MissingReason,
+    ReplyMatcher,
+    ReplyMissing,
+    ReplyPacket,
+    ReplyReceived,
+    StrayKind,
+    StrayPacket,
+)
+from ohmni_tb.protocol.drive import read_count, wheel_command
+from ohmni_tb.protocol.timing import (
+    DEFAULT_GUARD_S,
+    DEFAULT_TURNAROUND_S,
+    reply_size_range,
+    transaction_cost_s,
+    wire_time_s,
+)
+
+BAUD = 115_200
+BYTE_S = 10 / BAUD
+GUARD = DEFAULT_GUARD_S
+TURN = DEFAULT_TURNAROUND_S
+TIMEOUT = 0.025
+
+
+def conn(**kwargs: object) -> BusConnection:
+    settings: dict[str, object] = {"baudrate": BAUD, "timeout_s": TIMEOUT}
+    settings.update(kwargs)
+    return BusConnection(**settings)  # type: ignore[arg-type]  # test settings, checked at run time
+
+
+def read_reply(sid: int, addr: int, value: bytes) -> Packet:
+    return Packet(sid, Command.RAM_READ | REPLY_FLAG, bytes([addr, len(value)]) + value + b"\0\0")
+
+
+def count_reply(sid: int, count: int) -> Packet:
+    return read_reply(sid, 59, count.to_bytes(4, "little", signed=True))
+
+
+Feeder = Callable[[BusConnection, bytes, float], list[Event]]
+
+
+def whole(c: BusConnection, data: bytes, now: float) -> list[Event]:
+    return c.receive_data(data, now)
+
+
+def halves(c: BusConnection, data: bytes, now: float) -> list[Event]:
+    mid = len(data) // 2
+    return c.receive_data(data[:mid], now) + c.receive_data(data[mid:], now)
+
+
+def bytewise(c: BusConnection, data: bytes, now: float) -> list[Event]:
+    events: list[Event] = []
+    for i in range(len(data)):
+        events += c.receive_data(data[i : i + 1], now)
+    return events
+
+
+FEEDERS = pytest.mark.parametrize(
+    "feed", [whole, halves, bytewise], ids=["whole", "halves", "bytes"]
+)
+
+
+E = TypeVar("E", ReplyReceived, ReplyMissing, StrayPacket)
+
+
+def only(events: list[Event], kind: type[E]) -> list[E]:
+    return [e for e in events if isinstance(e, kind)]
+
+
+# -- the cost model ------------------------------------------------------------------------
+
+
+def test_cost_model_adds_request_turnaround_reply_and_guard() -> None:
+    # A wheel-count read: 9-byte request, 15-byte reply.
+    expected = 24 * BYTE_S + TURN + GUARD
+    assert transaction_cost_s(read_count(0)) == pytest.approx(expected, abs=1e-12)
+    assert wire_time_s(24) == pytest.approx(24 * BYTE_S)
+    # The wheel command is a broadcast: no reply, no turnaround.
+    assert transaction_cost_s(wheel_command(0, 0)) == pytest.approx(
+        wheel_command(0, 0).size * BYTE_S + GUARD
+    )
+    # A write is answered only under ACK policy 2.
+    write = write_request(3, 52, b"\x60")
+    assert transaction_cost_s(write) == pytest.approx(write.size * BYTE_S + GUARD)
+    assert transaction_cost_s(write, ack_policy=2) == pytest.approx(
+        (write.size + 9) * BYTE_S + TURN + GUARD
+    )
+    # At 9600 baud the same read takes twelve times the wire time.
+    slow = transaction_cost_s(read_count(0), baudrate=9600, turnaround_s=0.0, guard_s=0.0)
+    assert slow == pytest.approx(24 * 10 / 9600)
+
+
+def test_a_length_zero_read_budgets_the_largest_reply() -> None:
+    tag = read_request(20, 0xF1, 0)
+    assert reply_size_range(tag, max_packet_size=64) == (11, 64)
+    assert transaction_cost_s(tag, max_packet_size=64) == pytest.approx(
+        (9 + 64) * BYTE_S + TURN + GUARD
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"baudrate": 0}, "baudrate"),
+        ({"turnaround_s": -1e-3}, "turnaround_s"),
+        ({"guard_s": math.nan}, "guard_s"),
+        ({"turnaround_s": math.inf}, "turnaround_s"),
+    ],
+)
+def test_cost_model_refuses_bad_settings(kwargs: dict[str, float], name: str) -> None:
+    with pytest.raises(OutOfRangeError) as info:
+        transaction_cost_s(read_count(0), **kwargs)  # type: ignore[arg-type]  # checked at run time
+    assert info.value.name == name
+
+
+# -- wire timing ---------------------------------------------------------------------------
+
+
+@FEEDERS
+def test_a_read_holds_the_line_for_its_budget_and_delivers_its_times(feed: Feeder) -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 1.0)
+    assert exchange.frame == encode_packet(read_count(0))
+    window_end = 1.0 + 24 * BYTE_S + TURN
+    assert c.free_at == pytest.approx(window_end + GUARD)
+    assert exchange.expires_at == pytest.approx(window_end + TIMEOUT)
+    # The device answers after 0.5 ms; its reply is complete 0.5 ms + 24 bytes later.
+    arrive = 1.0 + 24 * BYTE_S + 0.0005
+    events = feed(c, encode_packet(count_reply(0, 1234)), arrive)
+    [received] = only(events, ReplyReceived)
+    assert isinstance(received, ReplyReceived)
+    assert received.exchange is exchange
+    assert received.reply == count_reply(0, 1234)
+    assert isinstance(received.reply, ReplyPacket)
+    assert (received.reply.sent_at, received.reply.received_at) == (1.0, arrive)
+    # Seen, and nothing sent after it: the line is free a guard later, before the budget.
+    assert c.free_at == pytest.approx(arrive + GUARD)
+    stats = c.stats(arrive)
+    assert (stats.devices[0].requests, stats.devices[0].replies) == (1, 1)
+    assert stats.devices[0].latency_p50_s == pytest.approx(arrive - 1.0)
+    assert stats.wire_busy_s == pytest.approx(24 * BYTE_S)
+
+
+def test_the_line_is_refused_before_it_is_free() -> None:
+    c = conn()
+    c.send(read_count(0), 0.0)
+    with pytest.raises(StateError, match="busy"):
+        c.send(read_count(1), c.free_at - 1e-4)
+    c.send(read_count(1), c.free_at)
+
+
+def test_a_broadcast_holds_the_line_for_its_own_bytes_only() -> None:
+    c = conn()
+    packet = wheel_command(100, 100)
+    exchange = c.send(packet, 0.0)
+    assert not exchange.expect_reply
+    assert exchange.done
+    assert c.free_at == pytest.approx(packet.size * BYTE_S + GUARD)
+    assert c.next_deadline() is None
+    with pytest.raises(InvalidArgumentError, match="broadcast"):
+        c.send(Packet(BROADCAST_ID, Command.STAT), c.free_at)
+
+
+def test_pipelined_replies_seen_late_are_matched_in_order() -> None:
+    # A USB adapter holds the replies and hands them over together, 16 ms later: the
+    # requests still went at the wire's pace.
+    c = conn()
+    sent = []
+    t = 0.0
+    for sid in (0, 1, 20):
+        request = read_count(sid) if sid < 2 else read_request(20, 0xA0, 18)
+        sent.append(c.send(request, t))
+        t = c.free_at
+    assert t < 0.012  # three transactions, each a few ms on the wire
+    burst = (
+        encode_packet(count_reply(0, 10))
+        + encode_packet(count_reply(1, -10))
+        + encode_packet(read_reply(20, 0xA0, bytes(18)))
+    )
+    events = c.receive_data(burst, 0.016)
+    received = only(events, ReplyReceived)
+    assert [e.exchange for e in received] == sent
+    assert c.outstanding == 0
+
+
+def test_unpipelined_waits_for_each_reply() -> None:
+    c = conn(pipelined=False)
+    c.send(read_count(0), 0.0)
+    assert c.free_at == math.inf
+    c.receive_data(encode_packet(count_reply(0, 1)), 0.004)
+    assert c.free_at == pytest.approx(0.004 + GUARD)
+
+
+def test_a_link_without_a_baud_rate_is_not_pipelined() -> None:
+    c = BusConnection(baudrate=None)
+    exchange = c.send(read_count(0), 0.0)
+    assert c.free_at == math.inf
+    # No wire time to add: the turnaround budget and the timeout.
+    assert exchange.expires_at == pytest.approx(c.turnaround_s + c.timeout_s)
+
+
+# -- which reply answers which request -----------------------------------------------------
+
+
+def test_a_reply_before_its_request_could_be_answered_is_early_not_taken() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 1.0)
+    # The same bytes, arriving 1 ms after the request went: its own 9 bytes and a 15-byte
+    # reply need 2.1 ms, so this is another request's reply that merely looks the same.
+    events = c.receive_data(encode_packet(count_reply(0, 7)), 1.001)
+    [stray] = only(events, StrayPacket)
+    assert isinstance(stray, StrayPacket)
+    assert stray.kind is StrayKind.EARLY
+    assert not only(events, ReplyReceived)
+    assert not exchange.done
+    stats = c.stats(1.001).devices[0]
+    assert (stats.early, stats.unmatched, stats.replies) == (1, 1, 0)
+
+
+def test_a_later_reply_means_the_earlier_ones_are_missing() -> None:
+    c = conn()
+    first = c.send(read_count(0), 0.0)
+    second = c.send(read_count(1), c.free_at)
+    events = c.receive_data(encode_packet(count_reply(1, 5)), 0.01)
+    missing = only(events, ReplyMissing)
+    assert [(e.exchange, e.reason) for e in missing] == [(first, MissingReason.OVERTAKEN)]
+    assert [e.exchange for e in only(events, ReplyReceived)] == [second]
+    assert c.stats(0.01).devices[0].timeouts == 1
+
+
+def test_an_identical_request_waits_while_one_is_outstanding() -> None:
+    c = conn()
+    c.send(read_count(0), 0.0)
+    assert c.blocked_until(read_count(0), c.free_at) == math.inf
+    with pytest.raises(StateError, match="identical"):
+        c.send(read_count(0), c.free_at)
+    # Another register of the same device is not alike.
+    assert c.blocked_until(read_request(0, 58, 2), c.free_at) == -math.inf
+
+
+def test_after_a_timeout_an_identical_request_is_held_and_a_late_reply_is_counted() -> None:
+    c = conn()
+    first = c.send(read_count(0), 0.0)
+    assert c.poll(first.expires_at - 1e-6) == []
+    [missing] = c.poll(first.expires_at)
+    assert isinstance(missing, ReplyMissing)
+    assert missing.reason is MissingReason.TIMEOUT
+    hold_until = c.blocked_until(read_count(0), first.expires_at)
+    assert hold_until == pytest.approx(first.expires_at + first.expires_at - first.wire_end_s)
+    # The slow device answers at last: recognised as late, and it may have more queued,
+    # so the hold runs one window from this reply.
+    late_at = first.expires_at + 0.005
+    [stray] = c.receive_data(encode_packet(count_reply(0, 1)), late_at)
+    assert isinstance(stray, StrayPacket)
+    assert stray.kind is StrayKind.LATE
+    window = TURN + 15 * BYTE_S + GUARD + TIMEOUT
+    until = c.blocked_until(read_count(0), late_at)
+    assert until == pytest.approx(max(hold_until, late_at + window))
+    second = c.send(read_count(0), until)
+    # The next reply belongs to the second request: held one reply slot, then delivered.
+    arrive = second.reply_earliest_s
+    assert c.receive_data(encode_packet(count_reply(0, 2)), arrive) == []
+    deadline = c.next_deadline()
+    assert deadline is not None
+    [received] = c.poll(deadline)
+    assert isinstance(received, ReplyReceived)
+    assert received.exchange is second
+    stats = c.stats(late_at).devices[0]
+    assert (stats.late, stats.timeouts, stats.replies) == (1, 1, 1)
+
+
+def test_a_reply_to_nothing_is_counted_unmatched() -> None:
+    c = conn()
+    [stray] = c.receive_data(encode_packet(count_reply(1, 1)), 0.0)
+    assert isinstance(stray, StrayPacket)
+    assert stray.kind is StrayKind.UNMATCHED
+    assert c.stats(0.0).unmatched == 1
+    assert c.stats(0.0).devices[1].unmatched == 1
+
+
+def test_an_abandoned_request_still_holds_the_line_and_its_reply_is_counted() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 0.0)
+    c.abandon(exchange)
+    assert c.free_at > 0.003
+    [stray] = c.receive_data(encode_packet(count_reply(0, 1)), 0.003)
+    assert isinstance(stray, StrayPacket)
+    assert stray.kind is StrayKind.ABANDONED
+    assert c.stats(0.003).abandoned == 1
+    assert c.stats(0.003).unmatched == 0
+
+
+def test_echoes_and_foreign_requests_are_told_apart() -> None:
+    c = conn()
+    c.send(read_count(0), 0.0)
+    [echo] = c.receive_data(encode_packet(read_count(0)), 0.001)
+    assert isinstance(echo, StrayPacket)
+    assert echo.kind is StrayKind.ECHO
+    free_before = c.free_at
+    [foreign] = c.receive_data(encode_packet(read_request(20, 0xA0, 18)), 0.002)
+    assert isinstance(foreign, StrayPacket)
+    assert foreign.kind is StrayKind.FOREIGN_REQUEST
+    # Another master's request will be answered: keep off the line for its reply.
+    assert c.free_at >= 0.002 + (7 + 4 + 18) * BYTE_S
+    assert c.free_at >= free_before
+    stats = c.stats(0.002)
+    assert (stats.echoes, stats.foreign_requests) == (1, 1)
+
+
+def test_a_half_frame_is_given_up_after_a_quiet_timeout() -> None:
+    c = conn()
+    frame = encode_packet(count_reply(0, 1))
+    assert c.receive_data(frame[:-3], 0.0) == []
+    assert c.next_deadline() == pytest.approx(TIMEOUT)
+    assert c.poll(TIMEOUT - 1e-6) == []
+    c.poll(TIMEOUT)
+    assert c.stats(TIMEOUT).decoder.expired == 1
+    assert c.stats(TIMEOUT).decoder.bytes_pending == 0
+
+
+# -- breaker ------------------------------------------------------------------------------
+
+
+def silence(c: BusConnection, sid: int, t: float, times: int) -> float:
+    """Send ``times`` reads to a silent ``sid``, each timing out; return the time after."""
+    for _ in range(times):
+        t = max(t, c.free_at, c.blocked_until(read_request(sid, 48, 12), t))
+        exchange = c.send(read_request(sid, 48, 12), t)
+        t = exchange.expires_at
+        c.poll(t)
+    return t
+
+
+def test_breaker_opens_after_silence_probes_and_closes_on_a_reply() -> None:
+    c = conn(breaker_timeouts=3, breaker_quiet_s=0.05, probe_interval_s=1.0)
+    t = silence(c, 11, 0.0, 3)
+    assert t >= 0.05
+    assert c.stats(t).devices[11].breaker is BreakerState.OPEN
+    retry_in = c.refusal(11, t)
+    assert retry_in == pytest.approx(1.0)
+    # Other devices are not affected.
+    assert c.refusal(3, t) is None
+    # The probe is due a second later; while it is out, the rest are refused.
+    t += 1.0
+    assert c.refusal(11, t) is None
+    probe = c.send(read_request(11, 48, 12), t)
+    assert c.stats(t).devices[11].breaker is BreakerState.PROBING
+    assert c.refusal(11, t + 0.001) is not None
+    # It answers (after its silence the reply is held one reply slot): closed again.
+    c.receive_data(encode_packet(read_reply(11, 48, bytes(12))), probe.wire_end_s + 0.003)
+    deadline = c.next_deadline()
+    assert deadline is not None
+    c.poll(deadline)
+    assert c.stats(t).devices[11].breaker is BreakerState.CLOSED
+    assert c.refusal(11, t + 0.01) is None
+
+
+def test_breaker_needs_silence_as_well_as_timeouts() -> None:
+    c = conn(breaker_timeouts=3, breaker_quiet_s=10.0)
+    exchange = c.send(read_request(0, 48, 12), 0.0)
+    c.receive_data(encode_packet(read_reply(0, 48, bytes(12))), exchange.reply_earliest_s)
+    t = silence(c, 0, exchange.reply_earliest_s, 5)
+    # Five misses in a row, but it answered less than 10 s ago: a noisy line, not a
+    # dead board.
+    assert c.stats(t).devices[0].breaker is BreakerState.CLOSED
+
+
+def test_a_failed_probe_reopens_the_breaker() -> None:
+    c = conn(breaker_timeouts=1, breaker_quiet_s=0.0, probe_interval_s=0.5)
+    t = silence(c, 12, 0.0, 1)
+    assert c.stats(t).devices[12].breaker is BreakerState.OPEN
+    probe_at = t + 0.5
+    t = silence(c, 12, probe_at, 1)
+    assert c.stats(t).devices[12].breaker is BreakerState.OPEN
+    # The next probe is due an interval after the failed one went.
+    assert c.refusal(12, t) == pytest.approx(probe_at + 0.5 - t)
+
+
+# -- settings and odds ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"baudrate": 0}, "baudrate"),
+        ({"timeout_s": 0.0}, "timeout_s"),
+        ({"guard_s": -1.0}, "guard_s"),
+        ({"turnaround_s": math.nan}, "turnaround_s"),
+        ({"breaker_timeouts": 0}, "breaker_timeouts"),
+        ({"probe_interval_s": 0.0}, "probe_interval_s"),
+    ],
+)
+def test_settings_are_checked(kwargs: dict[str, object], name: str) -> None:
+    with pytest.raises(OutOfRangeError) as info:
+        conn(**kwargs)
+    assert info.value.name == name
+
+
+def test_per_device_turnaround_widens_only_its_window() -> None:
+    c = conn()
+    c.set_turnaround(3, 0.030)
+    assert c.turnaround(3) == 0.030
+    assert c.turnaround(0) == TURN
+    slow = c.send(read_request(3, 48, 2), 0.0)
+    assert slow.window_end_s == pytest.approx(slow.wire_end_s + 0.030 + 13 * BYTE_S)
+    c.set_turnaround(3, None)
+    assert c.turnaround(3) == TURN
+    with pytest.raises(OutOfRangeError, match="turnaround_s"):
+        c.set_turnaround(3, 2.0)
+
+
+def test_frames_of_repeated_requests_are_encoded_once() -> None:
+    c = conn()
+    assert c.frame(read_count(0)) is c.frame(read_count(0))
+    with pytest.raises(OutOfRangeError, match="size"):
+        BusConnection(max_packet_size=64).frame(Packet(3, Command.RAM_WRITE, bytes(58)))
+
+
+def test_link_lost_makes_every_outstanding_request_missing() -> None:
+    c = conn()
+    a = c.send(read_count(0), 0.0)
+    b = c.send(read_count(1), c.free_at)
+    events = c.link_lost(0.004)
+    assert len(events) == 2
+    assert [(e.exchange, e.reason) for e in only(events, ReplyMissing)] == [
+        (a, MissingReason.LINK_LOST),
+        (b, MissingReason.LINK_LOST),
+    ]
+    assert c.outstanding == 0
+    assert c.free_at == 0.004
+
+
+def test_reply_packet_compares_as_its_packet() -> None:
+    reply = ReplyPacket(0, 0x44, b"\x3b\x04", sent_at=1.0, received_at=2.0)
+    plain = Packet(0, 0x44, b"\x3b\x04")
+    assert reply == plain
+    assert plain == reply
+    assert hash(reply) == hash(plain)
+
+
+def test_reply_matcher_pairs_in_order_and_stays_bounded() -> None:
+    matcher: ReplyMatcher[str] = ReplyMatcher(limit=2)
+    assert matcher.add(read_count(0), "a") == []
+    assert matcher.add(read_count(1), "b") == []
+    assert matcher.add(read_request(20, 0xA0, 18), "c") == ["a"]
+    item, overtaken = matcher.match(count_reply(0, 1))
+    assert (item, overtaken) == (None, [])
+    item, overtaken = matcher.match(read_reply(20, 0xA0, bytes(18)))
+    assert (item, overtaken) == ("c", ["b"])
+    assert len(matcher) == 0
+
+
+# -- after trouble: confirm before delivering ----------------------------------------------
+
+
+def troubled(c: BusConnection) -> float:
+    """Make the left wheel count's look suspect (one read goes missing); return the time."""
+    first = c.send(read_count(0), 0.0)
+    c.poll(first.expires_at)
+    return c.blocked_until(read_count(0), first.expires_at)
+
+
+def test_a_healthy_key_is_delivered_at_once() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 0.0)
+    [received] = c.receive_data(encode_packet(count_reply(0, 1)), exchange.reply_earliest_s)
+    assert isinstance(received, ReplyReceived)
+
+
+def test_after_trouble_a_reply_is_delivered_once_no_twin_follows() -> None:
+    c = conn()
+    t = troubled(c)
+    exchange = c.send(read_count(0), t)
+    arrive = exchange.reply_earliest_s + 0.0005
+    assert c.receive_data(encode_packet(count_reply(0, 2)), arrive) == []
+    confirm_at = c.next_deadline()
+    assert confirm_at is not None
+    assert confirm_at == pytest.approx(arrive + TURN + 15 * BYTE_S + GUARD)
+    [received] = c.poll(confirm_at)
+    assert isinstance(received, ReplyReceived)
+    assert received.reply.received_at == arrive
+    # Confirmed: the next read of it is delivered at once again.
+    again = c.send(read_count(0), c.free_at)
+    [now] = c.receive_data(encode_packet(count_reply(0, 3)), again.reply_earliest_s)
+    assert isinstance(now, ReplyReceived)
+
+
+def test_a_burst_of_lookalike_replies_is_ambiguous_not_guessed() -> None:
+    # A device that swallowed earlier requests behind a corrupted size byte answers them
+    # all when the newest completes the frame: the first of the burst comes exactly when
+    # the newest's own reply would.
+    c = conn()
+    t = troubled(c)
+    exchange = c.send(read_count(0), t)
+    arrive = exchange.reply_earliest_s
+    events = c.receive_data(encode_packet(count_reply(0, 2)), arrive)
+    events += c.receive_data(encode_packet(count_reply(0, 3)), arrive + 15 * BYTE_S)
+    assert not only(events, ReplyReceived)
+    [missing] = only(events, ReplyMissing)
+    assert (missing.exchange, missing.reason) == (exchange, MissingReason.AMBIGUOUS)
+    assert [e.kind for e in only(events, StrayPacket)] == [StrayKind.TWIN]
+    # More of the burst extends the hold on an identical request.
+    later = arrive + 2 * 15 * BYTE_S
+    c.receive_data(encode_packet(count_reply(0, 4)), later)
+    assert c.blocked_until(read_count(0), later) > later + TIMEOUT
+    assert c.stats(later).ambiguous == 1
+
+
+def test_junk_in_the_confirm_window_makes_the_held_reply_ambiguous() -> None:
+    c = conn()
+    t = troubled(c)
+    exchange = c.send(read_count(0), t)
+    arrive = exchange.reply_earliest_s
+    assert c.receive_data(encode_packet(count_reply(0, 2)), arrive) == []
+    # A twin whose command byte was hit by the checksum's blind bit: the decoder drops it.
+    twin = bytearray(encode_packet(count_reply(0, 3)))
+    twin[4] ^= 0x04
+    [missing] = c.receive_data(bytes(twin), arrive + 0.001)
+    assert isinstance(missing, ReplyMissing)
+    assert missing.reason is MissingReason.AMBIGUOUS
+
+
+def test_a_lookalike_before_any_reply_could_come_taints_the_request() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 0.0)
+    [early] = c.receive_data(encode_packet(count_reply(0, 1)), 0.001)
+    assert isinstance(early, StrayPacket)
+    events = c.receive_data(encode_packet(count_reply(0, 2)), exchange.reply_earliest_s)
+    [missing] = only(events, ReplyMissing)
+    assert missing.reason is MissingReason.AMBIGUOUS
+    assert not only(events, ReplyReceived)
+
+
+def test_a_later_requests_reply_confirms_a_held_one() -> None:
+    c = conn()
+    t = troubled(c)
+    first = c.send(read_count(0), t)
+    assert c.receive_data(encode_packet(count_reply(0, 2)), first.reply_earliest_s) == []
+    second = c.send(read_count(1), c.free_at)
+    events = c.receive_data(encode_packet(count_reply(1, 9)), second.reply_earliest_s)
+    assert [e.exchange for e in only(events, ReplyReceived)] == [first, second]
