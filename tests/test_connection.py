@@ -567,3 +567,19 @@ def test_a_later_requests_reply_confirms_a_held_one() -> None:
     second = c.send(read_count(1), c.free_at)
     events = c.receive_data(encode_packet(count_reply(1, 9)), second.reply_earliest_s)
     assert [e.exchange for e in only(events, ReplyReceived)] == [first, second]
+
+
+def test_a_write_that_returned_late_moves_the_window_not_the_earliest_reply() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), 1.0)
+    earliest, window, free = exchange.reply_earliest_s, exchange.window_end_s, c.free_at
+    # The process was descheduled inside the write: it returned 2 ms later.
+    c.written(exchange, 1.002)
+    assert exchange.reply_earliest_s == earliest  # a reply can still come that early
+    assert exchange.window_end_s == pytest.approx(window + 0.002)
+    assert c.free_at == pytest.approx(free + 0.002)
+    # A write that returned at once changes nothing.
+    other = c.send(read_count(1), c.free_at)
+    before = (other.window_end_s, c.free_at)
+    c.written(other, other.sent_at)
+    assert (other.window_end_s, c.free_at) == before

@@ -444,3 +444,38 @@ async def test_real_port_opens(ohmni_port: str) -> None:
     async with await open_transport(ohmni_port) as transport:
         assert isinstance(transport, SerialTransport)
         assert transport.baudrate == DEFAULT_BAUDRATE
+
+
+async def test_serial_reports_a_hung_up_pty_by_name_and_keeps_a_quiet_one() -> None:
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    os.close(slave)
+    transport = await SerialTransport.open(path)
+    lost: list[TransportError] = []
+    got: list[bytes] = []
+    gone = asyncio.Event()
+
+    def on_lost(exc: TransportError) -> None:
+        lost.append(exc)
+        gone.set()
+
+    transport.start_receiving(got.append, on_lost)
+    try:
+        os.write(master, b"\x01\x02")
+        await asyncio.sleep(0.05)
+        # Quiet but alive: no bytes, and the link stays up.
+        await asyncio.sleep(0.05)
+        assert got == [b"\x01\x02"]
+        assert not lost
+        # The far end goes away, as a simulator that exits or an adapter pulled out.
+        os.close(master)
+        master = -1
+        async with asyncio.timeout(HANG_S):
+            await gone.wait()
+        assert len(lost) == 1
+        assert "hung up" in str(lost[0])
+        assert transport.closed
+    finally:
+        if master >= 0:
+            os.close(master)
+        await transport.aclose()

@@ -183,6 +183,7 @@ class _Slot:
     """One ``transact`` call: its packets, and what became of each."""
 
     __slots__ = (
+        "active",
         "attempts",
         "cancelled",
         "deadline",
@@ -230,17 +231,27 @@ class _Slot:
         self.remaining = len(packets)
         self.started = False
         self.cancelled = False
+        # The bus's set of slots whose callers still wait; this slot leaves it when done.
+        self.active: set[_Slot] | None = None
 
     def settle(self, index: int, result: ReplyPacket | None) -> None:
         self.results[index] = result
         self.remaining -= 1
-        if self.remaining <= 0 and not self.future.done():
-            self.future.set_result(self.results)
+        if self.remaining <= 0:
+            self._leave()
+            if not self.future.done():
+                self.future.set_result(self.results)
 
     def fail(self, exc: BaseException) -> None:
+        self._leave()
         if not self.future.done():
             self.future.set_exception(exc)
         self.remaining = 0
+
+    def _leave(self) -> None:
+        if self.active is not None:
+            self.active.discard(self)
+            self.active = None
 
 
 class _Part:
@@ -701,6 +712,7 @@ class Bus:
             deadline=deadline,
             retries=retries,
             timeout_s=timeout_s,
+            fail_fast=True,
         )
         reply = (await self._await(slot))[0]
         if reply is None and slot.expect[0]:
@@ -829,6 +841,7 @@ class Bus:
         deadline: float | None,
         retries: int | None,
         timeout_s: float | None,
+        fail_fast: bool = False,
     ) -> _Slot:
         conn = self._conn
         packets = list(packets)
@@ -880,8 +893,8 @@ class Bus:
             submitted_at=now,
             future=loop.create_future(),
         )
-        if len(packets) == 1 and wants[0]:
-            # Fail fast for a device known to be gone (a probe may still go).
+        if fail_fast and wants[0]:
+            # A request to a device known to be gone fails at once (a probe may still go).
             retry_in = conn.refusal(packets[0].sid, now)
             if retry_in is not None:
                 self._refused += 1
@@ -891,8 +904,8 @@ class Bus:
                     silent_s=conn.silent_for(packets[0].sid, now),
                     retry_in_s=retry_in,
                 )
+        slot.active = self._active
         self._active.add(slot)
-        slot.future.add_done_callback(lambda _: self._active.discard(slot))
         self._waiting.append(_Part(slot, list(range(len(packets))), seq=slot.seq, submitted_at=now))
         self._pump()
         return slot
@@ -922,6 +935,7 @@ class Bus:
 
     def _cancel(self, slot: _Slot) -> None:
         slot.cancelled = True
+        self._active.discard(slot)
         self._waiting = [p for p in self._waiting if p.slot is not slot]
         if self._current is not None and self._current.slot is slot:
             self._current = None
@@ -1162,15 +1176,16 @@ class Bus:
                 return
         attempt = slot.attempts[index]
         slot.attempts[index] = attempt + 1
+        loop = self._loop_()
         exchange = self._conn.send(
             packet,
-            now,
+            loop.time(),
             expect_reply=expect,
             timeout_s=slot.timeout_s,
             attempt=attempt,
             token=(slot, index),
         )
-        if not self._write(exchange.frame):
+        if not self._write(exchange, loop):
             return
         if expect:
             slot.exchanges.append(exchange)
@@ -1184,18 +1199,25 @@ class Bus:
         if expect and conn.blocked_until(packet, now) > now + _EPS:
             # Its reply could not be told from another's: send it and ignore the answer.
             expect = False
-        exchange = conn.send(packet, now, expect_reply=expect)
+        loop = self._loop_()
+        exchange = conn.send(packet, loop.time(), expect_reply=expect)
         if expect:
             conn.abandon(exchange)
-        if self._write(exchange.frame) and urgent.future is not None and not urgent.future.done():
+        if self._write(exchange, loop) and urgent.future is not None and not urgent.future.done():
             urgent.future.set_result(None)
 
-    def _write(self, frame: bytes) -> bool:
+    def _write(self, exchange: Exchange, loop: asyncio.AbstractEventLoop) -> bool:
+        """Write ``exchange``'s frame; tell the connection when the write returned.
+
+        The exchange was registered, with the time just before, so that no reply can
+        arrive unexpected; the time just after bounds when the bytes left.
+        """
         try:
-            self._transport.write_nowait(frame)
+            self._transport.write_nowait(exchange.frame)
         except TransportError as exc:
             self._on_lost(exc)
             return False
+        self._conn.written(exchange, loop.time())
         return True
 
     def _handle(self, events: list[Event]) -> None:

@@ -247,6 +247,25 @@ def test_spin_turns_the_right_way() -> None:
     on_sim(body)
 
 
+def test_spin_after_a_position_move_switches_mode_and_back() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 11)
+        await servo.torque(TorqueControl.ON)
+        await servo.move_to(600, playtime_s=0.2)
+        await asyncio.sleep(0.3)
+        await servo.spin(500)
+        await asyncio.sleep(0.3)
+        assert await servo.read("current_control_mode") == 1
+        assert await servo.read("differential_position") > 0
+        assert (await servo.status()).torque_on
+        await servo.move_to(400, playtime_s=0.5)
+        await asyncio.sleep(2.0)
+        assert await servo.read("current_control_mode") == 0
+        assert abs(await servo.position_raw() - 400) <= 1
+
+    on_sim(body)
+
+
 def test_group_move_is_one_packet_and_moves_both() -> None:
     async def body(bus: Bus, _: SimTransport) -> None:
         ext1, ext2 = Servo(bus, 11), Servo(bus, 12)

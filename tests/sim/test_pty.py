@@ -266,6 +266,22 @@ def test_without_a_console_it_serves_and_stops_cleanly(
     assert "Exception" not in err
 
 
+def test_it_keeps_serving_when_the_launcher_closes_its_console(
+    start_sim: Callable[..., SimProcess],
+) -> None:
+    # A launcher that reads the path and closes the pipes: the simulator's next console
+    # line fails, and that must not end the session its client is using.
+    sim = start_sim()
+    assert sim.proc.stderr is not None
+    sim.proc.stderr.close()
+    time.sleep(0.3)
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        assert raw_read(port, 20, 0xF1, 0, eep=True).startswith(b"sim-core")
+    assert sim.proc.poll() is None
+    sim.proc.send_signal(signal.SIGINT)
+    assert sim.proc.wait(timeout=_START_TIMEOUT_S) == 0
+
+
 def test_url_options_reach_the_served_robot(start_sim: Callable[..., SimProcess]) -> None:
     sim = start_sim("--url", "sim://?neck=worm&count_offset=1000&silent=12")
     with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:

@@ -101,6 +101,8 @@ def stats_rows(stats: BusStats) -> list[dict[str, Any]]:
             "timeouts": dev.timeouts,
             "retries": dev.retries,
             "unmatched": dev.unmatched,
+            "late": dev.late,
+            "breaker": dev.breaker.value,
             "latency_p50_ms": None
             if dev.latency_p50_s is None
             else round(dev.latency_p50_s * 1e3, 3),

@@ -200,7 +200,8 @@ async def _worm_neck(bus: Bus) -> None:
 def _show_stats(bus: Bus) -> None:
     rows = stats_rows(bus.stats)
     table = Table(title="bus statistics")
-    for column in ("sid", "device", "requests", "replies", "timeouts", "p50 ms", "p99 ms"):
+    columns = ("sid", "device", "requests", "replies", "timeouts", "p50 ms", "p99 ms", "breaker")
+    for column in columns:
         table.add_column(column, justify="right")
     for row in rows:
         table.add_row(
@@ -211,10 +212,18 @@ def _show_stats(bus: Bus) -> None:
             str(row["timeouts"]),
             "-" if row["latency_p50_ms"] is None else f"{row['latency_p50_ms']:.2f}",
             "-" if row["latency_p99_ms"] is None else f"{row['latency_p99_ms']:.2f}",
+            str(row["breaker"]),
         )
     console.print(table)
     dec = bus.stats.decoder
     console.print(
         f"decoder: {dec.packets} packets, {dec.bytes_discarded} bytes discarded, "
         f"{dec.checksum_errors} checksum errors; unmatched replies {bus.stats.unmatched}"
+    )
+    stats = bus.stats
+    console.print(
+        f"line: {stats.wire_utilisation:.0%} of the last second carried bytes "
+        f"({stats.reserved_utilisation:.0%} reserved by the cost model), "
+        f"{stats.transactions_per_s:.0f} replies/s; queue wait p99 "
+        f"{(stats.queue_wait_p99_s or 0.0) * 1e3:.1f} ms"
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import stat
@@ -64,8 +65,8 @@ async def _serve(options: dict[str, str]) -> None:
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
     print(transport.path, flush=True)
-    print(f"simulated Ohmni on {transport.path} @ {line.baudrate} 8N1", file=sys.stderr)
-    print(_HELP_COMMANDS, file=sys.stderr)
+    _say(f"simulated Ohmni on {transport.path} @ {line.baudrate} 8N1")
+    _say(_HELP_COMMANDS)
     try:
         async with asyncio.TaskGroup() as tg:
             server = tg.create_task(line.serve(transport))
@@ -77,7 +78,18 @@ async def _serve(options: dict[str, str]) -> None:
         for signum in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(signum)
         await transport.aclose()
-        print("simulator stopped", file=sys.stderr)
+        _say("simulator stopped")
+
+
+def _say(text: str) -> None:
+    """Console output is best effort: once the path is out, the pty is what matters.
+
+    A launcher that reads the path and closes the pipe (or a terminal that goes away)
+    must not end the session: a failed write here would otherwise kill the simulator
+    right after it printed the path, and its client would see the pty hang up.
+    """
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=sys.stderr, flush=True)
 
 
 async def _console(line: SimLine, robot: SimRobot, stop: asyncio.Event) -> None:
@@ -104,7 +116,7 @@ async def _console(line: SimLine, robot: SimRobot, stop: asyncio.Event) -> None:
             return
         reply = _command(raw.decode(errors="replace").split(), line, robot, stop)
         if reply:
-            print(reply, file=sys.stderr, flush=True)
+            _say(reply)
 
 
 def _command(words: list[str], line: SimLine, robot: SimRobot, stop: asyncio.Event) -> str:

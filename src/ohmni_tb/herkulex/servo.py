@@ -404,7 +404,9 @@ class Servo:
     async def spin(self, pwm: int, *, led: Led = Led.NONE) -> None:
         """Turn continuously at a signed PWM, −1023..1023 (0 stops, holding torque).
 
-        Switching from position to turn mode needs the torque off first, which this does.
+        Switching from position to turn mode is done the manual's way: torque free, a
+        turn-mode jog (which only sets the mode while torque is off), torque on; then the
+        jog again, which the servo now runs.
 
         Raises:
             OutOfRangeError: ``pwm`` out of range; nothing sent.
@@ -414,6 +416,7 @@ class Servo:
         await self._ensure_can_move()
         if await self.read("current_control_mode") != JogMode.TURN:
             await self._send(ram_write(self.sid, "torque_control", TorqueControl.FREE))
+            await self._send(i_jog(target))
             await self._send(ram_write(self.sid, "torque_control", TorqueControl.ON))
         await self._send(i_jog(target))
 

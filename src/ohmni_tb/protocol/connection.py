@@ -403,6 +403,8 @@ class ReplyMatcher(Generic[T]):
 
     def remove_where(self, predicate: Callable[[T], bool]) -> list[T]:
         """Remove and return the items for which ``predicate`` holds, in order."""
+        if not any(predicate(item) for _, item in self._pending):
+            return []
         kept: deque[tuple[Packet, T]] = deque()
         removed: list[T] = []
         for entry in self._pending:
@@ -784,6 +786,25 @@ class BusConnection:
         self._recent.append(packet)
         return exchange
 
+    def written(self, exchange: Exchange, at: float) -> None:
+        """The write of ``exchange``'s frame returned at ``at``: its bytes left by then.
+
+        ``send`` was given the time just before the write, which bounds the reply's
+        earliest arrival; a write that returned later (the process was descheduled in
+        between) moves the latest end of the request, of its reply window and of the
+        line's busy time to match — or a reply still on the wire could be talked over.
+        """
+        delta = at - exchange.sent_at
+        if delta <= 0:
+            return
+        exchange.wire_end_s += delta
+        exchange.window_end_s += delta
+        exchange.expires_at += delta
+        if exchange is self._last:
+            end = exchange.window_end_s if exchange.expect_reply else exchange.wire_end_s
+            if self._free_at != math.inf:
+                self._free_at = max(self._free_at, end + self.guard_s)
+
     def abandon(self, exchange: Exchange) -> None:
         """The owner no longer waits for ``exchange``'s reply (its time on the line stays)."""
         exchange.abandoned = True
@@ -817,6 +838,8 @@ class BusConnection:
     def poll(self, now: float) -> list[Event]:
         """Give up what ``now`` has made hopeless: half frames, then overdue replies."""
         events: list[Event] = []
+        if not self._outstanding and not self._decoder.pending:
+            return events
         if self._decoder.pending and now + _EPS >= self._last_rx_at + self.timeout_s:
             # Nothing arrived for a whole timeout: the rest of this frame is not coming.
             for packet in self._decoder.expire():

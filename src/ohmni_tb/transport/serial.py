@@ -13,9 +13,16 @@ descriptor and its exclusive lock released).
 
 from __future__ import annotations
 
+import array
 import asyncio
 import contextlib
+import errno
+import fcntl
+import functools
 import logging
+import os
+import select
+import termios
 
 import serial
 import serial_asyncio_fast
@@ -91,18 +98,23 @@ class SerialTransport(Transport):
         loop = asyncio.get_running_loop()
         transport._gone = loop.create_future()
         try:
-            serial_transport, _ = await serial_asyncio_fast.create_serial_connection(
-                loop,
-                lambda: _Protocol(transport),
-                port,
-                baudrate=baudrate,
-                bytesize=serial.EIGHTBITS,
-                parity=serial.PARITY_NONE,
-                stopbits=serial.STOPBITS_ONE,
-                exclusive=exclusive,
+            # Opening may block (the driver's own open); as pyserial-asyncio-fast's
+            # create_serial_connection does, off the loop — then our transport class.
+            device = await loop.run_in_executor(
+                None,
+                functools.partial(
+                    serial.serial_for_url,
+                    port,
+                    baudrate=baudrate,
+                    bytesize=serial.EIGHTBITS,
+                    parity=serial.PARITY_NONE,
+                    stopbits=serial.STOPBITS_ONE,
+                    exclusive=exclusive,
+                ),
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportError(f"cannot open serial port {port!r}: {exc}") from exc
+        serial_transport = _TtyTransport(loop, _Protocol(transport), device)
         transport._serial = serial_transport
         # Told of every byte left waiting (high water 0), so drain() needs no polling.
         serial_transport.set_write_buffer_limits(high=0, low=0)
@@ -204,3 +216,77 @@ class SerialTransport(Transport):
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"<SerialTransport {self.port} @{self.baudrate} {state}>"
+
+
+#: Empty reads in a row, with no sign of a lost device, before the link counts as lost.
+_MAX_SPURIOUS_EMPTY_READS = 64
+
+
+class _TtyTransport(serial_asyncio_fast.SerialTransport):
+    """pyserial-asyncio-fast's transport, telling a lost device from a spurious empty read.
+
+    pyserial sets VMIN=0 VTIME=0, so a read on a tty returns 0 bytes both when nothing is
+    there and when the other end is gone (a hung-up tty — an unplugged adapter, or a pty
+    whose simulator exited — reads 0 forever), and pyserial's own read() calls any empty
+    read after readiness "disconnected". Here the descriptor is asked instead: POLLHUP or
+    POLLERR, TIOCINQ failing (EIO on a hung-up tty), or the device node gone or replaced
+    mean lost, with a message that says so; anything else is a spurious wake-up.
+    """
+
+    _empty_reads = 0
+
+    def _read_ready(self) -> None:
+        device: serial.Serial | None = self._serial
+        fd = None if device is None else device.fd
+        if device is None or fd is None:  # closing
+            return
+        try:
+            data = os.read(fd, self._max_read_size)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._close(exc=serial.SerialException(f"read failed: {exc}"))
+            return
+        if data:
+            self._empty_reads = 0
+            self._protocol.data_received(data)
+            return
+        reason = _why_lost(fd, device.port)
+        if reason is None:
+            self._empty_reads += 1
+            _log.debug("%s: spurious empty read #%d", device.port, self._empty_reads)
+            if self._empty_reads < _MAX_SPURIOUS_EMPTY_READS:
+                return
+            reason = f"{self._empty_reads} empty reads in a row"
+        self._close(
+            exc=serial.SerialException(
+                f"the other end hung up ({reason}): the adapter was unplugged, or the "
+                f"program serving this pty exited"
+            )
+        )
+
+
+def _why_lost(fd: int, path: str | None) -> str | None:
+    """Why a tty that read 0 bytes is gone, or ``None`` if it still looks alive."""
+    signs = []
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    for _, events in poller.poll(0):
+        if events & select.POLLHUP:
+            signs.append("POLLHUP")
+        if events & (select.POLLERR | select.POLLNVAL):
+            signs.append("POLLERR")
+    queued = array.array("i", [0])
+    try:
+        fcntl.ioctl(fd, termios.TIOCINQ, queued)
+    except OSError as exc:
+        signs.append(f"TIOCINQ: {errno.errorcode.get(exc.errno or 0, exc.errno)}")
+    if path:
+        try:
+            if os.stat(path).st_rdev != os.fstat(fd).st_rdev:
+                signs.append(f"{path} is another device now")
+        except FileNotFoundError:
+            signs.append(f"{path} removed")
+        except OSError:
+            pass
+    return "; ".join(signs) or None
