@@ -3,7 +3,8 @@ pipelining, the breaker, the stop path, reconnection — and never a stale reply
 
 The device here keeps the wire's timing (each byte 10 bits at the baud rate, a
 turnaround, replies queued behind each other), counts a request that lands on the line
-while a reply is on it, and stamps every read reply with the number of reads it has
+while a reply is on it (and, with ``garble``, breaks both, as a real collision does), and
+stamps every read reply with the number of reads it has
 served, so a reply handed to the wrong request shows.
 """
 
@@ -38,7 +39,7 @@ from ohmni_tb.protocol import (
 )
 from ohmni_tb.protocol.connection import BreakerState
 from ohmni_tb.protocol.drive import read_count, wheel_command
-from ohmni_tb.protocol.timing import transaction_cost_s
+from ohmni_tb.protocol.timing import DEFAULT_TURNAROUND_S, transaction_cost_s
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.transport import MemoryTransport, Transport, delay
 
@@ -76,8 +77,9 @@ class TimedDevice:
         self.duplicate_next = False
         self.log: list[tuple[float, Packet]] = []
         self.collisions = 0
+        self.garble = False
         self._line_free_at = 0.0
-        self._replies: list[tuple[float, float]] = []
+        self._replies: list[list[float]] = []  # [start, end, garbled]
         self._decoder = PacketDecoder()
         end.start_receiving(self._on_data, lambda exc: None)
 
@@ -86,9 +88,18 @@ class TimedDevice:
         now = loop.time()
         # The request's bytes are on the line from now: they must not meet a reply.
         start, end = now, now + len(data) * self.byte_s
-        for r_start, r_end in self._replies:
-            if start < r_end - 1e-12 and r_start < end - 1e-12:
+        hit = False
+        for reply in self._replies:
+            if start < reply[1] - 1e-12 and reply[0] < end - 1e-12:
                 self.collisions += 1
+                hit = True
+                reply[2] = 1.0
+        self._replies = [r for r in self._replies if r[1] > start]
+        if hit and self.garble:
+            # Both sides garbled: the device's receiver throws the broken request away.
+            self._decoder.feed(bytes(b & 0x0F for b in data))
+            self._decoder.expire()
+            return
         for packet in self._decoder.feed(data):
             self.log.append((now, packet))
             self._answer(packet, end, loop)
@@ -119,10 +130,13 @@ class TimedDevice:
             start = max(at + turnaround, self._line_free_at)
             end = start + len(frame) * self.byte_s
             self._line_free_at = end
-            self._replies.append((start, end))
-            loop.call_at(end, self._send, frame)
+            record = [start, end, 0.0]
+            self._replies.append(record)
+            loop.call_at(end, self._send, frame, record)
 
-    def _send(self, frame: bytes) -> None:
+    def _send(self, frame: bytes, record: list[float]) -> None:
+        if self.garble and record[2]:
+            frame = frame[:5] + bytes(b & 0x0F for b in frame[5:])
         if not self.end.closed:
             self.end.write_nowait(frame)
 
@@ -329,6 +343,56 @@ def test_pipelined_slots_keep_the_wire_rate_when_replies_are_seen_late() -> None
     assert slow >= 30 * 0.016
     assert collisions == 0
     assert slow / fast > 4
+
+
+def late_device_reads(caution_s: float) -> tuple[int, int, BusStats, int]:
+    """Two streams of reads for 1 s; servo 3 answers 1 ms later than its budget allows."""
+
+    async def main() -> tuple[int, int, BusStats, int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        device.garble = True
+        device.turnaround_of[3] = DEFAULT_TURNAROUND_S + 0.001
+        good = failed = 0
+        async with Bus(host, caution_s=caution_s, breaker_timeouts=1000) as bus:
+            loop = asyncio.get_running_loop()
+            stop = loop.time() + 1.0
+
+            async def stream(sid: int) -> None:
+                nonlocal good, failed
+                while loop.time() < stop:
+                    before = device.served
+                    try:
+                        reply = await bus.read(sid, 48, 12)
+                    except BusTimeoutError:
+                        failed += 1
+                        continue
+                    assert int.from_bytes(reply.data, "big") > before  # never stale
+                    good += 1
+
+            await asyncio.gather(stream(3), stream(11), stream(12))
+            stats = bus.stats
+        await end.aclose()
+        return good, failed, stats, device.collisions
+
+    return virtual(main)
+
+
+def test_a_device_later_than_its_budget_costs_a_collision_then_requests_go_one_at_a_time() -> None:
+    # Without caution the pipelined request after one of servo 3's reads talks over its
+    # late reply: both are lost, again and again, and some reads fail all three attempts.
+    good, failed, stats, collisions = late_device_reads(caution_s=0.0)
+    assert collisions > 20
+    assert failed > 5
+    assert stats.cautions == 0
+    careless = good
+    # With it, the first collision's junk makes the bus wait for each reply for
+    # caution_s; a collision comes back only when pipelining resumes.
+    good, failed, stats, collisions = late_device_reads(caution_s=0.25)
+    assert collisions <= 5
+    assert 1 <= stats.cautions <= 5
+    assert failed == 0
+    assert good > careless
 
 
 # -- never a stale reply ------------------------------------------------------------------

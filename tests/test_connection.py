@@ -404,6 +404,79 @@ def test_a_failed_probe_reopens_the_breaker() -> None:
     assert c.refusal(12, t) == pytest.approx(probe_at + 0.5 - t)
 
 
+# -- junk makes the line cautious ------------------------------------------------------
+
+
+def garbled(packet: Packet) -> bytes:
+    """A reply hit by a collision: its bytes ANDed with another's, the checksum broken."""
+    frame = bytearray(encode_packet(packet))
+    frame[-1] &= 0x0F
+    frame[5] &= 0x0F
+    return bytes(frame)
+
+
+@FEEDERS
+def test_after_junk_each_request_waits_for_its_reply_then_pipelining_resumes(
+    feed: Feeder,
+) -> None:
+    c = conn(caution_s=0.1)
+    first = c.send(read_count(0), 0.0)
+    assert c.free_at == pytest.approx(first.window_end_s + GUARD)  # pipelined
+    # The reply comes back garbled (a collision): the decoder discards it.
+    assert only(feed(c, garbled(count_reply(0, 1)), first.reply_earliest_s), ReplyReceived) == []
+    assert c.stats(first.reply_earliest_s).cautious
+    assert c.stats(first.reply_earliest_s).cautions == 1
+    t = c.free_at
+    second = c.send(read_count(1), t)
+    # Request at a time: the line stays taken until the reply is seen...
+    assert c.free_at == math.inf
+    assert c.blocked_until(read_count(0), second.window_end_s + 1.0) == math.inf
+    events = feed(c, encode_packet(count_reply(1, 5)), second.window_end_s + 0.004)
+    [got] = only(events, ReplyReceived)
+    assert got.exchange is second
+    assert c.free_at == pytest.approx(second.window_end_s + 0.004 + GUARD)
+    # ... or missing: the timeout frees it.
+    c.poll(first.expires_at)
+    third = c.send(read_count(0), max(c.free_at, c.blocked_until(read_count(0), c.free_at)))
+    assert c.free_at == math.inf
+    [missing] = only(c.poll(third.expires_at), ReplyMissing)
+    assert missing.exchange is third
+    assert c.free_at == pytest.approx(third.expires_at + GUARD)
+    # Once caution_s has passed with no more junk, requests pipeline again.
+    later = max(c.free_at, 0.1 + first.reply_earliest_s)
+    fourth = c.send(read_count(1), later)
+    assert c.free_at == pytest.approx(fourth.window_end_s + GUARD)
+    assert not c.stats(later).cautious
+    assert c.stats(later).cautions == 1
+
+
+def test_more_junk_extends_the_caution_and_a_stale_half_frame_counts_as_junk() -> None:
+    c = conn(caution_s=0.1)
+    c.receive_data(b"\x00\x13", 0.0)
+    assert c.stats(0.05).cautious
+    c.receive_data(b"\x00", 0.08)
+    assert c.stats(0.15).cautious  # extended to 0.18
+    assert c.stats(0.19).cautions == 1  # one spell, extended
+    assert not c.stats(0.19).cautious
+    # A half frame that never completes is junk too, found when it expires.
+    c.receive_data(encode_packet(count_reply(0, 1))[:-3], 1.0)
+    assert not c.stats(1.0).cautious
+    c.poll(1.0 + TIMEOUT)
+    assert c.stats(1.0 + TIMEOUT).cautious
+    assert c.stats(1.0 + TIMEOUT).cautions == 2
+
+
+def test_caution_off_or_unpipelined_changes_nothing() -> None:
+    c = conn(caution_s=0.0)
+    c.receive_data(b"\x00\x13\x37", 0.0)
+    exchange = c.send(read_count(0), 0.0)
+    assert c.free_at == pytest.approx(exchange.window_end_s + GUARD)
+    assert c.stats(0.0).cautions == 0
+    u = conn(pipelined=False)
+    u.receive_data(b"\x00\x13\x37", 0.0)
+    assert u.stats(0.0).cautions == 0
+
+
 # -- settings and odds ---------------------------------------------------------------------
 
 
@@ -416,6 +489,7 @@ def test_a_failed_probe_reopens_the_breaker() -> None:
         ({"turnaround_s": math.nan}, "turnaround_s"),
         ({"breaker_timeouts": 0}, "breaker_timeouts"),
         ({"probe_interval_s": 0.0}, "probe_interval_s"),
+        ({"caution_s": -0.1}, "caution_s"),
     ],
 )
 def test_settings_are_checked(kwargs: dict[str, object], name: str) -> None:

@@ -19,7 +19,8 @@ PUBLIC = {
         "reply_size_range", "transaction_cost_s", "wire_time_s",
     ],
     "ohmni_tb.protocol.connection": [
-        "DEFAULT_BREAKER_QUIET_S", "DEFAULT_BREAKER_TIMEOUTS", "DEFAULT_PROBE_INTERVAL_S",
+        "DEFAULT_BREAKER_QUIET_S", "DEFAULT_BREAKER_TIMEOUTS", "DEFAULT_CAUTION_S",
+        "DEFAULT_PROBE_INTERVAL_S",
         "DEFAULT_TIMEOUT_S", "BreakerState", "BusConnection", "ConnectionStats", "DeviceStats",
         "Event", "Exchange", "MissingReason", "ReplyMatcher", "ReplyMissing", "ReplyPacket",
         "ReplyReceived", "StrayKind", "StrayPacket", "is_idempotent",

@@ -73,6 +73,7 @@ from ohmni_tb.protocol import (
 from ohmni_tb.protocol.connection import (
     DEFAULT_BREAKER_QUIET_S,
     DEFAULT_BREAKER_TIMEOUTS,
+    DEFAULT_CAUTION_S,
     DEFAULT_PROBE_INTERVAL_S,
     DEFAULT_TIMEOUT_S,
     BreakerState,
@@ -140,6 +141,9 @@ class BusStats:
         unmatched: Replies that answered nothing waiting (early, late, strays).
         abandoned: Replies to requests whose callers gave up.
         ambiguous: Requests given up because two look-alike replies came.
+        cautions: Times junk on the line (a collision, noise) made the bus send request
+            at a time for ``caution_s``.
+        cautious: Whether it does so now.
         wire_busy_s: Line time carried since the start (every byte at the baud rate).
         wire_utilisation: Share of the last second the line carried bytes.
         reserved_utilisation: Share of the last second the cost model reserved.
@@ -163,6 +167,8 @@ class BusStats:
     unmatched: int
     abandoned: int
     ambiguous: int
+    cautions: int
+    cautious: bool
     wire_busy_s: float
     wire_utilisation: float
     reserved_utilisation: float
@@ -297,6 +303,7 @@ class Bus:
         breaker_timeouts: Missing replies in a row before a device may be presumed gone.
         breaker_quiet_s: Silence it needs as well.
         probe_interval_s: How often a presumed-gone device is probed.
+        caution_s: After junk on the line, how long requests go one at a time (0: never).
         stall_s: Bytes queued in the port for this long fail the link.
         close_timeout_s: The most :meth:`aclose` waits to put its final packets out.
         reopen: How :meth:`reconnect` opens a fresh transport.
@@ -320,6 +327,7 @@ class Bus:
         breaker_timeouts: int = DEFAULT_BREAKER_TIMEOUTS,
         breaker_quiet_s: float = DEFAULT_BREAKER_QUIET_S,
         probe_interval_s: float = DEFAULT_PROBE_INTERVAL_S,
+        caution_s: float = DEFAULT_CAUTION_S,
         stall_s: float = DEFAULT_STALL_S,
         close_timeout_s: float = DEFAULT_CLOSE_TIMEOUT_S,
         reopen: Reopen | None = None,
@@ -339,6 +347,7 @@ class Bus:
             breaker_timeouts=breaker_timeouts,
             breaker_quiet_s=breaker_quiet_s,
             probe_interval_s=probe_interval_s,
+            caution_s=caution_s,
         )
         self._transport = transport
         self.retries = retries
@@ -799,6 +808,8 @@ class Bus:
             unmatched=line.unmatched,
             abandoned=line.abandoned,
             ambiguous=line.ambiguous,
+            cautions=line.cautions,
+            cautious=line.cautious,
             wire_busy_s=line.wire_busy_s,
             wire_utilisation=line.wire_utilisation,
             reserved_utilisation=line.reserved_utilisation,

@@ -24,6 +24,12 @@ The rules:
   seen the reply yet: a USB adapter's latency then delays the delivery of replies, not
   the rate. Once a reply is seen and nothing was sent after it, the line is free a guard
   later, whatever the budget said.
+* **Junk makes the line cautious.** The model is only as good as the timing it assumes:
+  a device that answers later than its budget, or a host whose bytes reach the wire later
+  than it wrote them, makes the next request talk over a reply, and a collision leaves
+  garbled bytes. So after junk on the line (bytes the decoder discarded), each request
+  waits for its reply or its timeout before the next goes (request at a time) for
+  ``caution_s``; every more junk extends it. A clean line never pays for it.
 * **In-order matching.** Replies come back in the order the requests went out, so a
   reply answers the oldest outstanding request it fits (sid, reply code, address and
   length — :func:`~ohmni_tb.protocol.reply_matches`); earlier requests still waiting are
@@ -83,6 +89,7 @@ from ohmni_tb.protocol.timing import (
 __all__ = [
     "DEFAULT_BREAKER_QUIET_S",
     "DEFAULT_BREAKER_TIMEOUTS",
+    "DEFAULT_CAUTION_S",
     "DEFAULT_PROBE_INTERVAL_S",
     "DEFAULT_TIMEOUT_S",
     "BreakerState",
@@ -111,6 +118,8 @@ DEFAULT_BREAKER_TIMEOUTS = 3
 DEFAULT_BREAKER_QUIET_S = 0.25
 #: A presumed-gone device is probed this often.
 DEFAULT_PROBE_INTERVAL_S = 1.0
+#: After junk on the line, requests go one at a time for this long.
+DEFAULT_CAUTION_S = 0.25
 #: Latency samples kept per device for the percentiles.
 _LATENCY_WINDOW = 1024
 #: Requests remembered to recognise their echoes.
@@ -315,6 +324,9 @@ class ConnectionStats:
             unmatched).
         abandoned: Replies to requests their sender gave up.
         ambiguous: Requests given up because two look-alike replies came.
+        cautions: Times junk on the line made the connection send request at a time
+            (``caution_s``; more junk meanwhile extends the spell, not the count).
+        cautious: Whether it does so now.
         wire_busy_s: Line time carried: every byte sent and received, at the baud rate.
         wire_utilisation: Share of the last second the line carried bytes.
         reserved_utilisation: Share of the last second the cost model reserved
@@ -331,6 +343,8 @@ class ConnectionStats:
     unmatched: int
     abandoned: int
     ambiguous: int
+    cautions: int
+    cautious: bool
     wire_busy_s: float
     wire_utilisation: float
     reserved_utilisation: float
@@ -518,6 +532,8 @@ class BusConnection:
         breaker_timeouts: Missing replies in a row before the breaker may open.
         breaker_quiet_s: Silence needed as well before it opens.
         probe_interval_s: How often an open breaker lets a probe through.
+        caution_s: How long junk on the line makes a pipelined connection wait for each
+            reply before the next request (0: never).
 
     Raises:
         OutOfRangeError: A setting is out of range; the message names it.
@@ -536,6 +552,7 @@ class BusConnection:
         breaker_timeouts: int = DEFAULT_BREAKER_TIMEOUTS,
         breaker_quiet_s: float = DEFAULT_BREAKER_QUIET_S,
         probe_interval_s: float = DEFAULT_PROBE_INTERVAL_S,
+        caution_s: float = DEFAULT_CAUTION_S,
     ) -> None:
         if baudrate is not None and (
             isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0
@@ -546,6 +563,7 @@ class BusConnection:
         check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         check_seconds("breaker_quiet_s", breaker_quiet_s, 0.0, 3600.0)
         check_seconds("probe_interval_s", probe_interval_s, 0.001, 3600.0)
+        check_seconds("caution_s", caution_s, 0.0, 60.0)
         if isinstance(breaker_timeouts, bool) or not isinstance(breaker_timeouts, int):
             raise OutOfRangeError("breaker_timeouts", breaker_timeouts, 1, 1000)
         if not 1 <= breaker_timeouts <= 1000:
@@ -560,6 +578,7 @@ class BusConnection:
         self.breaker_timeouts = breaker_timeouts
         self.breaker_quiet_s = float(breaker_quiet_s)
         self.probe_interval_s = float(probe_interval_s)
+        self.caution_s = float(caution_s)
         self._decoder = PacketDecoder(max_size=max_packet_size, commands=commands)
         self._outstanding: ReplyMatcher[Exchange] = ReplyMatcher()
         self._keys: dict[tuple[int, int, int], Exchange] = {}
@@ -570,6 +589,8 @@ class BusConnection:
         self._ack_policy: dict[int, int] = {}
         self._devices: dict[int, _Device] = {}
         self._free_at = -math.inf
+        self._cautious_until = -math.inf
+        self._cautions = 0
         self._last: Exchange | None = None
         self._last_rx_at = -math.inf
         self._bytes_out = 0
@@ -763,7 +784,8 @@ class BusConnection:
                 device.breaker = BreakerState.PROBING
                 device.next_probe_at = now + self.probe_interval_s
                 device.probes += 1
-            free_at = window_end + self.guard_s if self.pipelined else math.inf
+            pipelined = self.pipelined and now + _EPS >= self._cautious_until
+            free_at = window_end + self.guard_s if pipelined else math.inf
             self._reserved.add(now, window_end - now + self.guard_s)
         else:
             exchange = Exchange(
@@ -819,8 +841,7 @@ class BusConnection:
         for packet in decoder.feed(data):
             self._route(packet, now, events)
         if decoder.discarded != discarded:
-            # Junk on the line: a held reply's twin may be in it.
-            self._void_held(None, now, events)
+            self._junk(now, events)
         return events
 
     def next_deadline(self) -> float | None:
@@ -842,8 +863,11 @@ class BusConnection:
             return events
         if self._decoder.pending and now + _EPS >= self._last_rx_at + self.timeout_s:
             # Nothing arrived for a whole timeout: the rest of this frame is not coming.
+            discarded = self._decoder.discarded
             for packet in self._decoder.expire():
                 self._route(packet, now, events)
+            if self._decoder.discarded != discarded:
+                self._junk(now, events)
         for exchange in self._outstanding.remove_where(
             lambda e: (e._confirm_at if e._held_reply is not None else e.expires_at) <= now + _EPS
         ):
@@ -891,6 +915,8 @@ class BusConnection:
             unmatched=self._unmatched,
             abandoned=self._abandoned,
             ambiguous=self._ambiguous,
+            cautions=self._cautions,
+            cautious=now + _EPS < self._cautious_until,
             wire_busy_s=self._busy_s,
             wire_utilisation=self._busy.over(now) / _RATE_WINDOW_S,
             reserved_utilisation=self._reserved.over(now) / _RATE_WINDOW_S,
@@ -973,6 +999,15 @@ class BusConnection:
         )
         self._void_held(packet.sid, now, events)
 
+    def _junk(self, now: float, events: list[Event]) -> None:
+        """Bytes were discarded: a collision, noise, a half frame. Be careful for a while."""
+        # A held reply's twin may be in the junk.
+        self._void_held(None, now, events)
+        if self.pipelined and self.caution_s:
+            if now + _EPS >= self._cautious_until:
+                self._cautions += 1
+            self._cautious_until = now + self.caution_s
+
     def _void_held(self, sid: int | None, now: float, events: list[Event]) -> None:
         """The line was not clean: held replies (of device ``sid``, or all) are ambiguous."""
         voided = self._outstanding.remove_where(
@@ -1051,7 +1086,7 @@ class BusConnection:
             if silent:
                 device.breaker = BreakerState.OPEN
                 device.next_probe_at = now + self.probe_interval_s
-        if exchange is self._last and not self.pipelined:
+        if exchange is self._last and self._free_at == math.inf:
             self._free_at = now + self.guard_s
         if not exchange.abandoned:
             events.append(ReplyMissing(exchange, reason))
