@@ -505,16 +505,24 @@ def test_a_silent_device_trips_its_breaker_and_is_probed_until_it_answers() -> N
                 await bus.read(11, 48, 12)
             assert loop.time() == t0  # refused at once, nothing sent
             assert len(device.sent(11)) == sent_before
-            assert info.value.retry_in_s == pytest.approx(1.0, abs=0.05)
+            assert info.value.retry_in_s == pytest.approx(0.125, abs=0.01)
             assert breaker(bus, 11) is BreakerState.OPEN
             # The other devices go on as before.
             assert value(await bus.request(read_count(0))) >= 1
-            # It comes back; the next probe, a second after the breaker opened, closes it.
+            # Still silent: the first probe fails, and the next waits twice as long.
+            await asyncio.sleep(info.value.retry_in_s)
+            with pytest.raises(BusTimeoutError):
+                await bus.read(11, 48, 12)
+            with pytest.raises(DeviceUnavailableError) as info:
+                await bus.read(11, 48, 12)
+            assert 0.15 < info.value.retry_in_s <= 0.25  # 0.25 s from the probe's start
+            # It comes back; the next probe closes it.
             device.silent.discard(11)
             await asyncio.sleep(info.value.retry_in_s)
             assert (await bus.read(11, 48, 12)).length == 12
             assert breaker(bus, 11) is BreakerState.CLOSED
-            assert bus.stats.refused == 1
+            # Two reads refused outright, and the failed probe's retry not sent.
+            assert bus.stats.refused == 3
         await end.aclose()
 
     virtual(main)

@@ -364,12 +364,12 @@ def test_breaker_opens_after_silence_probes_and_closes_on_a_reply() -> None:
     t = silence(c, 11, 0.0, 3)
     assert t >= 0.05
     assert c.stats(t).devices[11].breaker is BreakerState.OPEN
-    retry_in = c.refusal(11, t)
-    assert retry_in == pytest.approx(1.0)
+    # The first probe is due soon: a burst of noise may have tripped it.
+    assert c.refusal(11, t) == pytest.approx(0.125)
     # Other devices are not affected.
     assert c.refusal(3, t) is None
-    # The probe is due a second later; while it is out, the rest are refused.
-    t += 1.0
+    # While a probe is out, the rest are refused.
+    t += 0.125
     assert c.refusal(11, t) is None
     probe = c.send(read_request(11, 48, 12), t)
     assert c.stats(t).devices[11].breaker is BreakerState.PROBING
@@ -381,6 +381,23 @@ def test_breaker_opens_after_silence_probes_and_closes_on_a_reply() -> None:
     c.poll(deadline)
     assert c.stats(t).devices[11].breaker is BreakerState.CLOSED
     assert c.refusal(11, t + 0.01) is None
+
+
+def test_probes_of_a_dead_device_back_off_to_the_probe_interval() -> None:
+    c = conn(breaker_timeouts=1, breaker_quiet_s=0.0, probe_interval_s=1.0)
+    t = silence(c, 12, 0.0, 1)
+    gaps = []
+    for _ in range(7):
+        wait = c.refusal(12, t)
+        assert wait is not None
+        gaps.append(round(wait, 6))
+        # Each probe goes when due and times out; the gap counts from when it went.
+        sent = t + wait
+        t = silence(c, 12, sent, 1)
+        assert c.stats(t).devices[12].breaker is BreakerState.OPEN
+        t = sent
+    assert gaps == [0.125, 0.25, 0.5, 1.0, 1.0, 1.0, 1.0]
+    assert c.stats(t).devices[12].probes == 7
 
 
 def test_breaker_needs_silence_as_well_as_timeouts() -> None:
@@ -397,11 +414,11 @@ def test_a_failed_probe_reopens_the_breaker() -> None:
     c = conn(breaker_timeouts=1, breaker_quiet_s=0.0, probe_interval_s=0.5)
     t = silence(c, 12, 0.0, 1)
     assert c.stats(t).devices[12].breaker is BreakerState.OPEN
-    probe_at = t + 0.5
+    probe_at = t + 0.125
     t = silence(c, 12, probe_at, 1)
     assert c.stats(t).devices[12].breaker is BreakerState.OPEN
-    # The next probe is due an interval after the failed one went.
-    assert c.refusal(12, t) == pytest.approx(probe_at + 0.5 - t)
+    # The next probe is due twice the first gap after the failed one went.
+    assert c.refusal(12, t) == pytest.approx(probe_at + 0.25 - t)
 
 
 # -- junk makes the line cautious ------------------------------------------------------

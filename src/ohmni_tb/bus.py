@@ -302,7 +302,8 @@ class Bus:
         max_wait_s: A slot waiting this long goes next, whatever its priority.
         breaker_timeouts: Missing replies in a row before a device may be presumed gone.
         breaker_quiet_s: Silence it needs as well.
-        probe_interval_s: How often a presumed-gone device is probed.
+        probe_interval_s: How often a presumed-gone device is probed, once the probes
+            have backed off from the first, 0.125 s after the breaker opened.
         caution_s: After junk on the line, how long requests go one at a time (0: never).
         stall_s: Bytes queued in the port for this long fail the link.
         close_timeout_s: The most :meth:`aclose` waits to put its final packets out.

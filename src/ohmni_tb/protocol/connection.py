@@ -51,8 +51,9 @@ The rules:
   line never waits.
 * **Breaker.** After ``breaker_timeouts`` missing replies in a row and no reply for
   ``breaker_quiet_s``, a device is presumed gone: :meth:`~BusConnection.refusal` says to
-  fail requests to it at once, except one probe every ``probe_interval_s``; its first
-  reply closes the breaker.
+  fail requests to it at once, except probes: the first 0.125 s after it opened, then
+  at doubling gaps up to one every ``probe_interval_s``; its first reply closes the
+  breaker.
 * **Nothing dropped silently.** Echoes of our own requests, other masters' requests,
   early, late, unmatched replies and replies to abandoned requests are each counted, per
   device where there is one, beside the decoder's own counters.
@@ -116,8 +117,12 @@ DEFAULT_BREAKER_TIMEOUTS = 3
 #: ...and it must also have been silent this long, so a burst of noise on a healthy
 #: wheel board (read at 50 Hz) does not cut its feedback for a second.
 DEFAULT_BREAKER_QUIET_S = 0.25
-#: A presumed-gone device is probed this often.
+#: A presumed-gone device is probed this often, once the probes have backed off...
 DEFAULT_PROBE_INTERVAL_S = 1.0
+#: ...from a first probe this soon after the breaker opens, the gap doubling each time:
+#: a breaker tripped by a burst of noise closes again within a few slots, and a dead
+#: device costs a handful of extra probes before they reach ``probe_interval_s``.
+_FIRST_PROBE_S = 0.125
 #: After junk on the line, requests go one at a time for this long.
 DEFAULT_CAUTION_S = 0.25
 #: Latency samples kept per device for the percentiles.
@@ -293,6 +298,7 @@ class DeviceStats:
         last_reply_at: When the last good reply came, or ``None``.
         consecutive_timeouts: Missing replies since the last good one.
         breaker: Whether requests to it go out.
+        probes: Requests let through to it while its breaker was open.
     """
 
     sid: int
@@ -309,6 +315,7 @@ class DeviceStats:
     last_reply_at: float | None
     consecutive_timeouts: int
     breaker: BreakerState
+    probes: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -450,6 +457,7 @@ class _Device:
         "late",
         "latencies",
         "next_probe_at",
+        "probe_gap",
         "probes",
         "replies",
         "requests",
@@ -473,6 +481,7 @@ class _Device:
         self.consecutive = 0
         self.breaker = BreakerState.CLOSED
         self.next_probe_at = 0.0
+        self.probe_gap = 0.0
         self.probes = 0
         self.turnaround_s: float | None = None
 
@@ -493,6 +502,7 @@ class _Device:
             last_reply_at=self.last_reply_at,
             consecutive_timeouts=self.consecutive,
             breaker=self.breaker,
+            probes=self.probes,
         )
 
 
@@ -531,7 +541,8 @@ class BusConnection:
             or missing (``False``: request at a time, the way most drivers work).
         breaker_timeouts: Missing replies in a row before the breaker may open.
         breaker_quiet_s: Silence needed as well before it opens.
-        probe_interval_s: How often an open breaker lets a probe through.
+        probe_interval_s: How often an open breaker lets a probe through once the
+            probes have backed off (the first goes 0.125 s after it opens).
         caution_s: How long junk on the line makes a pipelined connection wait for each
             reply before the next request (0: never).
 
@@ -782,7 +793,8 @@ class BusConnection:
             self._holds.pop(key, None)
             if device.breaker is BreakerState.OPEN:
                 device.breaker = BreakerState.PROBING
-                device.next_probe_at = now + self.probe_interval_s
+                device.probe_gap = min(2.0 * device.probe_gap, self.probe_interval_s)
+                device.next_probe_at = now + device.probe_gap
                 device.probes += 1
             pipelined = self.pipelined and now + _EPS >= self._cautious_until
             free_at = window_end + self.guard_s if pipelined else math.inf
@@ -1085,7 +1097,8 @@ class BusConnection:
             )
             if silent:
                 device.breaker = BreakerState.OPEN
-                device.next_probe_at = now + self.probe_interval_s
+                device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
+                device.next_probe_at = now + device.probe_gap
         if exchange is self._last and self._free_at == math.inf:
             self._free_at = now + self.guard_s
         if not exchange.abandoned:
