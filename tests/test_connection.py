@@ -410,6 +410,22 @@ def test_breaker_needs_silence_as_well_as_timeouts() -> None:
     assert c.stats(t).devices[0].breaker is BreakerState.CLOSED
 
 
+def test_silence_counts_from_the_first_miss_not_from_an_idle_devices_last_reply() -> None:
+    c = conn(breaker_timeouts=3, breaker_quiet_s=0.25)
+    exchange = c.send(read_count(0), 0.0)
+    c.receive_data(encode_packet(count_reply(0, 1)), exchange.reply_earliest_s)
+    # Nobody asks for a minute; then three reads in a row go missing within 0.1 s.
+    t = silence(c, 0, 60.0, 3)
+    assert t - 60.0 < 0.25
+    assert c.stats(t).devices[0].breaker is BreakerState.CLOSED
+    assert c.refusal(0, t) is None
+    # Missing on and on until the misses span 0.25 s: now it is presumed gone.
+    while c.stats(t).devices[0].breaker is BreakerState.CLOSED:
+        t = silence(c, 0, t, 1)
+    assert t - 60.0 >= 0.25
+    assert c.stats(t).devices[0].consecutive_timeouts >= 4
+
+
 def test_a_failed_probe_reopens_the_breaker() -> None:
     c = conn(breaker_timeouts=1, breaker_quiet_s=0.0, probe_interval_s=0.5)
     t = silence(c, 12, 0.0, 1)

@@ -21,6 +21,7 @@ from ohmni_tb.errors import (
     OutOfRangeError,
     ProtocolError,
     StateError,
+    StopNotConfirmedError,
     TransportClosedError,
     TransportError,
 )
@@ -39,6 +40,7 @@ ALL_ERRORS: list[type[OhmniError]] = [
     OutOfRangeError,
     ProtocolError,
     StateError,
+    StopNotConfirmedError,
     TransportClosedError,
     TransportError,
 ]
@@ -54,6 +56,7 @@ PARENT: dict[type[OhmniError], type[OhmniError] | None] = {
     BusTimeoutError: DeviceError,
     DeviceUnavailableError: BusTimeoutError,
     DeviceStatusError: DeviceError,
+    StopNotConfirmedError: DeviceError,
     StateError: OhmniError,
     BusClosedError: StateError,
     DeadlineMissedError: StateError,

@@ -63,6 +63,10 @@ PUBLIC = {
         "BusStats", "DeviceStats", "ReplyPacket", "transaction_cost_s",
     ],
     "ohmni_tb.herkulex.servo": ["Requester", "Servo", "ServoStatus", "move_group"],
+    "ohmni_tb.safety": [
+        "DEFAULT_REPEAT_S", "DEFAULT_SETTLE_S", "DEFAULT_STOP_TIMEOUT_S",
+        "DEFAULT_TOLERANCE_TICKS", "SETTLE_READS", "StopReport", "stop_wheels",
+    ],
     "ohmni_tb.monitor": ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"],
     "ohmni_tb.sim.line": [
         "DEFAULT_TURNAROUND_S", "MAX_USB_LATENCY_S", "USB_PACKET_PAYLOAD", "HostReceiver",

@@ -3,44 +3,79 @@
 from __future__ import annotations
 
 import math
+import sys
 
-from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, _brief
+
+
+def show(value: object) -> str:
+    """``repr(value)`` for a one-line message, shortened when long (a huge int)."""
+    return _brief(value)
+
+
+#: The largest finite float: a number beyond it cannot be computed with.
+FLOAT_MAX = sys.float_info.max
 
 
 def finite(name: str, value: float, unit: str = "") -> float:
-    """Return ``value`` as a float, or raise if it is not a number, NaN or infinite."""
+    """Return ``value`` as a float, or raise if it is not a number, NaN or infinite.
+
+    Raises:
+        InvalidArgumentError: Not a number (a bool is not one), NaN or infinite.
+        OutOfRangeError: An int too large to be a float.
+    """
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise InvalidArgumentError(f"{name} must be a number, not {type(value).__name__}")
-    if not math.isfinite(value):
+    try:
+        number = float(value)
+    except OverflowError:
+        raise OutOfRangeError(name, value, -FLOAT_MAX, FLOAT_MAX, unit) from None
+    if not math.isfinite(number):
         suffix = f" {unit}" if unit else ""
         raise InvalidArgumentError(f"{name}={value!r}{suffix} is not a finite number")
-    return float(value)
+    return number
 
 
 def positive(name: str, value: float, unit: str = "") -> float:
     """Return ``value`` as a float, or raise unless it is finite and > 0."""
-    finite(name, value, unit)
-    if value <= 0.0:
+    number = finite(name, value, unit)
+    if number <= 0.0:
         suffix = f" {unit}" if unit else ""
         raise InvalidArgumentError(f"{name}={value!r}{suffix} must be > 0")
-    return float(value)
+    return number
 
 
 def non_negative(name: str, value: float, unit: str = "") -> float:
     """Return ``value`` as a float, or raise unless it is finite and >= 0."""
-    finite(name, value, unit)
-    if value < 0.0:
+    number = finite(name, value, unit)
+    if number < 0.0:
         suffix = f" {unit}" if unit else ""
         raise InvalidArgumentError(f"{name}={value!r}{suffix} must be >= 0")
-    return float(value)
+    return number
 
 
 def positive_or_inf(name: str, value: float, unit: str = "") -> float:
     """Return ``value`` as a float, or raise unless it is > 0 (``inf`` = no limit)."""
-    if math.isnan(value) or value <= 0.0:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"{name} must be a number, not {type(value).__name__}")
+    number = math.inf if value == math.inf else finite(name, value, unit)
+    if number <= 0.0:
         suffix = f" {unit}" if unit else ""
         raise InvalidArgumentError(f"{name}={value!r}{suffix} must be > 0 (inf for no limit)")
-    return float(value)
+    return number
+
+
+def bounded(name: str, value: float, low: float, high: float, unit: str = "") -> float:
+    """Return ``value`` as a float, or raise unless it is finite and in ``low..high``.
+
+    Raises:
+        InvalidArgumentError: Not a number, NaN or infinite.
+        OutOfRangeError: Outside ``low..high``.
+    """
+    number = finite(name, value, unit)
+    if not low <= number <= high:
+        raise OutOfRangeError(name, value, low, high, unit)
+    return number
 
 
 def integer(name: str, value: int, low: int, high: int | None = None, unit: str = "") -> int:
@@ -53,5 +88,27 @@ def integer(name: str, value: int, low: int, high: int | None = None, unit: str 
     ):
         return value
     if high is None:
-        raise InvalidArgumentError(f"{name}={value!r} must be an integer >= {low}")
+        raise InvalidArgumentError(f"{name}={_brief(value)} must be an integer >= {low}")
     raise OutOfRangeError(name, value, low, high, unit)
+
+
+def whole(name: str, value: int) -> int:
+    """Return ``value`` if it is an int (not a bool), of any size."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InvalidArgumentError(
+            f"{name} must be an int, not {type(value).__name__} {_brief(value)}"
+        )
+    return value
+
+
+def finite_result(
+    result: float, name: str, value: float, low: float, high: float, *, unit: str = ""
+) -> float:
+    """Return ``result`` if it is finite; else ``value`` (of ``name``) was out of ``low..high``.
+
+    For a conversion whose result overflows: the error names the argument and the range
+    of arguments whose result is a finite number.
+    """
+    if not math.isfinite(result):
+        raise OutOfRangeError(name, value, low, high, unit)
+    return result

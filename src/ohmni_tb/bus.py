@@ -301,7 +301,7 @@ class Bus:
             or missing (request at a time).
         max_wait_s: A slot waiting this long goes next, whatever its priority.
         breaker_timeouts: Missing replies in a row before a device may be presumed gone.
-        breaker_quiet_s: Silence it needs as well.
+        breaker_quiet_s: How long those misses must span, from the first one's send.
         probe_interval_s: How often a presumed-gone device is probed, once the probes
             have backed off from the first, 0.125 s after the breaker opened.
         caution_s: After junk on the line, how long requests go one at a time (0: never).

@@ -12,7 +12,9 @@ catches the right thing::
     ├── DeviceError                 a device on the bus misbehaved          (.sid)
     │   ├── BusTimeoutError         no reply in time    (+ TimeoutError)    (.sid, .cmd)
     │   │   └── DeviceUnavailableError  silent for a while: fails fast until it answers
-    │   └── DeviceStatusError       a reply carried error bits (.status_error, .status_detail)
+    │   ├── DeviceStatusError       a reply carried error bits (.status_error, .status_detail)
+    │   └── StopNotConfirmedError   the wheels were not seen to stop: they may still move
+    │                                                               (.sid, .report)
     ├── StateError                  the call does not fit the object's state
     │   ├── BusClosedError          the bus is closed
     │   └── DeadlineMissedError     a slot could not start before its deadline
@@ -26,6 +28,11 @@ transport boundary with ``raise ... from exc``, so the original stays in ``__cau
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ohmni_tb.safety import StopReport
 
 __all__ = [
     "BusClosedError",
@@ -41,9 +48,25 @@ __all__ = [
     "OutOfRangeError",
     "ProtocolError",
     "StateError",
+    "StopNotConfirmedError",
     "TransportClosedError",
     "TransportError",
 ]
+
+
+#: Longest repr of a value an error message quotes in full.
+_MAX_REPR = 60
+
+
+def _brief(value: object) -> str:
+    """``repr(value)`` for a one-line message: long ones (a huge int) are shortened."""
+    try:
+        text = repr(value)
+    except ValueError:  # an int past the interpreter's digit limit has no repr
+        return f"<{type(value).__name__} too large to show>"
+    if len(text) > _MAX_REPR:
+        return f"{text[: _MAX_REPR // 2]}…({len(text)} chars)"
+    return text
 
 
 class OhmniError(Exception):
@@ -141,6 +164,31 @@ class DeviceStatusError(DeviceError):
         self.status_detail = status_detail
 
 
+class StopNotConfirmedError(DeviceError):
+    """The wheel stop could not be confirmed: **the robot may still be moving**.
+
+    Raised by :func:`ohmni_tb.safety.stop_wheels` once its time is up. The stops were
+    sent over and over until then; what did not happen is the drive boards showing, by
+    wheel counts that stopped changing, that the wheels stand still: a board did not
+    answer, the counts kept changing, or the link failed.
+
+    Attributes:
+        sid: The drive board that did not confirm (0 left, 1 right; 0 when neither could).
+        report: What was tried: stops sent, counts read, time spent, the last counts.
+        reason: Why it was not confirmed, in words.
+    """
+
+    def __init__(self, *, sid: int, report: StopReport, reason: str) -> None:
+        super().__init__(
+            f"WHEEL STOP NOT CONFIRMED, the robot may still be moving: {reason}; sent "
+            f"{report.stops_sent} stop(s) over {report.elapsed_s:.2f} s; {report.reads} wheel "
+            f"count read(s) answered, {report.missed_reads} unanswered",
+            sid=sid,
+        )
+        self.report = report
+        self.reason = reason
+
+
 class StateError(OhmniError):
     """The call does not fit the object's current state."""
 
@@ -187,7 +235,7 @@ class OutOfRangeError(InvalidArgumentError):
 
     def __init__(self, name: str, value: object, low: float, high: float, unit: str = "") -> None:
         suffix = f" {unit}" if unit else ""
-        super().__init__(f"{name}={value!r} is out of range: allowed {low}..{high}{suffix}")
+        super().__init__(f"{name}={_brief(value)} is out of range: allowed {low}..{high}{suffix}")
         self.name = name
         self.value = value
         self.low = low

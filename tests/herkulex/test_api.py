@@ -43,6 +43,7 @@ EXPECTED = {
     "parse_model",
     "parse_reply",
     "playtime_s_from_ticks",
+    "playtime_sent_s",
     "playtime_ticks_from_s",
     "pos_raw_from_deg",
     "pos_raw_from_rad",

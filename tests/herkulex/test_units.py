@@ -75,7 +75,7 @@ def test_playtime() -> None:
     assert units.playtime_ticks_from_s(1.0) == 89
     with pytest.raises(OutOfRangeError) as info:
         units.playtime_ticks_from_s(-0.1)
-    assert (info.value.low, info.value.high, info.value.unit) == (0.0, 254 * 0.0112, "s")
+    assert (info.value.low, info.value.high, info.value.unit) == (0.0, 2.8448, "s")
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

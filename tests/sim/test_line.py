@@ -8,6 +8,8 @@ and the times the host gets; a few go through the Bus end to end.
 from __future__ import annotations
 
 import asyncio
+import random
+import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
@@ -485,6 +487,42 @@ def test_a_half_frame_expires_on_time_with_no_more_bytes() -> None:
             assert [p.data for _, p in host.replies()] == [bytes((0x08, 0x20))]
 
     run_virtual(main())
+
+
+# -- a flood of junk ------------------------------------------------------------------------
+
+
+def test_a_flood_of_junk_costs_little_cpu_and_the_next_request_is_answered_after_it() -> None:
+    """Random bytes written far faster than the wire (a host that queued them): the
+    request behind them is answered within a reply window of the junk's end on the wire,
+    and the line's work on the junk stays a small fraction of that wire time."""
+    size = 2_000_000  # 174 s of wire
+    junk = random.Random(11).randbytes(size)
+    request = Packet(20, Command.STAT)
+
+    async def main() -> tuple[float, list[Packet], float]:
+        async with await _open_sim() as sim:
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            cpu0 = time.process_time()
+            for i in range(0, size, 4096):  # as a pseudo-terminal hands it over
+                sim.write_nowait(junk[i : i + 4096])
+            sim.write_nowait(encode_packet(request))
+            cpu = time.process_time() - cpu0
+            decoder = PacketDecoder()
+            replies: list[Packet] = []
+            while not any(p.sid == 20 for p in replies):
+                replies += decoder.feed(await sim.read())
+            return loop.time() - start, replies, cpu
+
+    elapsed, replies, cpu = run_virtual(main())
+    assert replies[-1] == Packet(20, Command.STAT | 0x40, b"\0\0")
+    wire_end = (size + 9) * _BYTE_S
+    assert elapsed >= wire_end
+    # A false header in the junk may hold the request until the garbage timeout.
+    assert elapsed <= wire_end + GARBAGE_TIMEOUT_S + _TURNAROUND_S + 9 * _BYTE_S + 1e-6
+    # Byte by byte this cost ~1.5 s a megabyte; junk outside a frame is skipped in bulk.
+    assert cpu < 1.0, f"{cpu:.2f} s of CPU for {size} bytes of junk"
 
 
 # -- faults ----------------------------------------------------------------------------------

@@ -8,22 +8,30 @@ These tests run the simulator as a subprocess in real time: their timeouts are s
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import random
 import select
 import signal
 import struct
 import subprocess
 import sys
 import time
+import tty
 from collections.abc import Callable, Iterator
 
 import pytest
 import serial
 
 from ohmni_tb.bus import Bus
+from ohmni_tb.cli.sim import MAX_CONSOLE_LINE
 from ohmni_tb.protocol import Packet, ReadReply
 from ohmni_tb.protocol.core import parse_status, read_status
 from ohmni_tb.protocol.drive import parse_count, read_count, wheel_command
+from ohmni_tb.sim.line import HOST_BUFFER_BYTES, SimLine
+from ohmni_tb.sim.pty import open_pty_pair
+from ohmni_tb.sim.robot import SimRobot
+from ohmni_tb.sim.servo import GARBAGE_TIMEOUT_S
 from ohmni_tb.transport import SerialTransport, open_transport
 
 
@@ -289,6 +297,143 @@ def test_url_options_reach_the_served_robot(start_sim: Callable[..., SimProcess]
         assert raw_read(port, 4, 0xF1, 0, eep=True)  # the worm neck answers
     sim.proc.send_signal(signal.SIGINT)
     assert sim.finish()[0] == 0
+
+
+# -- hardening: floods, a console nobody reads, signals, stdin ----------------------------
+
+_BYTE_S = 10 / 115_200
+
+
+async def test_junk_written_faster_than_the_wire_is_taken_at_wire_speed() -> None:
+    """A host writing 20 kB at once is held back as a real adapter holds it (its write
+    waits), the simulator does not swallow it all, and the request behind the junk is
+    answered within a reply window of the junk's end on the wire."""
+    robot = SimRobot()
+    line = SimLine(robot.devices)
+    robot.attach_clock(line.now_s)
+    transport = open_pty_pair(baudrate=line.baudrate)
+    server = asyncio.create_task(line.serve(transport))
+    client = os.open(transport.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        tty.setraw(client)
+        loop = asyncio.get_running_loop()
+        data = random.Random(4).randbytes(20_000) + frame(20, 0x07)
+        start = loop.time()
+        written = 0
+        most_ahead = 0.0
+        got = b""
+        deadline = start + 20.0
+        while len(got) < 9:
+            assert loop.time() < deadline, f"no reply; got {got.hex(' ')!r}"
+            if written < len(data):
+                with contextlib.suppress(BlockingIOError):
+                    written += os.write(client, data[written:])
+            with contextlib.suppress(BlockingIOError):
+                got += os.read(client, 64)
+            taken = line.stats.bytes_to_devices
+            most_ahead = max(most_ahead, taken - (loop.time() - start) / _BYTE_S)
+            await asyncio.sleep(0.005)
+        elapsed = loop.time() - start
+    finally:
+        os.close(client)
+        server.cancel()
+        await asyncio.wait({server})
+        await transport.aclose()
+    assert got == frame(20, 0x47, b"\0\0")
+    # Never more than the adapter's buffer and one read ahead of the wire.
+    assert most_ahead <= HOST_BUFFER_BYTES + 4096 + 512, most_ahead
+    assert line.stats.host_waits > 0
+    wire_end = len(data) * _BYTE_S
+    assert elapsed >= wire_end - 0.05
+    assert elapsed <= wire_end + GARBAGE_TIMEOUT_S + 3.0  # generous: a loaded machine
+
+
+def test_a_console_nobody_reads_never_stalls_the_robot_or_its_stop(
+    start_sim: Callable[..., SimProcess],
+) -> None:
+    # stderr is a pipe the test never reads: ~200 kB of status replies overflow it.
+    sim = start_sim()
+    for _ in range(500):
+        sim.command("status")
+    time.sleep(0.5)
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        for _ in range(3):
+            assert raw_count(port, 0) == 0
+    sim.command("status")  # and still more while the pipe is full
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        assert raw_count(port, 1) == 0
+    sim.proc.send_signal(signal.SIGTERM)
+    assert sim.proc.wait(timeout=_IO_TIMEOUT_S) == 0
+
+
+def test_sighup_stops_it_cleanly(start_sim: Callable[..., SimProcess]) -> None:
+    sim = start_sim()
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        assert raw_count(port, 0) == 0
+    sim.proc.send_signal(signal.SIGHUP)
+    code, err = sim.finish()
+    assert code == 0
+    assert "simulator stopped" in err
+    assert "Traceback" not in err
+
+
+def test_end_of_its_console_stops_it(start_sim: Callable[..., SimProcess]) -> None:
+    sim = start_sim()
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        assert raw_count(port, 0) == 0
+    assert sim.proc.stdin is not None
+    sim.proc.stdin.close()  # Ctrl-D, or a launcher that went away
+    assert sim.proc.wait(timeout=_START_TIMEOUT_S) == 0
+    assert sim.proc.stderr is not None
+    err = sim.proc.stderr.read().decode(errors="replace")
+    assert "simulator stopped" in err
+    assert "Traceback" not in err
+
+
+def test_with_stdin_closed_at_start_it_serves_until_a_signal() -> None:
+    # A launcher that closes stdin before exec: no console, nothing to reach EOF on.
+    proc = subprocess.Popen(
+        ["/bin/sh", "-c", 'exec "$0" -m ohmni_tb sim --pty <&-', sys.executable],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], _START_TIMEOUT_S)
+        assert ready, "no device path"
+        path = proc.stdout.readline().decode().strip()
+        time.sleep(0.3)
+        assert proc.poll() is None
+        with serial.Serial(path, 115200, timeout=_IO_TIMEOUT_S) as port:
+            assert raw_count(port, 0) == 0
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=_START_TIMEOUT_S)
+        assert proc.returncode == 0
+        assert "simulator stopped" in err.decode()
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            proc.communicate(timeout=_START_TIMEOUT_S)
+
+
+def test_an_overlong_console_line_is_refused_with_one_line(
+    start_sim: Callable[..., SimProcess],
+) -> None:
+    sim = start_sim()
+    sim.command("x" * 70_000)
+    sim.command("status")
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        assert raw_count(port, 0) == 0
+    sim.command("quit")
+    code, err = sim.finish()
+    assert code == 0
+    assert "Traceback" not in err
+    refused = [ln for ln in err.splitlines() if "longer than" in ln]
+    assert len(refused) == 1, err[-2000:]
+    assert str(MAX_CONSOLE_LINE) in refused[0]
+    assert "xxxx" not in err  # the rest of the long line is not taken for a command
+    assert any(ln.startswith("pose ") for ln in err.splitlines())  # the next one is
+    assert "simulator stopped" in err
 
 
 # -- this project's own SerialTransport and Bus on the pty --------------------------------

@@ -6,12 +6,13 @@ import asyncio
 from typing import Annotated
 
 import typer
+from rich.console import Console
 from rich.table import Table
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.cli.common import PortOption, console, run, stats_rows
 from ohmni_tb.control import EncoderConfig
-from ohmni_tb.errors import BusTimeoutError, OhmniError
+from ohmni_tb.errors import BusTimeoutError, OhmniError, StopNotConfirmedError
 from ohmni_tb.herkulex import (
     TorqueControl,
     angle_deg_from_raw,
@@ -25,12 +26,9 @@ from ohmni_tb.protocol.devices import (
     DeviceId,
     device_name,
 )
-from ohmni_tb.protocol.drive import (
-    parse_count,
-    read_count,
-    wheel_command,
-)
+from ohmni_tb.protocol.drive import wheel_command
 from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback, set_target
+from ohmni_tb.safety import StopReport, stop_wheels
 from ohmni_tb.transport import open_transport
 
 __all__ = ["demo"]
@@ -40,6 +38,10 @@ _ENCODER = EncoderConfig()
 _NECK_FROM, _NECK_TO = NECK_RAW_RANGE
 #: A worm-neck target inside its range (−127000 up … 120000 down): tilt down a little.
 _WORM_TARGET = 60_000
+#: How long the demo keeps stopping the wheels until their counts confirm it: longer
+#: than stop_wheels' default, so a lossy line's lost count reads are ridden out.
+_STOP_TIMEOUT_S = 2.0
+_err = Console(stderr=True)
 
 
 def demo(
@@ -64,7 +66,9 @@ def demo(
 async def _demo(port: str, motion: bool) -> None:
     transport = await open_transport(port)
     robot = getattr(transport, "robot", None)  # the simulator's ground truth, if any
-    async with Bus(transport) as bus:
+    bus = Bus(transport)
+    bus.start()
+    try:
         console.rule(f"ohmni demo on {port}")
         await _scan(bus)
         await _battery(bus)
@@ -74,6 +78,13 @@ async def _demo(port: str, motion: bool) -> None:
             console.print("[yellow]drive skipped[/yellow]: pass --allow-motion on a robot")
         await _neck(bus)
         _show_stats(bus)
+    except StopNotConfirmedError as exc:
+        # The robot may be moving: one line nobody can miss, and a failed exit.
+        _err.print(f"[bold red]{exc}[/bold red]", soft_wrap=True)
+        raise typer.Exit(1) from exc
+    finally:
+        # One more stop on the way out, after whatever happened.
+        await bus.aclose(final=[wheel_command(0, 0)] if motion else ())
 
 
 async def _scan(bus: Bus) -> None:
@@ -113,14 +124,16 @@ async def _battery(bus: Bus) -> None:
     )
 
 
-async def _counts(bus: Bus) -> tuple[int, int]:
-    left = parse_count(await bus.query(read_count(DeviceId.LEFT_DRIVE)))
-    right = parse_count(await bus.query(read_count(DeviceId.RIGHT_DRIVE)))
-    return left, right
+async def _stop(bus: Bus) -> tuple[StopReport, tuple[int, int]]:
+    """Stop the wheels until their counts confirm it; the report and the counts."""
+    report = await stop_wheels(bus, timeout_s=_STOP_TIMEOUT_S)
+    assert report.counts is not None  # a confirmed stop has read both counts
+    return report, report.counts
 
 
 async def _drive(bus: Bus, robot: object) -> None:
-    start = await _counts(bus)
+    # From rest to rest: the counts the wheels stand at before and after.
+    _, start = await _stop(bus)
     console.print(
         "drive: forward at PWM 400 for 1.0 s (the command is re-sent at 10 Hz), then stop"
     )
@@ -129,10 +142,13 @@ async def _drive(bus: Bus, robot: object) -> None:
             await bus.send(wheel_command(400, 400))
             await asyncio.sleep(0.1)
     finally:
-        # Stop whatever happened above; shielded so a Ctrl-C cannot skip it.
-        await asyncio.shield(bus.send(wheel_command(0, 0)))
-    await asyncio.sleep(0.5)
-    end = await _counts(bus)
+        # Stop whatever happened above, Ctrl-C included: repeated until the counts hold
+        # still, or StopNotConfirmedError.
+        report, end = await _stop(bus)
+    console.print(
+        f"  stop confirmed in {report.elapsed_s:.3f} s after {report.stops_sent} stops "
+        f"(wheel counts held still; {report.missed_reads} count reads unanswered)"
+    )
     # The right wheel counts mirrored: negate before converting forward-positive ticks.
     d_left = _ENCODER.ticks_to_m(end[0] - start[0])
     d_right = _ENCODER.ticks_to_m(-(end[1] - start[1]))
@@ -141,9 +157,12 @@ async def _drive(bus: Bus, robot: object) -> None:
         f"(mirrored) → left {d_left:.3f} m, right {d_right:.3f} m"
     )
     pose = getattr(robot, "pose", None)
-    if pose is not None:
+    speeds = getattr(robot, "wheel_speeds_mps", None)
+    if pose is not None and callable(speeds):
+        left_mps, right_mps = speeds()
         console.print(
-            f"  simulator ground truth: x={pose.x:.3f} m, y={pose.y:.3f} m, yaw={pose.yaw:.4f} rad"
+            f"  simulator ground truth: x={pose.x:.3f} m, y={pose.y:.3f} m, "
+            f"yaw={pose.yaw:.4f} rad, wheels {abs(left_mps):.3f} m/s, {abs(right_mps):.3f} m/s"
         )
 
 

@@ -3,24 +3,34 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import signal
 import stat
 import sys
-from typing import Annotated
+import threading
+from collections import deque
+from typing import Annotated, Final
 from urllib.parse import parse_qsl, urlsplit
 
 import typer
 
 from ohmni_tb.cli.common import run
-from ohmni_tb.errors import ConfigError
+from ohmni_tb.errors import ConfigError, OhmniError
 from ohmni_tb.sim.line import SimLine
 from ohmni_tb.sim.pty import open_pty_pair
 from ohmni_tb.sim.robot import SimRobot
 from ohmni_tb.sim.url import build_line
 
-__all__ = ["sim"]
+__all__ = ["MAX_CONSOLE_LINE", "sim"]
+
+#: The longest operator command line taken on stdin, in bytes; a longer one is refused.
+MAX_CONSOLE_LINE: Final = 1024
+#: Console output waiting for a slow reader of stderr; beyond it lines are dropped.
+_CONSOLE_BACKLOG: Final = 64 * 1024
+#: How long the last words ("simulator stopped") may wait for stderr at the end.
+_CONSOLE_CLOSE_S: Final = 1.0
+#: Signals that stop the simulator cleanly (exit code 0).
+_STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 _HELP_COMMANDS = """commands on stdin: dock | undock | power (cycle) | unplug | plug |
   silent SID | talk SID | drop RATE | corrupt RATE | status | quit"""
@@ -43,7 +53,8 @@ def sim(
 
     Prints the device path alone on the first line of stdout; open it at 115200 8N1 from
     any serial program (or `ohmni --port PATH ...`). Reads simple commands on stdin to
-    dock, cut the cable or silence a device. Ctrl-C stops it.
+    dock, cut the cable or silence a device. Ctrl-C, SIGTERM, SIGHUP, `quit` or the end of
+    stdin (Ctrl-D) stop it.
     """
     if not pty:
         raise typer.BadParameter("the simulator serves on a pseudo-terminal: run `ohmni sim --pty`")
@@ -54,46 +65,131 @@ def sim(
     run(lambda: _serve(options))
 
 
+class _Stop:
+    """Why the simulator stops: the first reason given wins."""
+
+    def __init__(self) -> None:
+        self.event = asyncio.Event()
+        self.reason = ""
+
+    def __call__(self, reason: str) -> None:
+        if not self.event.is_set():
+            self.reason = reason
+            self.event.set()
+
+
 async def _serve(options: dict[str, str]) -> None:
     line, robot = build_line(options)
     if options:
         raise ConfigError(f"unknown simulator option(s): {sorted(options)}")
     transport = open_pty_pair(baudrate=line.baudrate)
     robot.attach_clock(line.now_s)
-    stop = asyncio.Event()
+    stop = _Stop()
     loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(signum, stop.set)
+    for signum in _STOP_SIGNALS:
+        loop.add_signal_handler(signum, stop, signal.Signals(signum).name)
+    out = _ConsoleOut()
     print(transport.path, flush=True)
-    _say(f"simulated Ohmni on {transport.path} @ {line.baudrate} 8N1")
-    _say(_HELP_COMMANDS)
+    out.say(f"simulated Ohmni on {transport.path} @ {line.baudrate} 8N1")
+    out.say(_HELP_COMMANDS)
     try:
         async with asyncio.TaskGroup() as tg:
             server = tg.create_task(line.serve(transport))
-            console = tg.create_task(_console(line, robot, stop))
-            await stop.wait()
+            console = tg.create_task(_console(line, robot, stop, out))
+            await stop.event.wait()
             server.cancel()
             console.cancel()
     finally:
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in _STOP_SIGNALS:
             loop.remove_signal_handler(signum)
         await transport.aclose()
-        _say("simulator stopped")
+        out.say(f"simulator stopped ({stop.reason or 'error'})")
+        out.close(_CONSOLE_CLOSE_S)
 
 
-def _say(text: str) -> None:
-    """Console output is best effort: once the path is out, the pty is what matters.
+class _ConsoleOut:
+    """The console's lines to stderr, written by a thread so they never stall the loop.
 
-    A launcher that reads the path and closes the pipe (or a terminal that goes away)
-    must not end the session: a failed write here would otherwise kill the simulator
-    right after it printed the path, and its client would see the pty hang up.
+    Console output is best effort: once the path is out, the pty is what matters. A
+    reader of stderr that falls behind (or a pipe nobody reads) leaves lines waiting, up
+    to :data:`_CONSOLE_BACKLOG` bytes; beyond that new lines are dropped and counted, and
+    a note says how many once the reader catches up. A stderr that fails (a launcher
+    that closed it, a terminal gone) silences the console without ending the session.
     """
-    with contextlib.suppress(OSError, ValueError):
-        print(text, file=sys.stderr, flush=True)
+
+    def __init__(self) -> None:
+        try:
+            fd: int | None = sys.stderr.fileno()
+        except (AttributeError, ValueError, OSError):
+            fd = None  # no stderr at all: nothing is said
+        self._fd = fd
+        self._lines: deque[bytes] = deque()
+        self._queued = 0
+        self._closing = False
+        self.dropped = 0
+        self._noted = 0
+        self._cond = threading.Condition()
+        self._thread: threading.Thread | None = None
+        if fd is not None:
+            # A daemon: a write stuck on a full pipe must not keep the process alive.
+            self._thread = threading.Thread(target=self._run, name="sim-console", daemon=True)
+            self._thread.start()
+
+    def say(self, text: str) -> None:
+        """Queue one line; never blocks."""
+        data = (text + "\n").encode(errors="backslashreplace")
+        with self._cond:
+            if self._fd is None:
+                return
+            if self._queued + len(data) > _CONSOLE_BACKLOG:
+                self.dropped += 1
+                return
+            self._lines.append(data)
+            self._queued += len(data)
+            self._cond.notify()
+
+    def close(self, timeout_s: float) -> None:
+        """Let the queued lines out, waiting at most ``timeout_s`` for a slow reader."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        fd = self._fd
+        assert fd is not None  # the thread is started only with a stderr
+        while True:
+            with self._cond:
+                while not self._lines and not self._closing:
+                    self._cond.wait()
+                if not self._lines:
+                    return
+                batch = b"".join(self._lines)
+                self._lines.clear()
+                self._queued = 0
+                if self.dropped > self._noted:
+                    note = f"[{self.dropped - self._noted} console lines dropped: stderr was full]"
+                    batch = note.encode() + b"\n" + batch
+                    self._noted = self.dropped
+            try:
+                view = memoryview(batch)
+                while view:
+                    view = view[os.write(fd, view) :]
+            except OSError:
+                with self._cond:
+                    self._fd = None  # stderr is gone: say nothing more
+                    self._lines.clear()
+                return
 
 
-async def _console(line: SimLine, robot: SimRobot, stop: asyncio.Event) -> None:
-    """Read operator commands from stdin, if there is one."""
+async def _console(line: SimLine, robot: SimRobot, stop: _Stop, out: _ConsoleOut) -> None:
+    """Read operator commands from stdin, if there is a console there.
+
+    With no console (stdin closed, ``/dev/null``, a plain file) the simulator serves
+    until a signal. A console that ends (Ctrl-D, a launcher that closed the pipe or went
+    away, a terminal gone) stops the simulator, as ``quit`` does.
+    """
     try:
         fd = sys.stdin.fileno()
         mode = os.fstat(fd).st_mode
@@ -110,16 +206,53 @@ async def _console(line: SimLine, robot: SimRobot, stop: asyncio.Event) -> None:
         await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), sys.stdin)
     except (ValueError, OSError):
         return  # no usable stdin (closed, or a plain file): serve without a console
+    held = bytearray()
+    skipping = False  # inside a line too long to be a command, until its newline
     while True:
-        raw = await reader.readline()
-        if not raw:
+        try:
+            chunk = await reader.read(4096)
+        except OSError:
+            chunk = b""  # a terminal gone (EIO) ends the console like an EOF
+        if not chunk:
+            if held and not skipping:
+                _run_command(bytes(held), line, robot, stop, out)
+            stop("stdin closed")
             return
-        reply = _command(raw.decode(errors="replace").split(), line, robot, stop)
-        if reply:
-            _say(reply)
+        held += chunk
+        while True:
+            end = held.find(b"\n")
+            if end < 0:
+                if len(held) > MAX_CONSOLE_LINE:
+                    if not skipping:
+                        out.say(_too_long())
+                    skipping = True
+                    held.clear()
+                break
+            raw = bytes(held[:end])
+            del held[: end + 1]
+            if skipping:
+                skipping = False  # the tail of the long line: not a command
+            elif len(raw) > MAX_CONSOLE_LINE:
+                out.say(_too_long())
+            else:
+                _run_command(raw, line, robot, stop, out)
 
 
-def _command(words: list[str], line: SimLine, robot: SimRobot, stop: asyncio.Event) -> str:
+def _too_long() -> str:
+    return f"console line longer than {MAX_CONSOLE_LINE} bytes ignored (commands are short)"
+
+
+def _run_command(raw: bytes, line: SimLine, robot: SimRobot, stop: _Stop, out: _ConsoleOut) -> None:
+    words = raw.decode(errors="replace").split()
+    try:
+        reply = _command(words, line, robot, stop)
+    except OhmniError as exc:
+        reply = f"{words[0]}: {exc}"
+    if reply:
+        out.say(reply)
+
+
+def _command(words: list[str], line: SimLine, robot: SimRobot, stop: _Stop) -> str:
     if not words:
         return ""
     verb, args = words[0].lower(), words[1:]
@@ -156,7 +289,7 @@ def _command(words: list[str], line: SimLine, robot: SimRobot, stop: asyncio.Eve
                 f"{'docked' if s.docked else 'undocked'}; line {line.stats}; faults {faults}"
             )
         elif verb in ("quit", "exit"):
-            stop.set()
+            stop(verb)
         else:
             return f"unknown command {verb!r}; {_HELP_COMMANDS}"
     except (IndexError, ValueError):

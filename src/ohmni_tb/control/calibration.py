@@ -112,6 +112,10 @@ def calibrate_umbmark(
     x_ccw, y_ccw = _centre("ccw_errors_m", ccw_errors_m)
     alpha = 0.5 * ((x_cw + x_ccw) + (y_cw - y_ccw)) / (-4.0 * side)
     beta = 0.5 * ((x_cw - x_ccw) + (y_cw + y_ccw)) / (-4.0 * side)
+    if not math.isfinite(beta):
+        raise InvalidArgumentError(
+            f"leg curve beta={beta!r} rad is not a finite number; check the units of the errors"
+        )
     if not abs(alpha) < math.pi / 4:
         raise InvalidArgumentError(
             f"turn error alpha={alpha!r} rad is too large for UMBmark; check the units "
@@ -171,7 +175,13 @@ def calibrate_straight_line(
     beta = 2.0 * math.atan2(y, x)
     half = 0.5 * beta
     arc_m = math.hypot(x, y) / (math.sin(half) / half if half != 0.0 else 1.0)
-    ratio = (arc_m + half * separation) / (arc_m - half * separation)
+    shorter = arc_m - half * separation
+    if not shorter > 0.0:
+        raise InvalidArgumentError(
+            f"measured_y_m={measured_y_m!r} m curves the run more than wheel_separation_m="
+            f"{wheel_separation_m!r} m allows; check the units"
+        )
+    ratio = (arc_m + half * separation) / shorter
     return _corrected(
         radius,
         separation_m=separation,
@@ -227,6 +237,20 @@ def _refine(
     wheelbase_scale: float,
 ) -> tuple[float, float]:
     """Gauss-Newton on ``(E_d, E_b)`` so the simulated square errors match ``measured``."""
+    try:
+        # Extreme geometry may overflow on the way; the result is checked below.
+        with np.errstate(all="ignore"):
+            return _gauss_newton(measured, square, diameter_ratio, wheelbase_scale)
+    except (InvalidArgumentError, np.linalg.LinAlgError):
+        raise InvalidArgumentError("the UMBmark errors fit no plausible geometry") from None
+
+
+def _gauss_newton(
+    measured: npt.NDArray[np.float64],
+    square: _Square,
+    diameter_ratio: float,
+    wheelbase_scale: float,
+) -> tuple[float, float]:
     params = np.array([diameter_ratio, wheelbase_scale])
     step = 1e-7  # central differences: truncation ~1e-14, rounding ~1e-9 of the slope
     for _ in range(20):
@@ -259,7 +283,7 @@ def _corrected(
 ) -> WheelCalibration:
     """Split a diameter ratio into two radii with mean ``radius_m · distance_scale``."""
     mean = radius_m * distance_scale
-    return WheelCalibration(
+    result = WheelCalibration(
         left_wheel_radius_m=mean * 2.0 / (diameter_ratio + 1.0),
         right_wheel_radius_m=mean * 2.0 * diameter_ratio / (diameter_ratio + 1.0),
         wheel_separation_m=separation_m,
@@ -269,15 +293,24 @@ def _corrected(
         alpha_rad=alpha_rad,
         beta_rad=beta_rad,
     )
+    for name in WheelCalibration.__slots__:
+        value = getattr(result, name)
+        if not math.isfinite(value) or (name.endswith("_m") and value <= 0.0):
+            raise InvalidArgumentError(
+                f"the measurements give {name}={value!r}: no usable geometry; check their units"
+            )
+    return result
 
 
 def _centre(name: str, errors: Sequence[tuple[float, float]]) -> tuple[float, float]:
     """Centre of gravity of a cluster of (x, y) return errors."""
     if not errors:
         raise InvalidArgumentError(f"{name} is empty: give at least one run")
-    for i, (x, y) in enumerate(errors):
-        finite(f"{name}[{i}].x", x, "m")
-        finite(f"{name}[{i}].y", y, "m")
+    for i, pair in enumerate(errors):
+        if not isinstance(pair, tuple | list) or len(pair) != 2:
+            raise InvalidArgumentError(f"{name}[{i}] must be an (x, y) pair, not {pair!r}")
+        finite(f"{name}[{i}].x", pair[0], "m")
+        finite(f"{name}[{i}].y", pair[1], "m")
     return (
         math.fsum(x for x, _ in errors) / len(errors),
         math.fsum(y for _, y in errors) / len(errors),

@@ -23,7 +23,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from ohmni_tb._checks import finite, integer, positive
+from ohmni_tb._checks import FLOAT_MAX, finite, finite_result, integer, positive, whole
 from ohmni_tb.control.defaults import DEFAULT_TICKS_PER_REV, DEFAULT_WHEEL_RADIUS_M
 from ohmni_tb.errors import InvalidArgumentError
 
@@ -42,6 +42,12 @@ __all__ = [
 COUNT_BITS = 32
 #: Width of the motor position (RAM 58, 0..16383: one motor turn).
 MOTOR_POSITION_BITS = 14
+#: The widest counter unwrapped.
+MAX_COUNTER_BITS = 64
+#: Largest continuous count a speed estimate takes (a 64-bit counter's range).
+_MAX_COUNT = 1 << 63
+#: Closest two samples may be: a speed over less is a division by rounding noise.
+MIN_SAMPLE_SPACING_S = 1e-9
 
 
 def unwrap_delta(previous: int, current: int, bits: int) -> int:
@@ -54,7 +60,14 @@ def unwrap_delta(previous: int, current: int, bits: int) -> int:
 
     Returns:
         ``current - previous`` modulo ``2**bits``, in ``[-2**(bits-1), 2**(bits-1))``.
+
+    Raises:
+        InvalidArgumentError: A reading is not an int.
+        OutOfRangeError: ``bits`` is not 2..64.
     """
+    whole("previous", previous)
+    whole("current", current)
+    integer("bits", bits, 2, MAX_COUNTER_BITS)
     modulus = 1 << bits
     half = modulus >> 1
     return (current - previous + half) % modulus - half
@@ -69,7 +82,7 @@ class Unwrapper:
     """
 
     def __init__(self, bits: int = COUNT_BITS, *, signed: bool = True) -> None:
-        self.bits = integer("bits", bits, 2)
+        self.bits = integer("bits", bits, 2, MAX_COUNTER_BITS)
         self.low = -(1 << (bits - 1)) if signed else 0
         self.high = self.low + (1 << bits) - 1
         self._raw: int | None = None
@@ -132,6 +145,16 @@ class EncoderConfig:
     def __post_init__(self) -> None:
         positive("ticks_per_rev", self.ticks_per_rev, "ticks")
         positive("wheel_radius_m", self.wheel_radius_m, "m")
+        for name in ("mirrored", "counter_signed"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidArgumentError(f"{name} must be a bool, not {getattr(self, name)!r}")
+        integer("counter_bits", self.counter_bits, 2, MAX_COUNTER_BITS)
+        per_tick = self.metres_per_tick
+        if not (math.isfinite(per_tick) and per_tick > 0.0):
+            raise InvalidArgumentError(
+                f"wheel_radius_m={self.wheel_radius_m!r} m and ticks_per_rev="
+                f"{self.ticks_per_rev!r} give {per_tick!r} m a tick: not a usable scale"
+            )
 
     @classmethod
     def left(cls, wheel_radius_m: float = DEFAULT_WHEEL_RADIUS_M) -> EncoderConfig:
@@ -149,12 +172,35 @@ class EncoderConfig:
         return 2.0 * math.pi * self.wheel_radius_m / self.ticks_per_rev
 
     def ticks_to_m(self, ticks: float) -> float:
-        """Distance rolled for ``ticks`` (forward-positive ticks, mirroring applied)."""
-        return finite("ticks", ticks, "ticks") * self.metres_per_tick
+        """Distance rolled for ``ticks`` (forward-positive ticks, mirroring applied).
+
+        Raises:
+            InvalidArgumentError: Not a number, NaN or infinite.
+            OutOfRangeError: The distance would not be a finite number.
+        """
+        per_tick = self.metres_per_tick
+        limit = FLOAT_MAX / max(per_tick, 1.0)
+        return finite_result(
+            finite("ticks", ticks, "ticks") * per_tick, "ticks", ticks, -limit, limit, unit="ticks"
+        )
 
     def m_to_ticks(self, distance_m: float) -> float:
-        """Ticks for a rolled distance (forward-positive ticks, mirroring applied)."""
-        return finite("distance_m", distance_m, "m") / self.metres_per_tick
+        """Ticks for a rolled distance (forward-positive ticks, mirroring applied).
+
+        Raises:
+            InvalidArgumentError: Not a number, NaN or infinite.
+            OutOfRangeError: The tick count would not be a finite number.
+        """
+        per_tick = self.metres_per_tick
+        limit = FLOAT_MAX * min(per_tick, 1.0)
+        return finite_result(
+            finite("distance_m", distance_m, "m") / per_tick,
+            "distance_m",
+            distance_m,
+            -limit,
+            limit,
+            unit="m",
+        )
 
 
 class VelocityEstimator:
@@ -193,13 +239,16 @@ class VelocityEstimator:
         """Add a sample of the continuous count; returns the speed estimate in ticks/s.
 
         Raises:
-            InvalidArgumentError: ``t_s`` is not finite or not after the previous sample.
+            InvalidArgumentError: ``t_s`` is not finite or not after the previous sample
+                (by at least a nanosecond), or ``count`` is not an int.
+            OutOfRangeError: ``count`` is beyond ±2**63.
         """
+        integer("count", count, -_MAX_COUNT, _MAX_COUNT, "ticks")
         finite("t_s", t_s, "s")
         samples = self._samples
         if samples:
             last_t, last_count = samples[-1]
-            if t_s <= last_t:
+            if not t_s - last_t >= MIN_SAMPLE_SPACING_S:
                 raise InvalidArgumentError(
                     f"t_s={t_s!r} s is not after the previous sample at {last_t!r} s"
                 )

@@ -17,13 +17,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb._checks import finite, positive, positive_or_inf
+from ohmni_tb._checks import FLOAT_MAX, finite, finite_result, positive, positive_or_inf
 from ohmni_tb.control.defaults import (
     DEFAULT_MAX_ANGULAR_RADPS,
     DEFAULT_MAX_LINEAR_MPS,
     DEFAULT_WHEEL_RADIUS_M,
     DEFAULT_WHEEL_SEPARATION_M,
 )
+from ohmni_tb.errors import InvalidArgumentError
 
 __all__ = [
     "DiffDrive",
@@ -87,24 +88,54 @@ class DiffDrive:
         positive("wheel_separation_m", self.wheel_separation_m, "m")
 
     def wheel_speeds(self, twist: Twist) -> WheelSpeeds:
-        """Wheel rim speeds that realise ``twist``."""
+        """Wheel rim speeds that realise ``twist``.
+
+        Raises:
+            InvalidArgumentError: ``twist`` is not a :class:`Twist`, or a wheel speed
+                would not be a finite number.
+        """
+        _check_type("twist", twist, Twist)
         half = 0.5 * twist.angular_radps * self.wheel_separation_m
         return WheelSpeeds(twist.linear_mps - half, twist.linear_mps + half)
 
     def twist(self, wheels: WheelSpeeds) -> Twist:
-        """The body velocity that wheel rim speeds ``wheels`` produce."""
+        """The body velocity that wheel rim speeds ``wheels`` produce.
+
+        Raises:
+            InvalidArgumentError: ``wheels`` is not :class:`WheelSpeeds`, or the velocity
+                would not be a finite number.
+        """
+        _check_type("wheels", wheels, WheelSpeeds)
         return Twist(
             0.5 * (wheels.left_mps + wheels.right_mps),
             (wheels.right_mps - wheels.left_mps) / self.wheel_separation_m,
         )
 
     def rim_speed_mps(self, wheel_speed_radps: float) -> float:
-        """Rim speed of a wheel turning at ``wheel_speed_radps``."""
-        return finite("wheel_speed_radps", wheel_speed_radps, "rad/s") * self.wheel_radius_m
+        """Rim speed of a wheel turning at ``wheel_speed_radps``.
+
+        Raises:
+            InvalidArgumentError: Not a number, NaN or infinite.
+            OutOfRangeError: The rim speed would not be a finite number.
+        """
+        speed = finite("wheel_speed_radps", wheel_speed_radps, "rad/s")
+        limit = FLOAT_MAX / max(self.wheel_radius_m, 1.0)
+        return finite_result(
+            speed * self.wheel_radius_m, "wheel_speed_radps", wheel_speed_radps, -limit, limit
+        )
 
     def wheel_speed_radps(self, rim_speed_mps: float) -> float:
-        """Turn rate of a wheel whose rim moves at ``rim_speed_mps``."""
-        return finite("rim_speed_mps", rim_speed_mps, "m/s") / self.wheel_radius_m
+        """Turn rate of a wheel whose rim moves at ``rim_speed_mps``.
+
+        Raises:
+            InvalidArgumentError: Not a number, NaN or infinite.
+            OutOfRangeError: The turn rate would not be a finite number.
+        """
+        speed = finite("rim_speed_mps", rim_speed_mps, "m/s")
+        limit = FLOAT_MAX * min(self.wheel_radius_m, 1.0)
+        return finite_result(
+            speed / self.wheel_radius_m, "rim_speed_mps", rim_speed_mps, -limit, limit
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,8 +198,11 @@ def limit_twist(
     Returns:
         The command to drive, its wheel speeds and the factor applied.
     """
+    _check_type("twist", twist, Twist)
     limits = limits if limits is not None else VelocityLimits()
     drive = drive if drive is not None else DiffDrive()
+    _check_type("limits", limits, VelocityLimits)
+    _check_type("drive", drive, DiffDrive)
     wheels = drive.wheel_speeds(twist)
     scale = min(
         1.0,
@@ -195,6 +229,7 @@ def saturate_wheel_speeds(wheels: WheelSpeeds, max_wheel_mps: float) -> WheelSpe
     Returns:
         ``wheels`` unchanged if within the limit, else both scaled down.
     """
+    _check_type("wheels", wheels, WheelSpeeds)
     positive_or_inf("max_wheel_mps", max_wheel_mps, "m/s")
     scale = _ratio(max_wheel_mps, max(abs(wheels.left_mps), abs(wheels.right_mps)))
     if scale >= 1.0:
@@ -206,3 +241,8 @@ def _ratio(limit: float, value: float) -> float:
     """``limit / |value|``, or inf when value is zero (no constraint)."""
     magnitude = abs(value)
     return math.inf if magnitude == 0.0 else limit / magnitude
+
+
+def _check_type(name: str, value: object, kind: type) -> None:
+    if not isinstance(value, kind):
+        raise InvalidArgumentError(f"{name} must be a {kind.__name__}, not {type(value).__name__}")

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from ohmni_tb._checks import finite, integer, positive, positive_or_inf
 from ohmni_tb.control.kinematics import Twist
+from ohmni_tb.errors import InvalidArgumentError
 
 __all__ = [
     "DELTA_VELO_RAW_MAX",
@@ -79,6 +80,9 @@ def ramp(current: float, target: float, dt_s: float, limits: AccelLimits) -> flo
     finite("current", current)
     finite("target", target)
     positive("dt_s", dt_s, "s")
+    given: object = limits  # typed, but callers may pass a number
+    if not isinstance(given, AccelLimits):
+        raise InvalidArgumentError(f"limits must be AccelLimits, not {type(given).__name__}")
     if target == current:
         return target
     if current == 0.0 or (target > current > 0.0) or (target < current < 0.0):
@@ -127,7 +131,13 @@ class TwistLimiter:
 
         Returns:
             The limited velocity to command now.
+
+        Raises:
+            InvalidArgumentError: ``target`` is not a :class:`Twist`, or ``dt_s`` is bad.
         """
+        given: object = target  # typed, but callers may pass a number
+        if not isinstance(given, Twist):
+            raise InvalidArgumentError(f"target must be a Twist, not {type(given).__name__}")
         self._current = Twist(
             ramp(self._current.linear_mps, target.linear_mps, dt_s, self.linear),
             ramp(self._current.angular_radps, target.angular_radps, dt_s, self.angular),

@@ -27,13 +27,18 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ohmni_tb._checks import finite, integer, non_negative, positive
+from ohmni_tb._checks import bounded, finite, integer, non_negative, positive
 from ohmni_tb.control.defaults import DEFAULT_WHEEL_SEPARATION_M
 from ohmni_tb.control.kinematics import Twist
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 
 __all__ = ["Odometry", "Pose", "WheelNoise", "integrate_batch", "wrap_angle"]
 
+#: Largest wheel increment one update takes: a kilometre between two reads of a robot
+#: that drives 1 m/s is a broken read, not a motion.
+MAX_INCREMENT_M = 1e3
+#: Most updates a twist window or the pose history may keep.
+_MAX_KEPT = 10_000_000
 #: Below this |dθ/2| the sinc terms use their series: exact to double precision, no 0/0.
 _SERIES_BELOW = 1e-2
 _TWO_PI = 2.0 * math.pi
@@ -109,8 +114,8 @@ class Odometry:
         history_size: int = 500,
     ) -> None:
         self.wheel_separation_m = positive("wheel_separation_m", wheel_separation_m, "m")
-        integer("twist_window", twist_window, 1)
-        integer("history_size", history_size, 1)
+        integer("twist_window", twist_window, 1, _MAX_KEPT)
+        integer("history_size", history_size, 1, _MAX_KEPT)
         self.noise = noise if noise is not None else WheelNoise()
         self._window: deque[tuple[float, float, float]] = deque(maxlen=twist_window)
         # History: times in one deque (for bisect) and (x, y, θ, ds, dθ) in another.
@@ -167,12 +172,15 @@ class Odometry:
         Returns:
             The new pose (also :attr:`pose`).
 
+        A refused update changes nothing.
+
         Raises:
-            InvalidArgumentError: An argument is NaN or infinite, or ``t_s`` is not after
-                the previous update.
+            InvalidArgumentError: An argument is NaN or infinite, ``t_s`` is not after
+                the previous update, or the step would take a value past a finite number.
+            OutOfRangeError: An increment is beyond ±1000 m.
         """
-        finite("d_left_m", d_left_m, "m")
-        finite("d_right_m", d_right_m, "m")
+        bounded("d_left_m", d_left_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
+        bounded("d_right_m", d_right_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
         finite("t_s", t_s, "s")
         if self._t_s is not None and t_s <= self._t_s:
             raise InvalidArgumentError(
@@ -183,16 +191,18 @@ class Odometry:
         theta0 = self._theta
         h = 0.5 * dtheta
         mid = theta0 + h
+        if not math.isfinite(mid):
+            raise InvalidArgumentError(
+                f"d_left_m={d_left_m!r} m and d_right_m={d_right_m!r} m turn the heading past "
+                f"any finite angle with wheel_separation_m={self.wheel_separation_m!r}"
+            )
         sinc_h = _sinc(h)
         chord = ds * sinc_h
         cos_mid = math.cos(mid)
         sin_mid = math.sin(mid)
         dx = chord * cos_mid
         dy = chord * sin_mid
-        self._x += dx
-        self._y += dy
-        self._theta = theta0 + dtheta
-        self._propagate(
+        cov = self._propagated(
             d_left_m,
             d_right_m,
             ds=ds,
@@ -203,14 +213,33 @@ class Odometry:
             cos_mid=cos_mid,
             sin_mid=sin_mid,
         )
-
+        twist = self._twist
+        window = list(self._window)
         if self._t_s is not None:
-            self._window.append((t_s - self._t_s, ds, dtheta))
-            total_dt = math.fsum(w[0] for w in self._window)
-            self._twist = Twist(
-                math.fsum(w[1] for w in self._window) / total_dt,
-                math.fsum(w[2] for w in self._window) / total_dt,
+            # What the window holds after this update (the deque drops its oldest).
+            keep = self._window.maxlen or 1
+            window = [*window, (t_s - self._t_s, ds, dtheta)][-keep:]
+        x, y, theta = self._x + dx, self._y + dy, theta0 + dtheta
+        if self._t_s is not None:
+            total_dt = math.fsum(w[0] for w in window)
+            linear = math.fsum(w[1] for w in window) / total_dt
+            angular = math.fsum(w[2] for w in window) / total_dt
+            if not (math.isfinite(linear) and math.isfinite(angular)):
+                raise InvalidArgumentError(
+                    f"t_s={t_s!r} s is too close to the previous update at {self._t_s!r} s "
+                    f"for increments of {d_left_m!r} m and {d_right_m!r} m: the speed overflows"
+                )
+            twist = Twist(linear, angular)
+        if not all(math.isfinite(v) for v in (x, y, theta, *cov)):
+            raise InvalidArgumentError(
+                f"d_left_m={d_left_m!r} m and d_right_m={d_right_m!r} m take the pose or its "
+                f"covariance past a finite number; reset() the odometry"
             )
+        # Committed only now, so a refused update changes nothing.
+        self._x, self._y, self._theta, self._cov = x, y, theta, cov
+        if self._t_s is not None:
+            self._window.append(window[-1])
+            self._twist = twist
         self._t_s = float(t_s)
         self._times.append(self._t_s)
         self._states.append((self._x, self._y, self._theta, ds, dtheta))
@@ -273,7 +302,7 @@ class Odometry:
             wrap_angle(theta0 + fraction * dtheta),
         )
 
-    def _propagate(
+    def _propagated(
         self,
         d_left_m: float,
         d_right_m: float,
@@ -285,8 +314,8 @@ class Odometry:
         dy: float,
         cos_mid: float,
         sin_mid: float,
-    ) -> None:
-        """Propagate the covariance through one arc step: ``F Σ Fᵀ + G Q Gᵀ``."""
+    ) -> tuple[float, float, float, float, float, float]:
+        """The covariance after one arc step: ``F Σ Fᵀ + G Q Gᵀ``."""
         a, b, c, d, e, f = self._cov
         # F = I + [[0, 0, -dy], [0, 0, dx], [0, 0, 0]]: heading error swings the step.
         p, q = -dy, dx
@@ -317,7 +346,7 @@ class Odometry:
             d += var * jy * jy
             e += var * jy * jt
             f += var * jt * jt
-        self._cov = (a, b, c, d, e, f)
+        return (a, b, c, d, e, f)
 
 
 def integrate_batch(
@@ -346,39 +375,61 @@ def integrate_batch(
         N×3 float64 array; row ``i`` is ``(x, y, yaw)`` after increment ``i``.
 
     Raises:
-        InvalidArgumentError: The inputs are not 1-D of equal length, or hold NaN or inf.
+        InvalidArgumentError: The inputs are not 1-D of equal length, hold NaN or inf, or
+            are so extreme that a pose would not be a finite number.
     """
     b = positive("wheel_separation_m", wheel_separation_m, "m")
     start = start if start is not None else Pose()
+    given: object = start  # typed, but callers may pass a tuple
+    if not isinstance(given, Pose):
+        raise InvalidArgumentError(f"start must be a Pose, not {type(given).__name__}")
     dl = _as_increments("d_left_m", d_left_m)
     dr = _as_increments("d_right_m", d_right_m)
     if dl.shape != dr.shape:
         raise InvalidArgumentError(f"d_left_m has {dl.size} increments but d_right_m has {dr.size}")
-    n = dl.size
-    ds = 0.5 * (dl + dr)
-    dtheta = (dr - dl) / b
-    # Prepending the start makes cumsum add in the streaming order: (θ0 + a) + b, ...
-    theta = np.empty(n + 1)
-    theta[0] = start.yaw
-    theta[1:] = dtheta
-    np.cumsum(theta, out=theta)
-    h = 0.5 * dtheta
-    mid = theta[:-1] + h
-    chord = ds * _sinc_array(h)
-    out = np.empty((n, 3))
-    steps = np.empty(n + 1)
-    steps[0] = start.x
-    np.multiply(chord, np.cos(mid), out=steps[1:])
-    out[:, 0] = np.cumsum(steps)[1:]
-    steps[0] = start.y
-    np.multiply(chord, np.sin(mid), out=steps[1:])
-    out[:, 1] = np.cumsum(steps)[1:]
-    out[:, 2] = _wrap_array(theta[1:]) if wrap_yaw else theta[1:]
+    # Extreme but finite inputs may overflow; the result is checked as a whole below.
+    with np.errstate(over="ignore", invalid="ignore"):
+        n = dl.size
+        ds = 0.5 * (dl + dr)
+        dtheta = (dr - dl) / b
+        # Prepending the start makes cumsum add in the streaming order: (θ0 + a) + b, ...
+        theta = np.empty(n + 1)
+        theta[0] = start.yaw
+        theta[1:] = dtheta
+        np.cumsum(theta, out=theta)
+        h = 0.5 * dtheta
+        mid = theta[:-1] + h
+        chord = ds * _sinc_array(h)
+        out = np.empty((n, 3))
+        steps = np.empty(n + 1)
+        steps[0] = start.x
+        np.multiply(chord, np.cos(mid), out=steps[1:])
+        out[:, 0] = np.cumsum(steps)[1:]
+        steps[0] = start.y
+        np.multiply(chord, np.sin(mid), out=steps[1:])
+        out[:, 1] = np.cumsum(steps)[1:]
+        out[:, 2] = _wrap_array(theta[1:]) if wrap_yaw else theta[1:]
+    return _check_batch(out)
+
+
+def _check_batch(out: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """``out`` if every pose in it is finite, else the first step that overflowed."""
+    bad = np.flatnonzero(~np.all(np.isfinite(out), axis=1))
+    if bad.size:
+        raise InvalidArgumentError(
+            f"the pose after increment {int(bad[0])} is not a finite number: the increments "
+            f"or wheel_separation_m are too extreme to integrate"
+        )
     return out
 
 
 def wrap_angle(angle_rad: float) -> float:
-    """``angle_rad`` wrapped to ``(-π, π]``; angles already inside are returned as is."""
+    """``angle_rad`` wrapped to ``(-π, π]``; angles already inside are returned as is.
+
+    Raises:
+        InvalidArgumentError: ``angle_rad`` is not a number, NaN or infinite.
+    """
+    finite("angle_rad", angle_rad, "rad")
     if -math.pi < angle_rad <= math.pi:
         return angle_rad
     return math.pi - (math.pi - angle_rad) % _TWO_PI
@@ -417,7 +468,10 @@ def _wrap_array(angle_rad: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 
 def _as_increments(name: str, values: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """``values`` as a 1-D float64 array of finite numbers, or a clear error."""
-    array = np.asarray(values, dtype=np.float64)
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise InvalidArgumentError(f"{name} must be numbers in metres: {exc}") from None
     if array.ndim != 1:
         raise InvalidArgumentError(f"{name} must be 1-D, got shape {array.shape}")
     bad = np.flatnonzero(~np.isfinite(array))

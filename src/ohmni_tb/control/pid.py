@@ -25,16 +25,29 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ohmni_tb._checks import finite, non_negative, positive
+from ohmni_tb._checks import bounded, finite
 from ohmni_tb.control.defaults import PWM_LIMIT
 from ohmni_tb.errors import InvalidArgumentError
 
 __all__ = ["PidController", "PidGains", "PidStep"]
 
+# Limits far beyond any wheel loop, chosen so that no product or quotient of the loop's
+# terms can overflow: every output stays a finite number inside the clamp.
+#: Largest gain: a wheel loop uses hundreds to thousands of PWM per m/s.
+MAX_GAIN = 1e12
+#: Largest setpoint or measurement magnitude (m/s for a wheel).
+MAX_SIGNAL = 1e9
+#: Shortest step: below a microsecond a derivative is noise divided by nothing.
+MIN_DT_S = 1e-6
+#: Longest step: a loop stalled for hours should be reset, not stepped.
+MAX_DT_S = 1e4
+#: Largest output limit magnitude.
+MAX_OUTPUT = 1e15
+
 
 @dataclass(frozen=True, slots=True)
 class PidGains:
-    """Gains of a :class:`PidController`. All are >= 0.
+    """Gains of a :class:`PidController`. All are 0..1e12.
 
     The loop is written in the wheel's forward-positive frame; the mirrored right wheel
     is handled where the PWM is encoded, so no gain is ever negative.
@@ -56,7 +69,11 @@ class PidGains:
 
     def __post_init__(self) -> None:
         for name in ("kp", "ki", "kd", "kff", "ff_offset"):
-            non_negative(name, getattr(self, name))
+            value = getattr(self, name)
+            finite(name, value)
+            if value < 0.0:
+                raise InvalidArgumentError(f"{name}={value!r} must be >= 0")
+            bounded(name, value, 0.0, MAX_GAIN)
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,10 +118,15 @@ class PidController:
 
     Args:
         gains: The initial gains.
-        output_min: Lower output limit (default -1000, the PWM range).
+        output_min: Lower output limit (default -1000, the PWM range); |limit| <= 1e15.
         output_max: Upper output limit (default +1000).
-        derivative_tau_s: Time constant of the derivative's first-order low-pass; 0 turns
-            the filter off.
+        derivative_tau_s: Time constant of the derivative's first-order low-pass, 0..1e4 s;
+            0 turns the filter off.
+
+    Raises:
+        InvalidArgumentError: ``gains`` is not :class:`PidGains`, a limit is NaN or
+            infinite, or ``output_min >= output_max``.
+        OutOfRangeError: A limit or ``derivative_tau_s`` is out of range.
     """
 
     def __init__(
@@ -115,8 +137,9 @@ class PidController:
         output_max: float = PWM_LIMIT,
         derivative_tau_s: float = 0.0,
     ) -> None:
-        finite("output_min", output_min)
-        finite("output_max", output_max)
+        _check_gains(gains)
+        bounded("output_min", output_min, -MAX_OUTPUT, MAX_OUTPUT)
+        bounded("output_max", output_max, -MAX_OUTPUT, MAX_OUTPUT)
         if not output_min < output_max:
             raise InvalidArgumentError(
                 f"output_min={output_min!r} must be below output_max={output_max!r}"
@@ -124,7 +147,7 @@ class PidController:
         self._gains = gains
         self._output_min = float(output_min)
         self._output_max = float(output_max)
-        self._derivative_tau_s = non_negative("derivative_tau_s", derivative_tau_s, "s")
+        self._derivative_tau_s = bounded("derivative_tau_s", derivative_tau_s, 0.0, MAX_DT_S, "s")
         self._integral = 0.0
         self._rate = 0.0  # filtered d(measurement)/dt
         self._last_measurement: float | None = None
@@ -148,31 +171,35 @@ class PidController:
     def step(self, setpoint: float, measurement: float, dt_s: float) -> PidStep:
         """Run the loop once.
 
+        A refused step changes nothing: the controller goes on as if it never came.
+
         Args:
-            setpoint: The wanted value (m/s for a wheel).
-            measurement: The measured value, in the setpoint's unit.
-            dt_s: Time since the previous step, measured by the caller; > 0.
+            setpoint: The wanted value (m/s for a wheel), |setpoint| <= 1e9.
+            measurement: The measured value, in the setpoint's unit, |measurement| <= 1e9.
+            dt_s: Time since the previous step, measured by the caller; 1e-6..1e4 s.
 
         Returns:
-            Every term of the step; ``.output`` is what goes to the motor.
+            Every term of the step; ``.output`` is what goes to the motor: always a finite
+            number within the output limits.
 
         Raises:
-            InvalidArgumentError: An argument is NaN or infinite, or ``dt_s <= 0``.
+            InvalidArgumentError: An argument is not a number, NaN or infinite.
+            OutOfRangeError: An argument is outside its range.
         """
-        finite("setpoint", setpoint)
-        finite("measurement", measurement)
-        positive("dt_s", dt_s, "s")
+        bounded("setpoint", setpoint, -MAX_SIGNAL, MAX_SIGNAL)
+        bounded("measurement", measurement, -MAX_SIGNAL, MAX_SIGNAL)
+        bounded("dt_s", dt_s, MIN_DT_S, MAX_DT_S, "s")
         g = self._gains
         error = setpoint - measurement
+        rate = self._rate
         if self._last_measurement is not None:
             raw_rate = (measurement - self._last_measurement) / dt_s
             # Discrete first-order low-pass; alpha == 1 when the filter is off.
             alpha = dt_s / (self._derivative_tau_s + dt_s)
-            self._rate += alpha * (raw_rate - self._rate)
-        self._last_measurement = measurement
+            rate += alpha * (raw_rate - rate)
 
         p = g.kp * error
-        d = -g.kd * self._rate
+        d = -g.kd * rate
         ff = _feed_forward(g, setpoint)
         rest = ff + p + d
         integral = self._integral + g.ki * error * dt_s
@@ -184,8 +211,16 @@ class PidController:
             integral = min(integral, max(self._integral, self._output_max - rest))
         elif integral < self._integral:
             integral = max(integral, min(self._integral, self._output_min - rest))
-        self._integral = integral
         raw = rest + integral
+        if not math.isfinite(raw):  # unreachable within the limits above; kept as a guard
+            raise InvalidArgumentError(
+                f"step(setpoint={setpoint!r}, measurement={measurement!r}, dt_s={dt_s!r}) "
+                f"gives a non-finite output with {g}"
+            )
+        # Committed only now, so a refused step leaves no trace.
+        self._rate = rate
+        self._last_measurement = float(measurement)
+        self._integral = integral
         output = min(max(raw, self._output_min), self._output_max)
         self._last = PidStep(
             setpoint=float(setpoint),
@@ -210,7 +245,11 @@ class PidController:
 
         Args:
             gains: The new gains.
+
+        Raises:
+            InvalidArgumentError: ``gains`` is not :class:`PidGains`.
         """
+        _check_gains(gains)
         last = self._last
         if last is not None:
             new_rest = (
@@ -239,3 +278,9 @@ def _feed_forward(gains: PidGains, setpoint: float) -> float:
     if setpoint == 0.0:
         return 0.0
     return gains.kff * setpoint + math.copysign(gains.ff_offset, setpoint)
+
+
+def _check_gains(gains: PidGains) -> None:
+    given: object = gains  # typed, but callers may pass a dict or a tuple
+    if not isinstance(given, PidGains):
+        raise InvalidArgumentError(f"gains must be PidGains, not {type(given).__name__}")

@@ -25,6 +25,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Final
 
+from ohmni_tb._checks import show
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 from ohmni_tb.protocol import Memory
 
@@ -240,9 +241,9 @@ class RegisterMap:
         """
         try:
             return self._by_addr[addr]
-        except KeyError:
+        except (KeyError, TypeError):  # TypeError: an unhashable address
             raise InvalidArgumentError(
-                f"no {self.memory.name} register starts at address {addr!r}"
+                f"no {self.memory.name} register starts at address {show(addr)}"
             ) from None
 
     def writable(self, addr: int, length: int) -> bool:
@@ -250,7 +251,13 @@ class RegisterMap:
 
         Reserved bytes inside the memory are writable (the firmware stores them); bytes
         of read-only registers and bytes past the end are not.
+
+        Raises:
+            InvalidArgumentError: ``addr`` or ``length`` is not an int.
         """
+        for name, value in (("addr", addr), ("length", length)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(f"{name} must be an int, not {show(value)}")
         if addr < 0 or length < 0 or addr + length > self.size:
             return False
         return not any(r.read_only and r.addr < addr + length and addr < r.end for r in self)

@@ -11,7 +11,7 @@
 
     async def main() -> None:
         async with Bus(await open_transport("sim://")) as bus:
-            neck = Servo(bus, 3, min_raw=280, max_raw=650)
+            neck = Servo(bus, 3)  # sid 3 is the neck: 280..650 unless told otherwise
             await neck.torque(TorqueControl.ON)
             await neck.move_to(650, playtime_s=1.0)
             print(await neck.position_raw(), neck.last_status)
@@ -38,6 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from ohmni_tb._checks import bounded, show
 from ohmni_tb.errors import (
     DeviceStatusError,
     InvalidArgumentError,
@@ -63,12 +64,15 @@ from ohmni_tb.herkulex.commands import (
 )
 from ohmni_tb.herkulex.registers import EEP, RAM, Led, Model, Register, TorqueControl, resolve
 from ohmni_tb.herkulex.units import (
+    POSITION_MAX_RAW,
     angle_rad_from_raw,
     check_playtime_ticks,
+    check_zero_offset_raw,
     playtime_ticks_from_s,
     pos_raw_from_rad,
 )
 from ohmni_tb.protocol import Command, Memory, Packet, StatusDetail, StatusError, flag_names
+from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId
 
 __all__ = ["Requester", "Servo", "ServoStatus", "move_group"]
 
@@ -79,6 +83,8 @@ _BLOCKING_ERRORS = StatusError.TEMPERATURE | StatusError.OVERLOAD | StatusError.
 
 #: Time a servo needs after REBOOT before it answers (undocumented; drivers wait 1-2 s).
 REBOOT_SETTLE_S = 1.0
+#: The longest wait after a REBOOT a caller may ask for.
+_MAX_SETTLE_S = 60.0
 
 #: How old a cached status may be for a move to go without a STAT first. A 30 Hz poll
 #: refreshes it every 33 ms, so 0.1 s survives two missed polls.
@@ -164,9 +170,10 @@ class Servo:
         sid: Its id, 0..0xFD.
         zero_offset_raw: Raw counts added to the centre (512) to define 0 rad, like
             tb_control's ``set_servo_zero_offset``.
-        min_raw: The lowest position a move may ask for (default: the servo's own
-            factory minimum, 21). The neck uses 280.
-        max_raw: The highest (default 1002). The neck uses 650.
+        min_raw: The lowest position a move may ask for. Default: the neck's safe
+            minimum (280, :data:`~ohmni_tb.protocol.devices.NECK_RAW_RANGE`) for sid 3,
+            the servo's own factory minimum (21) for any other id.
+        max_raw: The highest: the neck's 650 for sid 3, else 1002.
         status_max_age_s: How old (in loop time) a cached status may be for a move to
             trust it instead of asking the servo first, 0..1 s (0: always ask).
 
@@ -194,11 +201,16 @@ class Servo:
             )
         RAM["id"].check(sid)
         _check_status_max_age(status_max_age_s)
-        low = _factory_default("min_position") if min_raw is None else min_raw
-        high = _factory_default("max_position") if max_raw is None else max_raw
-        if not 0 <= low <= high <= 1023:
+        check_zero_offset_raw(zero_offset_raw)
+        default_low, default_high = _default_range(sid)
+        low = default_low if min_raw is None else min_raw
+        high = default_high if max_raw is None else max_raw
+        for name, value in (("min_raw", low), ("max_raw", high)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(f"{name} must be an int, not {show(value)}")
+        if not 0 <= low <= high <= POSITION_MAX_RAW:
             raise InvalidArgumentError(
-                f"min_raw={low} and max_raw={high} must satisfy 0 <= min <= max <= 1023"
+                f"min_raw={show(low)} and max_raw={show(high)} must satisfy 0 <= min <= max <= 1023"
             )
         self._requester = requester
         self.sid = sid
@@ -368,9 +380,13 @@ class Servo:
         if (pos_raw is None) == (angle_rad is None):
             raise InvalidArgumentError("give exactly one of pos_raw or angle_rad")
         if angle_rad is not None:
-            if not math.isfinite(angle_rad):
-                raise OutOfRangeError("angle_rad", angle_rad, -math.pi, math.pi, "rad")
-            pos_raw = pos_raw_from_rad(angle_rad, zero_offset_raw=self.zero_offset_raw)
+            # Checked against this servo's range, so the error gives it in radians.
+            pos_raw = pos_raw_from_rad(
+                angle_rad,
+                zero_offset_raw=self.zero_offset_raw,
+                min_raw=self.min_raw,
+                max_raw=self.max_raw,
+            )
         assert pos_raw is not None
         if isinstance(pos_raw, bool) or not isinstance(pos_raw, int):
             raise InvalidArgumentError(f"pos_raw must be an int, not {pos_raw!r}")
@@ -432,7 +448,12 @@ class Servo:
         self.sid = new_sid
 
     async def reboot(self, *, settle_s: float = REBOOT_SETTLE_S) -> None:
-        """Reboot (EEP is copied to RAM, torque free) and wait for it to come back."""
+        """Reboot (EEP is copied to RAM, torque free) and wait for it to come back.
+
+        Raises:
+            OutOfRangeError: ``settle_s`` is not 0..60 s; nothing sent.
+        """
+        bounded("settle_s", settle_s, 0.0, _MAX_SETTLE_S, "s")
         await self._send(reboot(self.sid))
         self._torque_wanted = TorqueControl.FREE
         await asyncio.sleep(settle_s)
@@ -546,6 +567,18 @@ def _changes_status(packet: Packet) -> bool:
         return False
     start, length = packet.data[0], packet.data[1]
     return any(start <= reg.addr < start + length for reg in _STATUS_REGISTERS)
+
+
+def _default_range(sid: int) -> tuple[int, int]:
+    """The positions a :class:`Servo` with id ``sid`` allows when none are given.
+
+    The neck (sid 3) gets its safe range, :data:`~ohmni_tb.protocol.devices.NECK_RAW_RANGE`
+    (280..650: beyond it the head hits its stops); any other servo its factory
+    min/max position (21..1002).
+    """
+    if sid == DeviceId.HERKULEX_NECK:
+        return NECK_RAW_RANGE
+    return _factory_default("min_position"), _factory_default("max_position")
 
 
 def _factory_default(register: str) -> int:

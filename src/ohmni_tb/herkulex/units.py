@@ -21,7 +21,8 @@ from __future__ import annotations
 import math
 from typing import Final
 
-from ohmni_tb._checks import finite
+from ohmni_tb._checks import FLOAT_MAX as _FLOAT_MAX
+from ohmni_tb._checks import finite, finite_result, integer
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 
 __all__ = [
@@ -30,13 +31,16 @@ __all__ = [
     "DEG_S_PER_DIFF",
     "MAX_PLAYTIME_S",
     "MAX_PLAYTIME_TICKS",
+    "MAX_VOLTAGE_V",
     "POSITION_MAX_RAW",
     "TICK_S",
     "VOLT_PER_COUNT",
     "angle_deg_from_raw",
     "angle_rad_from_raw",
     "check_playtime_ticks",
+    "check_zero_offset_raw",
     "playtime_s_from_ticks",
+    "playtime_sent_s",
     "playtime_ticks_from_s",
     "pos_raw_from_deg",
     "pos_raw_from_rad",
@@ -60,7 +64,12 @@ VOLT_PER_COUNT: Final = 0.074
 TICK_S: Final = 0.0112
 #: The playtime byte's largest legal value; 255 is outside the manual's range.
 MAX_PLAYTIME_TICKS: Final = 254
-MAX_PLAYTIME_S: Final = MAX_PLAYTIME_TICKS * TICK_S
+#: How far outside 0..1023 ``min_raw`` and ``max_raw`` may reach (a range that never binds).
+_RAW_LIMIT_SPAN: Final = 1 << 20
+#: The longest playtime, 254 ticks.
+MAX_PLAYTIME_S: Final = round(MAX_PLAYTIME_TICKS * TICK_S, 6)
+#: The largest voltage the voltage registers hold (0xFF counts).
+MAX_VOLTAGE_V: Final = round(0xFF * VOLT_PER_COUNT, 6)
 
 
 def angle_deg_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
@@ -71,10 +80,25 @@ def angle_deg_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
         zero_offset_raw: The raw offset of this servo's 0 ° from the centre (512).
 
     Raises:
-        InvalidArgumentError: ``pos_raw`` is NaN or infinite.
+        InvalidArgumentError: ``pos_raw`` is not a number, NaN or infinite, or
+            ``zero_offset_raw`` is not an int.
+        OutOfRangeError: ``zero_offset_raw`` is outside −512..511.
     """
-    finite("pos_raw", pos_raw)
-    return (pos_raw - CENTRE_RAW - zero_offset_raw) * DEG_PER_COUNT
+    raw = finite("pos_raw", pos_raw)
+    offset = check_zero_offset_raw(zero_offset_raw)
+    return (raw - CENTRE_RAW - offset) * DEG_PER_COUNT
+
+
+def check_zero_offset_raw(zero_offset_raw: int) -> int:
+    """Return ``zero_offset_raw`` if it puts 0 ° on a real position (0..1023).
+
+    Raises:
+        InvalidArgumentError: Not an int.
+        OutOfRangeError: Outside −512..511.
+    """
+    return integer(
+        "zero_offset_raw", zero_offset_raw, -CENTRE_RAW, POSITION_MAX_RAW - CENTRE_RAW, "count"
+    )
 
 
 def pos_raw_from_deg(
@@ -88,23 +112,26 @@ def pos_raw_from_deg(
 
     Args:
         angle_deg: The angle, 0 ° being ``512 + zero_offset_raw``.
-        zero_offset_raw: The raw offset of this servo's 0 ° from the centre.
+        zero_offset_raw: The raw offset of this servo's 0 ° from the centre (−512..511).
         min_raw: The smallest raw position allowed (the servo's min position, or the
             range of the joint, like the neck's 280).
         max_raw: The largest raw position allowed.
 
     Raises:
-        InvalidArgumentError: ``angle_deg`` is NaN or infinite.
+        InvalidArgumentError: ``angle_deg`` is not a number, NaN or infinite, or a
+            keyword is not an int, or ``min_raw > max_raw``.
         OutOfRangeError: The angle lies outside ``min_raw..max_raw``; the error gives
             the allowed range in degrees.
     """
-    finite("angle_deg", angle_deg)
-    pos_raw = round(angle_deg / DEG_PER_COUNT) + CENTRE_RAW + zero_offset_raw
-    if not min_raw <= pos_raw <= max_raw:
-        low = angle_deg_from_raw(min_raw, zero_offset_raw=zero_offset_raw)
-        high = angle_deg_from_raw(max_raw, zero_offset_raw=zero_offset_raw)
-        raise OutOfRangeError("angle_deg", angle_deg, low, high, "deg")
-    return pos_raw
+    return _pos_raw(
+        "angle_deg",
+        angle_deg,
+        "deg",
+        deg_per_unit=1.0,
+        zero_offset_raw=zero_offset_raw,
+        min_raw=min_raw,
+        max_raw=max_raw,
+    )
 
 
 def angle_rad_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
@@ -122,27 +149,30 @@ def pos_raw_from_rad(
     """Convert radians to the nearest raw position; see :func:`pos_raw_from_deg`.
 
     Raises:
-        InvalidArgumentError: ``angle_rad`` is NaN or infinite.
+        InvalidArgumentError: ``angle_rad`` is not a number, NaN or infinite.
         OutOfRangeError: The angle lies outside ``min_raw..max_raw`` (given in rad).
     """
-    finite("angle_rad", angle_rad)
-    try:
-        return pos_raw_from_deg(
-            math.degrees(angle_rad),
-            zero_offset_raw=zero_offset_raw,
-            min_raw=min_raw,
-            max_raw=max_raw,
-        )
-    except OutOfRangeError as exc:
-        raise OutOfRangeError(
-            "angle_rad", angle_rad, math.radians(exc.low), math.radians(exc.high), "rad"
-        ) from None
+    return _pos_raw(
+        "angle_rad",
+        angle_rad,
+        "rad",
+        deg_per_unit=math.degrees(1.0),
+        zero_offset_raw=zero_offset_raw,
+        min_raw=min_raw,
+        max_raw=max_raw,
+    )
 
 
 def speed_dps_from_raw(diff_raw: int) -> float:
-    """Convert a differential position (RAM 62, signed) to degrees per second."""
-    finite("diff_raw", diff_raw)
-    return diff_raw * DEG_S_PER_DIFF
+    """Convert a differential position (RAM 62, signed) to degrees per second.
+
+    Raises:
+        InvalidArgumentError: ``diff_raw`` is not a number, NaN or infinite.
+        OutOfRangeError: The speed would not be a finite number.
+    """
+    raw = finite("diff_raw", diff_raw)
+    limit = _FLOAT_MAX / DEG_S_PER_DIFF
+    return finite_result(raw * DEG_S_PER_DIFF, "diff_raw", diff_raw, -limit, limit)
 
 
 def speed_rad_s_from_raw(diff_raw: int) -> float:
@@ -151,38 +181,47 @@ def speed_rad_s_from_raw(diff_raw: int) -> float:
 
 
 def voltage_v_from_raw(voltage_raw: int) -> float:
-    """Convert a voltage register value (RAM 54, EEP 12/13) to volts."""
-    finite("voltage_raw", voltage_raw)
-    return voltage_raw * VOLT_PER_COUNT
+    """Convert a voltage register value (RAM 54, EEP 12/13) to volts.
+
+    Raises:
+        InvalidArgumentError: ``voltage_raw`` is not a number, NaN or infinite.
+    """
+    return finite("voltage_raw", voltage_raw) * VOLT_PER_COUNT
 
 
 def voltage_raw_from_v(voltage_v: float) -> int:
     """Convert volts to the nearest voltage register value (for the min/max settings).
 
     Raises:
-        InvalidArgumentError: ``voltage_v`` is NaN or infinite.
+        InvalidArgumentError: ``voltage_v`` is not a number, NaN or infinite.
         OutOfRangeError: The value does not fit the register's byte (0..18.87 V).
     """
-    finite("voltage_v", voltage_v)
-    voltage_raw = round(voltage_v / VOLT_PER_COUNT)
-    if not 0 <= voltage_raw <= 0xFF:
-        raise OutOfRangeError("voltage_v", voltage_v, 0.0, 0xFF * VOLT_PER_COUNT, "V")
-    return voltage_raw
+    volts = finite("voltage_v", voltage_v, "V")
+    counts = volts / VOLT_PER_COUNT
+    # Compared before rounding: round() of a huge float is a huge int, of inf an error.
+    if not -0.5 <= counts <= 0xFF + 0.5 or not 0 <= round(counts) <= 0xFF:
+        raise OutOfRangeError("voltage_v", voltage_v, 0.0, MAX_VOLTAGE_V, "V")
+    return round(counts)
 
 
 def playtime_ticks_from_s(playtime_s: float) -> int:
     """Convert a playtime in seconds to the nearest whole number of 11.2 ms ticks.
 
+    The seconds actually sent are :func:`playtime_s_from_ticks` of the result, or
+    :func:`playtime_sent_s` in one call (2.85 s is sent as 254 ticks, 2.8448 s).
+
     Raises:
-        InvalidArgumentError: ``playtime_s`` is NaN or infinite.
-        OutOfRangeError: The playtime rounds outside 0..254 ticks (0..2.8448 s); it is
-            never wrapped to 8 bits nor clamped.
+        InvalidArgumentError: ``playtime_s`` is not a number, NaN or infinite.
+        OutOfRangeError: The playtime is negative or rounds above 254 ticks (2.8448 s);
+            it is never wrapped to 8 bits nor clamped.
     """
-    finite("playtime_s", playtime_s)
-    ticks = round(playtime_s / TICK_S)
-    if not 0 <= ticks <= MAX_PLAYTIME_TICKS:
+    seconds = finite("playtime_s", playtime_s, "s")
+    ticks = seconds / TICK_S
+    # A negative playtime is refused even where it would round to 0 ticks; compared
+    # before rounding, so a huge value never becomes a huge int.
+    if not 0.0 <= ticks <= MAX_PLAYTIME_TICKS + 0.5 or round(ticks) > MAX_PLAYTIME_TICKS:
         raise OutOfRangeError("playtime_s", playtime_s, 0.0, MAX_PLAYTIME_S, "s")
-    return ticks
+    return round(ticks)
 
 
 def playtime_s_from_ticks(playtime_ticks: int) -> float:
@@ -193,7 +232,21 @@ def playtime_s_from_ticks(playtime_ticks: int) -> float:
         OutOfRangeError: ``playtime_ticks`` is outside 0..254.
     """
     check_playtime_ticks(playtime_ticks)
-    return playtime_ticks * TICK_S
+    # Rounded to the 0.1 ms the ticks are made of, so 254 ticks print as 2.8448 s.
+    return round(playtime_ticks * TICK_S, 6)
+
+
+def playtime_sent_s(playtime_s: float) -> float:
+    """The playtime actually sent for ``playtime_s``: rounded to whole 11.2 ms ticks.
+
+    ``playtime_sent_s(2.85)`` is 2.8448 (254 ticks), ``playtime_sent_s(0.5)`` 0.504
+    (45 ticks); show this, not the request, when telling a user what was sent.
+
+    Raises:
+        InvalidArgumentError: ``playtime_s`` is not a number, NaN or infinite.
+        OutOfRangeError: As :func:`playtime_ticks_from_s`.
+    """
+    return playtime_s_from_ticks(playtime_ticks_from_s(playtime_s))
 
 
 def check_playtime_ticks(playtime_ticks: int) -> int:
@@ -212,3 +265,34 @@ def check_playtime_ticks(playtime_ticks: int) -> int:
     if not 0 <= playtime_ticks <= MAX_PLAYTIME_TICKS:
         raise OutOfRangeError("playtime_ticks", playtime_ticks, 0, MAX_PLAYTIME_TICKS, "ticks")
     return playtime_ticks
+
+
+def _pos_raw(
+    name: str,
+    angle: float,
+    unit: str,
+    *,
+    deg_per_unit: float,
+    zero_offset_raw: int,
+    min_raw: int,
+    max_raw: int,
+) -> int:
+    """The nearest raw position of ``angle`` (in ``unit``), checked against the range."""
+    value = finite(name, angle, unit)
+    offset = check_zero_offset_raw(zero_offset_raw)
+    # Wider than a position can be, so a caller may switch the range check off.
+    low_raw = integer("min_raw", min_raw, -_RAW_LIMIT_SPAN, _RAW_LIMIT_SPAN, "count")
+    high_raw = integer("max_raw", max_raw, -_RAW_LIMIT_SPAN, _RAW_LIMIT_SPAN, "count")
+    if low_raw > high_raw:
+        raise InvalidArgumentError(f"min_raw={low_raw} is above max_raw={high_raw}")
+    # Counts from 0 deg; a huge angle overflows to inf, which the range check refuses
+    # before round() could fail on it.
+    counts = value * deg_per_unit / DEG_PER_COUNT
+    centre = CENTRE_RAW + offset
+    if low_raw - 0.5 <= counts + centre <= high_raw + 0.5:
+        pos_raw = round(counts) + centre
+        if low_raw <= pos_raw <= high_raw:
+            return pos_raw
+    low = (low_raw - centre) * DEG_PER_COUNT / deg_per_unit
+    high = (high_raw - centre) * DEG_PER_COUNT / deg_per_unit
+    raise OutOfRangeError(name, angle, round(low, 6), round(high, 6), unit)

@@ -49,11 +49,11 @@ The rules:
   the request *ambiguous* — missing, retried, never guessed — and so does a look-alike
   that came before its reply could. A confirmed reply clears the suspicion, so a healthy
   line never waits.
-* **Breaker.** After ``breaker_timeouts`` missing replies in a row and no reply for
-  ``breaker_quiet_s``, a device is presumed gone: :meth:`~BusConnection.refusal` says to
-  fail requests to it at once, except probes: the first 0.125 s after it opened, then
-  at doubling gaps up to one every ``probe_interval_s``; its first reply closes the
-  breaker.
+* **Breaker.** After ``breaker_timeouts`` missing replies in a row, spanning at least
+  ``breaker_quiet_s`` from when the first of them was sent, a device is presumed gone:
+  :meth:`~BusConnection.refusal` says to fail requests to it at once, except probes: the
+  first 0.125 s after it opened, then at doubling gaps up to one every
+  ``probe_interval_s``; its first reply closes the breaker.
 * **Nothing dropped silently.** Echoes of our own requests, other masters' requests,
   early, late, unmatched replies and replies to abandoned requests are each counted, per
   device where there is one, beside the decoder's own counters.
@@ -453,6 +453,7 @@ class _Device:
         "breaker",
         "consecutive",
         "early",
+        "first_miss_at",
         "last_reply_at",
         "late",
         "latencies",
@@ -479,6 +480,7 @@ class _Device:
         self.latencies: deque[float] = deque(maxlen=_LATENCY_WINDOW)
         self.last_reply_at: float | None = None
         self.consecutive = 0
+        self.first_miss_at = 0.0
         self.breaker = BreakerState.CLOSED
         self.next_probe_at = 0.0
         self.probe_gap = 0.0
@@ -540,7 +542,8 @@ class BusConnection:
         pipelined: Send on the model's timing (``True``) or only after the reply is seen
             or missing (``False``: request at a time, the way most drivers work).
         breaker_timeouts: Missing replies in a row before the breaker may open.
-        breaker_quiet_s: Silence needed as well before it opens.
+        breaker_quiet_s: How long the misses must span as well (from the first missed
+            request's send), before it opens.
         probe_interval_s: How often an open breaker lets a probe through once the
             probes have backed off (the first goes 0.125 s after it opens).
         caution_s: How long junk on the line makes a pipelined connection wait for each
@@ -1088,17 +1091,22 @@ class BusConnection:
         exchange.missing = reason
         device = self._device(exchange.packet.sid)
         device.timeouts += 1
+        if device.consecutive == 0:
+            device.first_miss_at = exchange.sent_at
         device.consecutive += 1
         if device.breaker is BreakerState.PROBING:
             device.breaker = BreakerState.OPEN
-        elif device.breaker is BreakerState.CLOSED and device.consecutive >= self.breaker_timeouts:
-            silent = device.last_reply_at is None or now - device.last_reply_at >= (
-                self.breaker_quiet_s
-            )
-            if silent:
-                device.breaker = BreakerState.OPEN
-                device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
-                device.next_probe_at = now + device.probe_gap
+        elif (
+            device.breaker is BreakerState.CLOSED
+            and device.consecutive >= self.breaker_timeouts
+            # Silent while it was being asked: from the first request of this run of
+            # misses, not from its last reply (a device nobody asked for a minute is
+            # not a minute silent).
+            and now - device.first_miss_at >= self.breaker_quiet_s
+        ):
+            device.breaker = BreakerState.OPEN
+            device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
+            device.next_probe_at = now + device.probe_gap
         if exchange is self._last and self._free_at == math.inf:
             self._free_at = now + self.guard_s
         if not exchange.abandoned:

@@ -31,6 +31,8 @@ __all__ = [
 CELL_COUNT = 5
 #: cells u16 ×5, charging current i16, docked u8, FET status u8, status 1..4 u8 ×4.
 _STATUS_LAYOUT = struct.Struct("<5Hh6B")
+#: Status bytes 1..4.
+_STATUS_BYTES = range(4)
 
 #: The vendor's rule: lowest cell below 3150 mV → 20 %, below 3250 → 50 %, below 3380 → 80 %.
 _PERCENT_STEPS_MV: tuple[tuple[int, int], ...] = ((3150, 20), (3250, 50), (3380, 80))
@@ -94,8 +96,17 @@ class TbcoreStatus:
 
 
 def percent_from_cells(cell_mv: tuple[int, ...]) -> int:
-    """The vendor's coarse state of charge from the lowest cell voltage."""
-    lowest = min(cell_mv)
+    """The vendor's coarse state of charge from the lowest cell voltage.
+
+    Raises:
+        InvalidArgumentError: No cells, or a cell voltage is not an int.
+    """
+    cells = tuple(cell_mv)
+    if not cells:
+        raise InvalidArgumentError("cell_mv is empty: give at least one cell voltage")
+    for mv in cells:
+        _check_int("cell_mv", mv)
+    lowest = min(cells)
     for below_mv, percent in _PERCENT_STEPS_MV:
         if lowest < below_mv:
             return percent
@@ -132,13 +143,22 @@ def encode_status(status: TbcoreStatus) -> bytes:
     """The status block's bytes (the simulated core board answers with these).
 
     Raises:
+        InvalidArgumentError: A field is not an int, or there are not five cells.
         OutOfRangeError: A field does not fit its byte layout.
     """
+    if len(status.cell_mv) != CELL_COUNT:
+        raise InvalidArgumentError(f"cell_mv needs {CELL_COUNT} cells, got {len(status.cell_mv)}")
     for mv in status.cell_mv:
+        _check_int("cell_mv", mv)
         if not 0 <= mv <= 0xFFFF:
             raise OutOfRangeError("cell_mv", mv, 0, 0xFFFF, "mV")
+    _check_int("charging_current_ma", status.charging_current_ma)
     if not -0x8000 <= status.charging_current_ma <= 0x7FFF:
         raise OutOfRangeError("charging_current_ma", status.charging_current_ma, -32768, 32767)
+    for name, value in (("fet_status", status.fet_status), *(("status", v) for v in status.status)):
+        _check_int(name, value)
+    if len(status.status) != len(_STATUS_BYTES):
+        raise InvalidArgumentError(f"status needs 4 bytes, got {len(status.status)}")
     return _STATUS_LAYOUT.pack(
         *status.cell_mv,
         status.charging_current_ma,
@@ -162,3 +182,8 @@ def set_light_ring(
         if not 0 <= component <= 0xFF:
             raise OutOfRangeError(name, component, 0, 255)
     return write_request(DeviceId.CORE, profile.light_ring_addr, bytes((hue, saturation, value)))
+
+
+def _check_int(name: str, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InvalidArgumentError(f"{name} must be an int, not {type(value).__name__}")

@@ -13,6 +13,7 @@ import enum
 import math
 from dataclasses import dataclass
 
+from ohmni_tb._checks import show
 from ohmni_tb.errors import (
     InvalidArgumentError,
     MalformedReplyError,
@@ -67,6 +68,9 @@ class DriveTorque(enum.IntEnum):
     FREE = 0x00
     BRAKE = 0x40
     ON = 0x60
+
+
+_TORQUES = frozenset(DriveTorque)
 
 
 class WheelJogForm(enum.IntEnum):
@@ -131,9 +135,13 @@ class DriveProfile:
 DRIVE_PROFILE = DriveProfile()
 
 
-def _check_drive_sid(sid: int) -> None:
-    if sid not in _DRIVE_SIDS:
-        raise OutOfRangeError("drive sid", sid, 0, 1)
+def _check_drive_sid(sid: int, *, allow_broadcast: bool = False) -> None:
+    # A bool or a float equal to 0 or 1 is not a board id: only true ints pass.
+    allowed = (*_DRIVE_SIDS, BROADCAST_ID) if allow_broadcast else _DRIVE_SIDS
+    if isinstance(sid, bool) or not isinstance(sid, int) or sid not in allowed:
+        raise OutOfRangeError(
+            "drive sid", sid, 0, 1, "(or 0xFE, broadcast)" if allow_broadcast else ""
+        )
 
 
 def read_count(sid: int, profile: DriveProfile = DRIVE_PROFILE) -> Packet:
@@ -177,9 +185,17 @@ def read_firmware_tag(sid: int, tag_addr: int = DRIVE_PROFILE.tag_addr) -> Packe
 
 
 def set_torque(sid: int, torque: DriveTorque, profile: DriveProfile = DRIVE_PROFILE) -> Packet:
-    """Set a drive board's torque state (**assumed** register). Broadcast allowed."""
-    if sid not in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, BROADCAST_ID):
-        raise OutOfRangeError("drive sid", sid, 0, 1)
+    """Set a drive board's torque state (**assumed** register). Broadcast allowed.
+
+    Raises:
+        OutOfRangeError: ``sid`` is not 0, 1 or broadcast.
+        InvalidArgumentError: ``torque`` is not one of :class:`DriveTorque`.
+    """
+    _check_drive_sid(sid, allow_broadcast=True)
+    given: object = torque  # typed DriveTorque, but callers may pass any value
+    if isinstance(given, bool) or not isinstance(given, int) or given not in _TORQUES:
+        allowed = ", ".join(f"{t.name} (0x{t.value:02X})" for t in DriveTorque)
+        raise InvalidArgumentError(f"torque={show(torque)} is not one of {allowed}")
     return write_request(sid, profile.torque_addr, bytes((DriveTorque(torque),)))
 
 

@@ -66,9 +66,11 @@ def encode_jog_word(value: int, *, turn: bool) -> int:
     """The 16-bit jog word for a position, or for a signed PWM in turn mode.
 
     Raises:
+        InvalidArgumentError: ``value`` is not an int.
         OutOfRangeError: The value does not fit the word's bits (turn: ±16383, position:
             0..32767); nothing is built.
     """
+    _check_int("jog value", value)
     if turn:
         if not -MAX_TURN_MAGNITUDE <= value <= MAX_TURN_MAGNITUDE:
             raise OutOfRangeError("pwm", value, -MAX_TURN_MAGNITUDE, MAX_TURN_MAGNITUDE)
@@ -83,8 +85,10 @@ def decode_jog_word(word: int, *, turn: bool) -> int:
     """The position, or the signed PWM in turn mode, of a jog word read off the wire.
 
     Raises:
+        InvalidArgumentError: ``word`` is not an int.
         ProtocolError: The reserved bit 15 is set (or the word is not 16 bits).
     """
+    _check_int("jog word", word)
     if not 0 <= word <= 0xFFFF or word & _JOG_RESERVED:
         raise ProtocolError(f"jog word 0x{word:04X} sets reserved bits")
     if not turn:
@@ -136,8 +140,10 @@ class JogSet:
         """Decode a SET byte read off the wire.
 
         Raises:
+            InvalidArgumentError: ``byte`` is not an int.
             ProtocolError: The reserved bits 6..7 are set (or it is not a byte).
         """
+        _check_int("SET byte", byte)
         if not 0 <= byte <= 0xFF or byte & _SET_RESERVED:
             raise ProtocolError(f"jog SET byte 0x{byte:02X} sets reserved bits")
         return cls(
@@ -157,12 +163,22 @@ class JogTag:
         set_byte: The SET byte (:meth:`JogSet.to_byte`).
         sid: The device the tag is for.
         playtime_ticks: The tag's playtime (I_JOG), or the shared one (S_JOG).
+
+    Raises:
+        InvalidArgumentError: A field is not an int.
+        OutOfRangeError: A field does not fit its byte (the word its 16 bits).
     """
 
     word: int
     set_byte: int
     sid: int
     playtime_ticks: int = 0
+
+    def __post_init__(self) -> None:
+        _check_byte("word", self.word, 0xFFFF)
+        _check_byte("set_byte", self.set_byte)
+        _check_byte("sid", self.sid)
+        _check_byte("playtime_ticks", self.playtime_ticks)
 
 
 def jog_data(cmd: Command, tags: Sequence[JogTag], *, playtime_ticks: int = 0) -> bytes:
@@ -175,7 +191,9 @@ def jog_data(cmd: Command, tags: Sequence[JogTag], *, playtime_ticks: int = 0) -
 
     Raises:
         InvalidArgumentError: ``cmd`` is not a jog, or there are no tags.
+        OutOfRangeError: ``playtime_ticks`` does not fit a byte.
     """
+    _check_byte("playtime_ticks", playtime_ticks)
     if not tags:
         raise InvalidArgumentError("a jog needs at least one tag")
     if cmd == Command.I_JOG:
@@ -218,3 +236,14 @@ def jog_tags(packet: Packet) -> tuple[JogTag, ...]:
         )
         for i in range(0, len(tags), size)
     )
+
+
+def _check_int(name: str, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InvalidArgumentError(f"{name} must be an int, not {type(value).__name__}")
+
+
+def _check_byte(name: str, value: int, high: int = 0xFF) -> None:
+    _check_int(name, value)
+    if not 0 <= value <= high:
+        raise OutOfRangeError(name, value, 0, high)

@@ -128,7 +128,7 @@ def check_sid(sid: int, *, allow_broadcast: bool) -> int:
 
 
 def _check_addr(addr: int) -> None:
-    if not isinstance(addr, int) or not 0 <= addr <= 0xFF:
+    if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 0xFF:
         raise OutOfRangeError("addr", addr, 0, 0xFF)
 
 
@@ -143,7 +143,9 @@ def read_request(sid: int, addr: int, length: int, memory: Memory = Memory.RAM) 
     """
     check_sid(sid, allow_broadcast=False)
     _check_addr(addr)
-    if not isinstance(length, int) or not 0 <= length <= MAX_READ_LENGTH:
+    if isinstance(length, bool) or not isinstance(length, int):
+        raise InvalidArgumentError(f"length must be an int, not {type(length).__name__}")
+    if not 0 <= length <= MAX_READ_LENGTH:
         raise OutOfRangeError("length", length, 0, MAX_READ_LENGTH, "bytes")
     return Packet(sid, memory.read_cmd, bytes((addr, length)))
 
@@ -258,7 +260,13 @@ def reply_expected(cmd: int, sid: int, ack_policy: int = AckPolicy.READS) -> boo
       answers at once, so never broadcast it on a shared bus).
     * Any other request to broadcast (0xFE) gets no reply.
     * Reads answer under policy 1 and 2; writes, jogs, rollback and reboot only under 2.
+
+    Raises:
+        InvalidArgumentError: An argument is not an int.
     """
+    for name, value in (("cmd", cmd), ("sid", sid), ("ack_policy", ack_policy)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InvalidArgumentError(f"{name} must be an int, not {type(value).__name__}")
     if cmd == Command.STAT:
         return True
     if sid == BROADCAST_ID:

@@ -129,5 +129,18 @@ def parse_feedback(reply: ReadReply, profile: WormProfile = WORM_PROFILE) -> Wor
 
 
 def encode_feedback(feedback: WormFeedback) -> bytes:
-    """The feedback bytes (the simulated worm neck answers with these)."""
-    return _FEEDBACK.pack(feedback.position, int(feedback.flags))
+    """The feedback bytes (the simulated worm neck answers with these).
+
+    Raises:
+        InvalidArgumentError: The position or the flags are not an int.
+        OutOfRangeError: The position does not fit int32, or the flags a byte.
+    """
+    position, flags = feedback.position, feedback.flags
+    for name, value in (("worm neck position", position), ("flags", flags)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InvalidArgumentError(f"{name} must be an int, not {value!r}")
+    if not -(1 << 31) <= position < 1 << 31:
+        raise OutOfRangeError("worm neck position", position, -(1 << 31), (1 << 31) - 1, "raw")
+    if not 0 <= flags <= 0xFF:
+        raise OutOfRangeError("flags", flags, 0, 0xFF)
+    return _FEEDBACK.pack(position, int(flags))

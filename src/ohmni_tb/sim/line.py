@@ -25,6 +25,12 @@ and asks the event loop to hand each reply over at its time. The rules:
   201.6 ms; the boards are assumed to do the same), checked at the next bytes and by a
   timer, so the device the frame names flags it on time.
 
+Served on a transport (:meth:`SimLine.serve`, the pseudo-terminal of ``ohmni sim
+--pty``), the line takes the host's bytes no more than :data:`HOST_BUFFER_BYTES` ahead of
+the wire and then stops reading until the wire catches up, so a host that writes faster
+than the wire waits in its writes as it would on a real adapter; junk outside any frame
+is skipped in bulk, so a flood of it costs little CPU.
+
 With ``realtime=False`` nothing waits for the clock: replies are handed over on the next
 pass of the event loop, the host's bytes queue behind whatever the line carries (there
 are no host collisions), and the simulated time runs ahead of the loop's clock by the
@@ -51,7 +57,7 @@ import random
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, Protocol, runtime_checkable
 
 from ohmni_tb.errors import OutOfRangeError, StateError, TransportClosedError, TransportError
 from ohmni_tb.protocol import (
@@ -88,6 +94,12 @@ USB_PACKET_PAYLOAD: Final = 62
 #: The adapter's latency timer goes up to 255 ms; the simulator offers 0..32 ms, the
 #: range a host would use on this bus (the default of Linux's ftdi_sio is 16 ms).
 MAX_USB_LATENCY_S: Final = 0.032
+
+#: How far the host's bytes may run ahead of the wire before a served transport stops
+#: taking them: the host's transmit buffer (Linux's USB serial drivers queue a page, the
+#: adapter a few hundred bytes more). A host that writes faster than the wire waits in its
+#: write, as it would on the robot.
+HOST_BUFFER_BYTES: Final = 4096
 
 #: Receives the bytes the line hands to the host.
 HostReceiver = Callable[[bytes], None]
@@ -134,6 +146,9 @@ class LineStats:
         dropped_bytes: Bytes lost to faults.
         corrupted_bytes: Bytes garbled by faults.
         busy_s: Time the line was carrying bytes.
+        host_waits: Times :meth:`SimLine.serve` stopped taking the host's bytes because
+            they ran more than :data:`HOST_BUFFER_BYTES` ahead of the wire (nothing is
+            lost: the host's writes wait, as they do on a real adapter).
     """
 
     bytes_to_devices: int = 0
@@ -146,6 +161,16 @@ class LineStats:
     dropped_bytes: int = 0
     corrupted_bytes: int = 0
     busy_s: float = 0.0
+    host_waits: int = 0
+
+
+@runtime_checkable
+class _Pausable(Protocol):
+    """A transport that can stop reading (its peer's writes then wait), as asyncio's do."""
+
+    def pause_reading(self) -> None: ...
+
+    def resume_reading(self) -> None: ...
 
 
 class _Reply:
@@ -339,7 +364,11 @@ class SimLine:
     async def serve(self, transport: Transport) -> None:
         """Play the devices on ``transport`` (read in pull mode) until it closes.
 
-        For a transport whose other end is the host, such as a pseudo-terminal.
+        For a transport whose other end is the host, such as a pseudo-terminal. In real
+        time the host's bytes are taken no further than :data:`HOST_BUFFER_BYTES` ahead
+        of the wire: beyond that the line waits for the wire to catch up, with the
+        transport's reading paused if it can pause (the host's writes then wait, as they
+        wait for a real adapter), so a flood costs neither memory nor a busy loop.
 
         Raises:
             StateError: Another host is connected.
@@ -352,8 +381,21 @@ class SimLine:
                 _log.debug("host end went away before %d bytes: %s", len(chunk), exc)
 
         self.attach(deliver)
+        loop = asyncio.get_running_loop()
+        pausable = transport if isinstance(transport, _Pausable) else None
+        headroom_s = HOST_BUFFER_BYTES * self.byte_s
         try:
             while True:
+                ahead_s = self._host_free_at - (loop.time() - self._t0) - headroom_s
+                if self.realtime and ahead_s > 0:
+                    self.stats.host_waits += 1
+                    if pausable is not None:
+                        pausable.pause_reading()
+                    try:
+                        await asyncio.sleep(ahead_s)
+                    finally:
+                        if pausable is not None:
+                            pausable.resume_reading()
                 try:
                     data = await transport.read()
                 except TransportClosedError:
@@ -367,8 +409,10 @@ class SimLine:
     def _feed(self, data: bytes, start_s: float) -> None:
         """Decode ``data`` (on the wire from ``start_s``) packet by packet, each at its end.
 
-        A whole clean frame is fed in one piece; anything else byte by byte, so that every
-        packet (and every rejected frame) is seen when its own last byte arrives.
+        A whole clean frame is fed in one piece, and so is a run of junk outside any frame
+        (no ``FF``, nothing held: the decoder only counts it); anything else byte by byte,
+        so that every packet (and every rejected frame) is seen when its own last byte
+        arrives.
         """
         decoder = self._decoder
         byte_s = self.byte_s
@@ -376,7 +420,11 @@ class SimLine:
         pos = 0
         while pos < n:
             stop = pos + 1
-            if not decoder.pending and n - pos >= _MIN_FRAME and data[pos] == data[pos + 1] == 0xFF:
+            if not decoder.pending and data[pos] != 0xFF:
+                stop = data.find(0xFF, pos)
+                if stop < 0:
+                    stop = n
+            elif not decoder.pending and n - pos >= _MIN_FRAME and data[pos + 1] == 0xFF:
                 size = data[pos + 2]
                 # No FF FF inside: nothing else can start, let alone end, within the frame.
                 if (

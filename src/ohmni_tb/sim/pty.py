@@ -24,7 +24,9 @@ class PtyTransport(Transport):
 
     The slave side stays open here too, so a client that closes and reopens the device
     does not end the session. Bytes are read as soon as the loop sees them (for
-    :meth:`read` or a receiver); writes the terminal cannot take at once wait in
+    :meth:`read` or a receiver), up to 4 KiB a pass, unless reading is paused
+    (:meth:`pause_reading`: the bytes then wait in the terminal, and once its buffer is
+    full the client's writes wait too); writes the terminal cannot take at once wait in
     :attr:`backlog` and go out when it can.
     """
 
@@ -35,6 +37,7 @@ class PtyTransport(Transport):
         self.baudrate = baudrate
         self._closed = False
         self._lost = False
+        self._paused = False
         self._rx = ReceiveBuffer(f"pty {self.path}")
         self._out = bytearray()
         self._writing = False
@@ -51,6 +54,26 @@ class PtyTransport(Transport):
     def backlog(self) -> int:
         return len(self._out)
 
+    @property
+    def reading_paused(self) -> bool:
+        """Whether :meth:`pause_reading` is in force."""
+        return self._paused
+
+    def pause_reading(self) -> None:
+        """Stop reading the terminal until :meth:`resume_reading`."""
+        if self._paused or self.closed:
+            return
+        self._paused = True
+        self._loop.remove_reader(self.master_fd)
+
+    def resume_reading(self) -> None:
+        """Read the terminal again after :meth:`pause_reading`."""
+        if not self._paused:
+            return
+        self._paused = False
+        if not self.closed:
+            self._loop.add_reader(self.master_fd, self._on_readable)
+
     def _on_readable(self) -> None:
         try:
             data = os.read(self.master_fd, _READ_CHUNK)
@@ -66,7 +89,8 @@ class PtyTransport(Transport):
         if self._lost or self._closed:
             return
         self._lost = True
-        self._loop.remove_reader(self.master_fd)
+        if not self._paused:
+            self._loop.remove_reader(self.master_fd)
         self._stop_writing()
         self._out.clear()
         self._rx.lose(exc)
@@ -126,7 +150,7 @@ class PtyTransport(Transport):
         if self._closed:
             return
         self._closed = True
-        if not self._lost:
+        if not self._lost and not self._paused:
             self._loop.remove_reader(self.master_fd)
         self._stop_writing()
         self._out.clear()
