@@ -472,6 +472,23 @@ async def test_bad_packet_raises_before_anything_is_written(rig: Rig, packet: Pa
     assert rig.device.received == []
 
 
+async def test_a_read_whose_reply_cannot_fit_fails_up_front(rig: Rig) -> None:
+    # A 100-byte read is answered with 111 bytes: past a 64-byte limit the reply would be
+    # dropped by the receiver, so the read could only time out. It is refused unsent.
+    async with Bus(rig.host, timeout_s=ON_TIME_S, max_packet_size=64) as bus:
+        with pytest.raises(OutOfRangeError, match=r"length=100 .*allowed 0\.\.53") as info:
+            await bus.read(3, 0, 100)
+        assert info.value.name == "length"
+        assert (info.value.low, info.value.high) == (0, 53)
+        assert "max_packet_size=64" in str(info.value)
+        with pytest.raises(OutOfRangeError, match="length=54"):
+            await bus.request(read_request(3, 0, 54, Memory.EEP))
+        # The largest read that fits still goes, and a length-0 read asks for what fits.
+        assert len((await bus.read(3, 0, 53)).data) == 53
+        assert bus.stats.bytes_out == len(encode_packet(read_request(3, 0, 53)))
+    assert [p.data for p in rig.device.received] == [bytes((0, 53))]
+
+
 # -- link failures and lifecycle ----------------------------------------------------------
 
 

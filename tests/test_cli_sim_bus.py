@@ -9,6 +9,7 @@ import pytest
 from typer.testing import CliRunner, Result
 
 from ohmni_tb.cli import app
+from ohmni_tb.cli import bus as bus_cli
 from ohmni_tb.protocol import REPLY_FLAG, Packet, encode_packet
 from ohmni_tb.protocol.core import read_status
 from ohmni_tb.protocol.drive import read_count, wheel_command
@@ -100,6 +101,21 @@ def test_send_with_a_bad_port_url_fails_with_an_error_line() -> None:
 
 
 @pytest.mark.parametrize(
+    ("port", "named"),
+    [
+        ("http://[::1", "cannot parse the URL 'http://[::1'"),
+        ("sim://?seed=٣", "option seed='٣' is not an integer"),
+    ],
+)
+def test_a_port_url_that_cannot_be_read_is_one_error_line(port: str, named: str) -> None:
+    result = _invoke("bus", "send", "0", "STAT", "--port", port)
+    assert result.exit_code == 1
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    (line,) = result.output.splitlines()
+    assert line.startswith(f"error: {named}")
+
+
+@pytest.mark.parametrize(
     ("args", "named"),
     [
         (("zz", "STAT"), "'zz'"),
@@ -110,12 +126,21 @@ def test_send_with_a_bad_port_url_fails_with_an_error_line() -> None:
         (("0", "0x1FF"), "CMD=511"),
         (("0", "RAM_READ", "3G"), "'3G'"),
         (("0", "RAM_READ", "3B", "0"), "'3B 0'"),
+        (("٣", "STAT"), "SID must be an integer"),
+        (("0", "٣"), "'٣'"),
+        (("0", "1e308"), "'1e308'"),
+        (("0x" + "F" * 200, "STAT"), "SID='0xFFFFFFFFFFFFFFFFFF"),
+        (("0", "RAM_READ", "٣٣"), "DATA must be hex bytes"),
+        (("0", "RAM_READ", "00", "FF"), "read of 255 bytes: allowed 0..212"),
+        (("0", "RAM_WRITE", "00" * 220), "DATA is 220 bytes: allowed 0..216"),
+        (("0xFE", "STAT"), "every device would answer"),
     ],
 )
 def test_send_refuses_bad_arguments_by_name(args: tuple[str, ...], named: str) -> None:
     result = _invoke("bus", "send", "--port", "sim://", *args)
     assert result.exit_code == 2
     assert named in _words(result.output)
+    assert result.exception is None or isinstance(result.exception, SystemExit)
 
 
 # -- ohmni bus monitor --------------------------------------------------------------------
@@ -187,6 +212,48 @@ def test_monitor_listens_on_a_port_for_a_while() -> None:
     result = _invoke("bus", "monitor", "--port", "sim://", "--duration", "0.05", "--json")
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["devices"] == []
+
+
+@pytest.mark.parametrize("duration", ["inf", "nan", "1e308", "-1", "٣"])
+def test_monitor_refuses_a_duration_it_cannot_keep(duration: str) -> None:
+    result = _invoke("bus", "monitor", "--port", "sim://", f"--duration={duration}")
+    assert result.exit_code == 2
+    assert "--duration" in result.output
+
+
+class _InterruptedLine:
+    """A live port that delivers some traffic, then the operator presses Ctrl-C."""
+
+    def __init__(self, *chunks: bytes) -> None:
+        self.chunks = list(chunks)
+        self.closed = False
+
+    async def read(self) -> bytes:
+        if self.chunks:
+            return self.chunks.pop(0)
+        raise KeyboardInterrupt
+
+    async def aclose(self) -> None:
+        self.closed = True
+
+
+def test_monitor_prints_its_summary_on_ctrl_c_then_exits_130(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    reply = Packet(0, 0x04 | REPLY_FLAG, bytes((59, 4)) + (7).to_bytes(4, "little") + b"\0\0")
+    line = _InterruptedLine(encode_packet(read_count(0)), encode_packet(reply))
+
+    async def fake_open(url: str) -> _InterruptedLine:
+        return line
+
+    monkeypatch.setattr(bus_cli, "open_transport", fake_open)
+    result = _invoke("bus", "monitor", "--port", "sim://", "--json", "--quiet")
+    assert result.exit_code == 130, result.output
+    (summary,) = [json.loads(text) for text in result.stdout.splitlines()]
+    (left,) = summary["devices"]
+    assert (left["sid"], left["requests"], left["replies"]) == (0, 1, 1)
+    assert summary["decoder"]["packets"] == 2
+    assert line.closed
 
 
 # -- ohmni sim: argument checks (serving is tested in tests/sim/test_pty.py) --------------

@@ -90,7 +90,12 @@ from ohmni_tb.protocol.connection import (
     is_idempotent,
     percentile,
 )
-from ohmni_tb.protocol.timing import DEFAULT_GUARD_S, DEFAULT_TURNAROUND_S, transaction_cost_s
+from ohmni_tb.protocol.timing import (
+    DEFAULT_GUARD_S,
+    DEFAULT_TURNAROUND_S,
+    reply_size_range,
+    transaction_cost_s,
+)
 from ohmni_tb.transport import Transport, open_transport
 
 __all__ = [
@@ -759,6 +764,8 @@ class Bus:
         """Read ``length`` bytes at ``addr`` of device ``sid``.
 
         Raises:
+            OutOfRangeError: A bad sid or addr, or a length whose reply would not fit
+                ``max_packet_size``; nothing was sent.
             MalformedReplyError: The reply's layout does not fit the request.
             BusTimeoutError: No reply after every attempt.
         """
@@ -875,6 +882,7 @@ class Bus:
         keys: set[tuple[int, int, bytes]] = set()
         for i, packet in enumerate(packets):
             conn.frame(packet)  # raises OutOfRangeError before anything is queued
+            _check_reply_fits(packet, conn.max_packet_size)
             if packet.sid == BROADCAST_ID:
                 if packet.cmd == Command.STAT:
                     raise InvalidArgumentError(
@@ -1268,3 +1276,22 @@ class Bus:
 def _check_retries(retries: object) -> None:
     if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
         raise OutOfRangeError("retries", retries, 0, 10)
+
+
+def _check_reply_fits(packet: Packet, max_packet_size: int) -> None:
+    """Refuse a read whose reply would be larger than the receiver accepts.
+
+    The receiver drops such a reply as a bad size, so the read could only time out.
+
+    Raises:
+        OutOfRangeError: Names ``length`` and the lengths whose reply fits.
+    """
+    if packet.cmd not in (Command.RAM_READ, Command.EEP_READ) or len(packet.data) < 2:
+        return
+    length = packet.data[1]
+    smallest, _ = reply_size_range(packet, max_packet_size=max_packet_size)
+    if smallest <= max_packet_size:
+        return
+    error = OutOfRangeError("length", length, 0, max_packet_size - (smallest - length), "bytes")
+    error.args = (f"{error}: its reply must fit max_packet_size={max_packet_size}; nothing sent",)
+    raise error

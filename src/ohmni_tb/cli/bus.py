@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import sys
 from pathlib import Path
@@ -25,11 +24,24 @@ from ohmni_tb.cli.common import (
 )
 from ohmni_tb.errors import MalformedReplyError
 from ohmni_tb.monitor import BusMonitor, MonitorEvent
-from ohmni_tb.protocol import BROADCAST_ID, Command, Packet, ReadReply, StatusReply, flag_names
+from ohmni_tb.protocol import (
+    BROADCAST_ID,
+    MAX_PACKET_SIZE,
+    Command,
+    Packet,
+    ReadReply,
+    StatusReply,
+    flag_names,
+)
 from ohmni_tb.protocol.devices import device_name
+from ohmni_tb.protocol.framing import HEADER_SIZE
+from ohmni_tb.protocol.timing import reply_size_range
 from ohmni_tb.transport import open_transport
 
 app = typer.Typer(help="Raw packets on the bus: send one request, see the decoded reply.")
+
+#: The longest --duration: a week. Without one, a live monitor runs until Ctrl-C.
+_MAX_DURATION_S = 7 * 24 * 3600.0
 
 
 def _parse_command(text: str) -> int:
@@ -37,16 +49,12 @@ def _parse_command(text: str) -> int:
         return int(Command[text.upper()])
     except KeyError:
         pass
-    try:
-        code = int(text, 0)
-    except ValueError:
+    if not (text.isascii() and text.lstrip("+-")[:1].isdigit()):
         names = ", ".join(c.name for c in Command)
         raise typer.BadParameter(
             f"CMD must be a command name ({names}) or a code 0..255, not {text!r}"
-        ) from None
-    if not 0 <= code <= 0xFF:
-        raise typer.BadParameter(f"CMD={code} is out of range: allowed 0..255")
-    return code
+        )
+    return parse_int(text, "CMD", 0, 0xFF)
 
 
 @app.command()
@@ -63,16 +71,17 @@ def send(
 
     Example: ``ohmni bus send 0 RAM_READ 3B 04`` reads the left wheel count.
     """
-    sid_value = parse_int(sid, "SID")
-    if not 0 <= sid_value <= BROADCAST_ID:
-        raise typer.BadParameter(f"SID={sid_value} is out of range: allowed 0..{BROADCAST_ID}")
+    sid_value = parse_int(sid, "SID", 0, BROADCAST_ID)
     code = _parse_command(cmd)
+    text = " ".join(data or [])
     try:
-        payload = bytes.fromhex("".join(data or []))
+        if not text.isascii():
+            raise ValueError(text)
+        payload = bytes.fromhex(text.replace(" ", ""))
     except ValueError:
-        text = " ".join(data or [])
         raise typer.BadParameter(f"DATA must be hex bytes, not {text!r}") from None
     packet = Packet(sid_value, code, payload)
+    _check_packet(packet)
 
     async def main() -> Packet | None:
         async with await open_bus(port, timeout) as bus:
@@ -124,7 +133,12 @@ def monitor(
     ] = None,
     duration: Annotated[
         float | None,
-        typer.Option("--duration", help="Stop listening after this many seconds.", min=0.0),
+        typer.Option(
+            "--duration",
+            help="Stop listening after this many seconds (at most a week) [default: Ctrl-C].",
+            min=0.0,
+            max=_MAX_DURATION_S,
+        ),
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only the summary.")] = False,
     as_json: JsonOption = False,
@@ -172,9 +186,35 @@ def monitor(
             finally:
                 await transport.aclose()
 
-        with contextlib.suppress(KeyboardInterrupt):
-            run(listen)
+        # Ctrl-C ends a live session: the summary still comes, then exit code 130.
+        run(listen, on_interrupt=lambda: _summary(mon, as_json))
     _summary(mon, as_json)
+
+
+def _check_packet(packet: Packet) -> None:
+    """Refuse what the bus would refuse, or never see answered, before opening the port.
+
+    Raises:
+        typer.BadParameter: Names DATA or CMD and says why.
+    """
+    if HEADER_SIZE + len(packet.data) > MAX_PACKET_SIZE:
+        high = MAX_PACKET_SIZE - HEADER_SIZE
+        raise typer.BadParameter(
+            f"DATA is {len(packet.data)} bytes: allowed 0..{high} in one packet"
+        )
+    if packet.sid == BROADCAST_ID and packet.cmd == Command.STAT:
+        raise typer.BadParameter(
+            f"CMD STAT to SID {BROADCAST_ID} (broadcast): every device would answer at once"
+        )
+    if packet.cmd in (Command.RAM_READ, Command.EEP_READ) and len(packet.data) >= 2:
+        length = packet.data[1]
+        smallest, _ = reply_size_range(packet)
+        if smallest > MAX_PACKET_SIZE:
+            high = MAX_PACKET_SIZE - (smallest - length)
+            raise typer.BadParameter(
+                f"DATA asks for a read of {length} bytes: allowed 0..{high}, or its reply "
+                f"would not fit a packet"
+            )
 
 
 def _event_json(ev: MonitorEvent) -> dict[str, object]:

@@ -11,6 +11,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from ohmni_tb.bus import DEFAULT_TIMEOUT_S, Bus, BusStats
 from ohmni_tb.errors import OhmniError
@@ -53,14 +54,24 @@ console = Console()
 _err = Console(stderr=True)
 
 
-def run(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
-    """Run a coroutine for a command; our errors become one red line and exit code 1."""
+def run(
+    main: Callable[[], Coroutine[Any, Any, T]],
+    *,
+    on_interrupt: Callable[[], None] | None = None,
+) -> T:
+    """Run a coroutine for a command; our errors become one red line and exit code 1.
+
+    Ctrl-C exits with code 130, after ``on_interrupt`` (a command's summary) has run.
+    """
     try:
         return asyncio.run(main())
     except OhmniError as exc:
-        _err.print(f"[red]error:[/red] {exc}")
+        # One line whatever the terminal's width; the text is ours, not markup.
+        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(1) from exc
     except KeyboardInterrupt:
+        if on_interrupt is not None:
+            on_interrupt()
         raise typer.Exit(130) from None
 
 
@@ -72,18 +83,35 @@ async def open_bus(port: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Bus:
     return bus
 
 
-def parse_int(text: str, name: str) -> int:
-    """Parse decimal or 0x-hex text.
+def parse_int(
+    text: str, name: str, low: int | None = None, high: int | None = None, *, of: str = ""
+) -> int:
+    """Parse decimal or 0x-hex ASCII text, in ``low..high`` when they are given.
+
+    Other digits (``٣``, ``３``) are refused: an id is typed, not localised. ``of`` says
+    whose range it is (``" for servo 3"``) in the error.
 
     Raises:
-        typer.BadParameter: Names the argument and the text.
+        typer.BadParameter: Names the argument, the text and the allowed range.
     """
     try:
-        return int(text, 0)
-    except ValueError:
+        if not text.isascii():
+            raise ValueError(text)
+        value = int(text, 0)
+    except ValueError:  # also a number of more than 4300 digits
         raise typer.BadParameter(
-            f"{name} must be an integer (decimal or 0x..), not {text!r}"
+            f"{name} must be an integer (decimal or 0x..), not {_shown(text)}"
         ) from None
+    if low is not None and high is not None and not low <= value <= high:
+        # A huge hex number has too many decimal digits to print: show what was typed.
+        shown = str(value) if value.bit_length() <= 64 else _shown(text)
+        raise typer.BadParameter(f"{name}={shown} is out of range{of}: allowed {low}..{high}")
+    return value
+
+
+def _shown(text: str) -> str:
+    """Typed text for an error line, quoted, and cut short when it is long."""
+    return repr(text) if len(text) <= 40 else f"{text[:20]!r}… ({len(text)} characters)"
 
 
 def emit_json(value: Any) -> None:

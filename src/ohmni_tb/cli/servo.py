@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any, TypeVar
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from ohmni_tb.bus import Bus
@@ -20,10 +22,18 @@ from ohmni_tb.cli.common import (
     parse_int,
     run,
 )
-from ohmni_tb.errors import BusTimeoutError
+from ohmni_tb.errors import BusTimeoutError, InvalidArgumentError
 from ohmni_tb.herkulex import EEP, RAM, TorqueControl, parse_reply, stat
+from ohmni_tb.herkulex.registers import Register, RegisterMap
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
-from ohmni_tb.herkulex.units import angle_deg_from_raw
+from ohmni_tb.herkulex.units import (
+    MAX_PLAYTIME_S,
+    MAX_PLAYTIME_TICKS,
+    POSITION_MAX_RAW,
+    TICK_S,
+    angle_deg_from_raw,
+    playtime_s_from_ticks,
+)
 from ohmni_tb.protocol import Memory, flag_names
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
 
@@ -34,15 +44,28 @@ T = TypeVar("T")
 app = typer.Typer(help="HerkuleX servos: the neck (sid 3) and the external servos.")
 
 SidOption = Annotated[
-    str, typer.Option("--sid", "-s", help="Servo id (the neck is 3; 0x.. accepted).")
+    str, typer.Option("--sid", "-s", help="Servo id 0..253 (the neck is 3; 0x.. accepted).")
 ]
 _NECK = str(int(DeviceId.HERKULEX_NECK))
 _SCAN_TIMEOUT_S = 0.01
+#: The largest servo id (0xFE is broadcast).
+_MAX_SID = 0xFD
+#: Playtimes from here up would round to 255 ticks, past the largest the servo takes.
+_PLAYTIME_LIMIT_S = (MAX_PLAYTIME_TICKS + 0.5) * TICK_S
+
+
+def _sid(text: str) -> int:
+    """The servo id of ``--sid``.
+
+    Raises:
+        typer.BadParameter: Not an integer in 0..253.
+    """
+    return parse_int(text, "--sid", 0, _MAX_SID)
 
 
 def _with_servo(
     port: str,
-    sid_text: str,
+    sid: int,
     timeout_s: float,
     action: Callable[[Servo], Awaitable[T]],
     *,
@@ -50,7 +73,6 @@ def _with_servo(
     max_raw: int | None = None,
 ) -> T:
     """Run ``action`` on the servo; the neck (sid 3) defaults to its safe range 280..650."""
-    sid = parse_int(sid_text, "--sid")
     if sid == DeviceId.HERKULEX_NECK:
         min_raw = NECK_RAW_RANGE[0] if min_raw is None else min_raw
         max_raw = NECK_RAW_RANGE[1] if max_raw is None else max_raw
@@ -60,6 +82,64 @@ def _with_servo(
             return await action(Servo(bus, sid, min_raw=min_raw, max_raw=max_raw))
 
     return run(main)
+
+
+def _position_range(sid: int, min_text: str | None, max_text: str | None) -> tuple[int, int]:
+    """The positions a move may ask for: ``--min-raw``/``--max-raw``, else the defaults.
+
+    The neck (sid 3) defaults to its safe range 280..650, the others to the factory
+    21..1002.
+
+    Raises:
+        typer.BadParameter: A bound is not an integer in 0..1023, or min > max.
+    """
+    if sid == DeviceId.HERKULEX_NECK:
+        low, high = NECK_RAW_RANGE
+    else:
+        low, high = _factory("min_position"), _factory("max_position")
+    if min_text is not None:
+        low = parse_int(min_text, "--min-raw", 0, POSITION_MAX_RAW)
+    if max_text is not None:
+        high = parse_int(max_text, "--max-raw", 0, POSITION_MAX_RAW)
+    if low > high:
+        raise typer.BadParameter(f"--min-raw={low} is above --max-raw={high}")
+    return low, high
+
+
+def _factory(name: str) -> int:
+    default = RAM[name].default
+    assert default is not None, name  # the register table gives both position limits
+    return default
+
+
+def _playtime_ticks(playtime: float) -> int:
+    """``--playtime`` in 11.2 ms ticks, the unit the servo is sent.
+
+    Raises:
+        typer.BadParameter: Not a number that rounds into 0..254 ticks (NaN, infinite,
+            negative or too long).
+    """
+    # NaN fails both comparisons; -0.0 is 0.
+    if not (math.isfinite(playtime) and 0.0 <= playtime < _PLAYTIME_LIMIT_S):
+        raise typer.BadParameter(
+            f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:.4f} s "
+            f"(11.2 ms steps)"
+        )
+    return min(round(playtime / TICK_S), MAX_PLAYTIME_TICKS)
+
+
+def _register(name: str, table: RegisterMap) -> Register:
+    """The register ``name`` of ``table`` (RAM or EEP).
+
+    Raises:
+        typer.BadParameter: No such register; the message lists the known ones.
+    """
+    if name not in table:
+        known = ", ".join(reg.name for reg in table)
+        raise typer.BadParameter(
+            f"REGISTER: no {table.memory.name} register {name!r}; known: {known}"
+        )
+    return table[name]
 
 
 def _status_dict(status: ServoStatus) -> dict[str, Any]:
@@ -86,18 +166,22 @@ def _print_kv(title: str, values: dict[str, Any]) -> None:
 @app.command()
 def scan(
     port: PortOption = DEFAULT_PORT,
-    first: Annotated[int, typer.Option(help="First id to try.", min=0, max=0xFD)] = 0,
-    last: Annotated[int, typer.Option(help="Last id to try.", min=0, max=0xFD)] = 0xFD,
+    first: Annotated[str, typer.Option(help="First id to try, 0..253 (0x.. accepted).")] = "0",
+    last: Annotated[str, typer.Option(help="Last id to try, 0..253 (0x.. accepted).")] = "0xFD",
     as_json: JsonOption = False,
 ) -> None:
     """Find every HerkuleX servo on the bus (STAT to each id; boards are skipped)."""
+    low = parse_int(first, "--first", 0, _MAX_SID)
+    high = parse_int(last, "--last", 0, _MAX_SID)
+    if low > high:
+        raise typer.BadParameter(f"--first={low} is after --last={high}")
     boards = {int(DeviceId.LEFT_DRIVE), int(DeviceId.RIGHT_DRIVE), int(DeviceId.CORE)}
     boards.add(int(DeviceId.WORM_NECK))
 
     async def main() -> list[dict[str, Any]]:
         found = []
         async with await open_bus(port, _SCAN_TIMEOUT_S) as bus:
-            for sid in range(first, last + 1):
+            for sid in range(low, high + 1):
                 if sid in boards:
                     continue
                 servo = Servo(bus, sid)
@@ -123,7 +207,7 @@ def scan(
     if as_json:
         emit_json(found)
         return
-    table = Table(title=f"HerkuleX servos on {port}")
+    table = Table(title=f"HerkuleX servos on {escape(port)}")
     for column in ("sid", "name", "model", "position", "angle °", "torque", "errors"):
         table.add_column(column)
     for row in found:
@@ -157,12 +241,13 @@ def info(
     as_json: JsonOption = False,
 ) -> None:
     """Every EEP and RAM register of a servo."""
-    values = _with_servo(port, sid, timeout, lambda s: s.info())
+    sid_value = _sid(sid)
+    values = _with_servo(port, sid_value, timeout, lambda s: s.info())
     if as_json:
         emit_json(values)
         return
     for memory, regs in values.items():
-        _print_kv(f"servo {sid} {memory.upper()}", regs)
+        _print_kv(f"servo {sid_value} {memory.upper()}", regs)
 
 
 @app.command()
@@ -176,15 +261,13 @@ def read(
 ) -> None:
     """Read one register by name."""
     memory = Memory.EEP if eep else Memory.RAM
-    table = EEP if eep else RAM
-    if register not in table:
-        known = ", ".join(reg.name for reg in table)
-        raise typer.BadParameter(f"no {memory.name} register {register!r}; known: {known}")
-    value = _with_servo(port, sid, timeout, lambda s: s.read(register, memory))
+    reg = _register(register, EEP if eep else RAM)
+    sid_value = _sid(sid)
+    value = _with_servo(port, sid_value, timeout, lambda s: s.read(reg, memory))
     if as_json:
-        emit_json({"register": register, "memory": memory.name, "value": value})
+        emit_json({"register": reg.name, "memory": memory.name, "value": value})
     else:
-        console.print(f"{memory.name} {register} = {value}")
+        console.print(f"{memory.name} {reg.name} = {value}", highlight=False)
 
 
 @app.command()
@@ -199,25 +282,46 @@ def write(
     timeout: TimeoutOption = 0.05,
 ) -> None:
     """Write one RAM register (and its EEP copy with --persist). Range-checked first."""
+    reg = _register(register, RAM)
+    if reg.read_only:
+        raise typer.BadParameter(f"REGISTER: {reg.name} is read-only")
     number = parse_int(value, "VALUE")
-    _with_servo(port, sid, timeout, lambda s: s.write(register, number, persist=persist))
-    console.print(f"{register} ← {number}" + (" (RAM and EEP)" if persist else ""))
+    regs = [reg]
+    if persist:
+        if reg.name not in EEP:
+            raise typer.BadParameter(f"--persist: {reg.name} has no EEP copy")
+        regs.append(EEP[reg.name])
+    for checked in regs:
+        parse_int(value, "VALUE", checked.low, checked.high, of=f" for {checked.name}")
+        try:
+            checked.check(number)
+        except InvalidArgumentError as exc:  # OutOfRangeError too: names the register
+            raise typer.BadParameter(f"VALUE={number}: {exc}") from None
+    sid_value = _sid(sid)
+    _with_servo(port, sid_value, timeout, lambda s: s.write(reg, number, persist=persist))
+    console.print(f"{reg.name} ← {number}" + (" (RAM and EEP)" if persist else ""))
 
 
 @app.command()
 def move(
-    position: Annotated[int, typer.Argument(help="Goal position, raw counts 0..1023.")],
+    position: Annotated[
+        str, typer.Argument(help="Goal position, raw counts 0..1023 (0x.. accepted).")
+    ],
     port: PortOption = DEFAULT_PORT,
     sid: SidOption = _NECK,
     playtime: Annotated[
-        float, typer.Option("--playtime", help="Seconds to get there (0..2.84).")
+        float,
+        typer.Option(
+            "--playtime",
+            help=f"Seconds to get there, 0..{MAX_PLAYTIME_S:.4f} in 11.2 ms steps.",
+        ),
     ] = 1.0,
     min_raw: Annotated[
-        int | None,
+        str | None,
         typer.Option(help="Lowest position allowed [default: 280 for the neck, else 21]."),
     ] = None,
     max_raw: Annotated[
-        int | None,
+        str | None,
         typer.Option(help="Highest position allowed [default: 650 for the neck, else 1002]."),
     ] = None,
     torque_on: Annotated[
@@ -225,17 +329,30 @@ def move(
     ] = False,
     timeout: TimeoutOption = 0.05,
 ) -> None:
-    """Move a servo to a position over a playtime (the neck's safe range is 280..650)."""
+    """Move a servo to a position over a playtime (the neck's safe range is 280..650).
+
+    Every argument is checked before the first byte goes out, --torque-on included.
+    """
+    sid_value = _sid(sid)
+    low, high = _position_range(sid_value, min_raw, max_raw)
+    goal = parse_int(
+        position, "POSITION", low, high, of=f" for servo {sid_value} (--min-raw/--max-raw)"
+    )
+    ticks = _playtime_ticks(playtime)
 
     async def action(servo: Servo) -> int:
-        servo.target(position)  # range check before anything is sent
         if torque_on:
             await servo.torque(TorqueControl.ON)
-        await servo.move_to(position, playtime_s=playtime)
+        await servo.move_to(goal, playtime_ticks=ticks)
         return await servo.position_raw()
 
-    start = _with_servo(port, sid, timeout, action, min_raw=min_raw, max_raw=max_raw)
-    console.print(f"servo {sid}: moving {start} → {position} over {playtime:.2f} s")
+    start = _with_servo(port, sid_value, timeout, action, min_raw=low, max_raw=high)
+    # The playtime the servo got: whole ticks, not the seconds typed.
+    seconds = round(playtime_s_from_ticks(ticks), 4)
+    console.print(
+        f"servo {sid_value}: moving {start} → {goal} over {seconds:g} s ({ticks} ticks)",
+        highlight=False,
+    )
 
 
 @app.command()
@@ -249,9 +366,10 @@ def torque(
     try:
         value = TorqueControl[mode.upper()]
     except KeyError:
-        raise typer.BadParameter(f"mode must be free, brake or on, not {mode!r}") from None
-    _with_servo(port, sid, timeout, lambda s: s.torque(value))
-    console.print(f"servo {sid}: torque {value.name.lower()}")
+        raise typer.BadParameter(f"MODE must be free, brake or on, not {mode!r}") from None
+    sid_value = _sid(sid)
+    _with_servo(port, sid_value, timeout, lambda s: s.torque(value))
+    console.print(f"servo {sid_value}: torque {value.name.lower()}")
 
 
 @app.command("stat")
@@ -262,11 +380,12 @@ def stat_cmd(
     as_json: JsonOption = False,
 ) -> None:
     """The servo's status bytes, decoded."""
-    status = _with_servo(port, sid, timeout, lambda s: s.status())
+    sid_value = _sid(sid)
+    status = _with_servo(port, sid_value, timeout, lambda s: s.status())
     if as_json:
         emit_json(_status_dict(status))
     else:
-        _print_kv(f"servo {sid} status", _status_dict(status))
+        _print_kv(f"servo {sid_value} status", _status_dict(status))
 
 
 @app.command()
@@ -283,6 +402,7 @@ def clear(
 
     A fault that released the torque leaves it off; --torque-on turns it on again.
     """
+    sid_value = _sid(sid)
 
     async def action(servo: Servo) -> ServoStatus:
         status = await servo.clear_errors()
@@ -291,8 +411,8 @@ def clear(
             status = await servo.status()
         return status
 
-    status = _with_servo(port, sid, timeout, action)
+    status = _with_servo(port, sid_value, timeout, action)
     if as_json:
         emit_json(_status_dict(status))
     else:
-        _print_kv(f"servo {sid} status after clearing", _status_dict(status))
+        _print_kv(f"servo {sid_value} status after clearing", _status_dict(status))

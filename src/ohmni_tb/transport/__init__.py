@@ -87,7 +87,10 @@ async def open_transport(url: str) -> Transport:
     """
     if url.startswith("/"):
         url = "serial://" + url
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:  # an unclosed IPv6 bracket, characters NFKC turns into '/'
+        raise ConfigError(f"cannot parse the URL {url!r}: {exc}") from None
     scheme = parts.scheme.lower()
     if not scheme:
         raise ConfigError(
@@ -120,6 +123,8 @@ def option_int(options: dict[str, str], key: str, default: int, low: int, high: 
     if raw is None:
         return default
     try:
+        if not raw.isascii():  # int() would read other scripts' digits too
+            raise ValueError(raw)
         value = int(raw, 0)
     except ValueError:
         raise ConfigError(f"option {key}={raw!r} is not an integer") from None

@@ -1,0 +1,289 @@
+"""Every numeric argument of every ``ohmni`` command, driven with extreme values.
+
+The parameters are read from the typer app itself, so a new option is fuzzed as soon as
+it exists: a parameter is numeric unless it is a flag or listed in :data:`TEXT_PARAMS`,
+and every command with a numeric parameter needs a valid baseline in :data:`BASELINES`.
+
+For every value, against ``--port sim://``: the exit code is 0, 1 or 2; no exception
+escapes (no traceback); a refusal (exit 2) is one line that names the parameter, and
+nothing was written on the wire; an error (exit 1) is one ``error:`` line. A value no
+parameter can take (NaN, infinity, 1e308, a huge integer, non-ASCII digits) is refused.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+import typer.main
+from hypothesis import HealthCheck, assume, event, example, given, settings
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+from ohmni_tb.cli import app, common
+from ohmni_tb.cli import bus as bus_cli
+from ohmni_tb.transport import Transport, open_transport
+
+runner = CliRunner()
+#: Wide enough that rich never wraps a message: "one line" means one line.
+WIDE = {"COLUMNS": "4000"}
+
+#: Parameters whose values are text, not numbers: names, URLs, paths, hex bytes.
+TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture"})
+
+#: A valid invocation of each command that has numeric parameters (``--port sim://`` is
+#: added): parameter name -> value, True for a flag.
+BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
+    ("bus", "send"): {"sid": "0", "cmd": "STAT", "timeout": "0.01"},
+    ("bus", "monitor"): {"duration": "0.01", "quiet": True},
+    ("servo", "scan"): {"first": "0x0B", "last": "0x0C"},
+    ("servo", "info"): {"timeout": "0.01"},
+    ("servo", "read"): {"register": "temperature", "timeout": "0.01"},
+    ("servo", "write"): {"register": "led_control", "value": "1", "timeout": "0.01"},
+    ("servo", "move"): {"position": "400", "torque_on": True, "timeout": "0.01"},
+    ("servo", "torque"): {"mode": "on", "timeout": "0.01"},
+    ("servo", "stat"): {"timeout": "0.01"},
+    ("servo", "clear"): {"timeout": "0.01"},
+}
+#: Changes to the baseline while one parameter is fuzzed, to keep each run short: a scan
+#: whose other bound is fuzzed covers at most a dozen ids.
+CONTEXT: dict[tuple[tuple[str, ...], str], dict[str, str | bool]] = {
+    (("servo", "scan"), "first"): {"last": "0x0C"},
+    (("servo", "scan"), "last"): {"first": "0xF0"},
+}
+#: Values a parameter accepts but that would keep the test waiting: a long live monitor.
+TOO_SLOW: dict[tuple[tuple[str, ...], str], float] = {(("bus", "monitor"), "duration"): 0.05}
+
+
+def _commands(command: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:
+    subcommands = getattr(command, "commands", None)
+    if subcommands:
+        for name, sub in sorted(subcommands.items()):
+            yield from _commands(sub, (*path, name))
+    else:
+        yield path, command
+
+
+@dataclass(frozen=True)
+class Target:
+    """One numeric parameter of one command."""
+
+    path: tuple[str, ...]
+    name: str
+    opt: str | None  # the long option, or None for an argument
+    params: tuple[Any, ...]
+
+    def __str__(self) -> str:
+        return f"{' '.join(self.path)} {self.opt or self.name.upper()}"
+
+    def names(self) -> tuple[str, ...]:
+        """How an error message may name the parameter."""
+        return (self.opt,) if self.opt else (self.name.upper(),)
+
+    def argv(self, value: str) -> list[str]:
+        values: dict[str, str | bool] = {
+            **BASELINES[self.path],
+            **CONTEXT.get((self.path, self.name), {}),
+            self.name: value,
+        }
+        options: list[str] = []
+        arguments: list[str] = []
+        for param in self.params:
+            given = values.get(param.name)
+            if param.name == "port":
+                options.append("--port=sim://")
+            elif given is None:
+                continue
+            elif param.param_type_name == "argument":
+                assert isinstance(given, str)
+                arguments.append(given)
+            elif given is True:
+                options.append(_long(param))
+            else:
+                options.append(f"{_long(param)}={given}")
+        # "--" keeps an argument such as -1 from being read as an option.
+        return [*self.path, *options, "--", *arguments]
+
+
+def _long(param: Any) -> str:
+    opts = [opt for opt in param.opts if opt.startswith("--")]
+    assert opts, param.name
+    return str(opts[0])
+
+
+def _targets() -> list[Target]:
+    targets = []
+    for path, command in _commands(typer.main.get_command(app)):
+        for param in command.params:
+            if getattr(param, "is_flag", False) or param.name in TEXT_PARAMS:
+                continue
+            opt = None if param.param_type_name == "argument" else _long(param)
+            targets.append(Target(path, param.name, opt, tuple(command.params)))
+    return targets
+
+
+TARGETS = _targets()
+
+
+def test_every_numeric_parameter_is_covered() -> None:
+    # A command that grows a numeric parameter needs a baseline here to be fuzzed.
+    missing = sorted({" ".join(t.path) for t in TARGETS if t.path not in BASELINES})
+    assert not missing, f"add a valid invocation to BASELINES for: {missing}"
+    fuzzed = {str(t) for t in TARGETS}
+    for must in ("servo move POSITION", "servo move --playtime", "bus monitor --duration"):
+        assert must in fuzzed
+    assert len(TARGETS) >= 20
+
+
+# -- values -------------------------------------------------------------------------------
+
+FIXED = [
+    "inf",
+    "-inf",
+    "nan",
+    "NaN",
+    "1e308",
+    "-1e308",
+    "1e309",
+    "-0.0",
+    "0",
+    "5e-324",
+    "-5e-324",
+    "0x0B",
+    "0xFF",
+    "-0x1",
+    "0x",
+    "1_0",
+    " 3 ",
+    "",
+    "9" * 5000,
+    "0x" + "F" * 5000,
+    "٣",
+    "\uff13",  # fullwidth 3
+    "१२",  # Devanagari 12
+]
+unicode_digits = st.text(
+    st.characters(categories=["Nd"], min_codepoint=128), min_size=1, max_size=6
+)
+huge_ints = st.integers(min_value=2**64, max_value=10**400) | st.integers(
+    min_value=-(10**400), max_value=-(2**64)
+)
+hex_ints = st.integers(min_value=-(2**80), max_value=2**80).map(
+    lambda n: ("-" if n < 0 else "") + hex(abs(n))
+)
+VALUES = st.one_of(
+    st.sampled_from(FIXED),
+    huge_ints.map(str),
+    hex_ints,
+    unicode_digits,
+    st.floats().map(repr),
+    st.integers(min_value=-5, max_value=1100).map(str),
+)
+
+
+def never_valid(text: str) -> bool:
+    """Whether no parameter of the CLI can take ``text``: NaN, ±inf, huge, non-ASCII."""
+    if not text.isascii():
+        return True
+    try:
+        if abs(int(text, 0)) >= 2**64:
+            return True
+    except ValueError:  # not an integer, or one of more than 4300 digits
+        pass
+    try:
+        number = float(text)
+    except ValueError:
+        return False
+    return not math.isfinite(number) or abs(number) >= 2**64
+
+
+# -- the wire -----------------------------------------------------------------------------
+
+
+@dataclass
+class Wire:
+    """Every URL the CLI opened and every byte it wrote."""
+
+    opened: list[str] = field(default_factory=list)
+    written: list[bytes] = field(default_factory=list)
+
+
+@pytest.fixture
+def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
+    spied = Wire()
+
+    async def spy(url: str) -> Transport:
+        transport = await open_transport(url)
+        spied.opened.append(url)
+        write = transport.write_nowait
+
+        def record(data: bytes) -> None:
+            spied.written.append(bytes(data))
+            write(data)
+
+        setattr(transport, "write_nowait", record)  # noqa: B010 - mypy forbids assigning a method
+        return transport
+
+    monkeypatch.setattr(common, "open_transport", spy)
+    monkeypatch.setattr(bus_cli, "open_transport", spy)
+    return spied
+
+
+# -- the property -------------------------------------------------------------------------
+
+
+def too_slow(target: Target, value: str) -> bool:
+    """Whether the command would accept ``value`` and then run for long."""
+    limit = TOO_SLOW.get((target.path, target.name))
+    if limit is None or never_valid(value):
+        return False
+    try:
+        return float(value) > limit
+    except ValueError:
+        return False
+
+
+def check(target: Target, value: str, wire: Wire) -> int:
+    """Run ``target`` with ``value`` and check the outcome; return the exit code."""
+    wire.opened.clear()
+    wire.written.clear()
+    argv = target.argv(value)
+    result = runner.invoke(app, argv, env=WIDE)
+    out = result.output
+    context = f"{argv} -> {result.exit_code}\n{out}"
+    assert result.exit_code in (0, 1, 2), context
+    assert result.exception is None or isinstance(result.exception, SystemExit), context
+    assert "Traceback" not in out, context
+    lines = [line for line in out.splitlines() if line.strip()]
+    if result.exit_code == 2:
+        message = [line for line in lines if line.startswith("│")]
+        assert len(message) == 1, context  # one line in typer's error box
+        assert any(name in message[0] for name in target.names()), context
+        assert wire.written == [], context
+    elif result.exit_code == 1:
+        assert len(lines) == 1, context
+        assert lines[0].startswith("error: "), context
+    if never_valid(value):
+        assert result.exit_code == 2, context
+    return result.exit_code
+
+
+@pytest.mark.parametrize("target", TARGETS, ids=str)
+@pytest.mark.parametrize("value", ["nan", "-1e308", "9" * 30, "٣"])
+def test_each_parameter_refuses_what_none_can_take(target: Target, value: str, wire: Wire) -> None:
+    check(target, value, wire)
+
+
+@settings(
+    max_examples=150,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(target=st.sampled_from(TARGETS), value=VALUES)
+@example(target=TARGETS[0], value="inf")
+def test_extreme_values_never_crash_the_cli(target: Target, value: str, wire: Wire) -> None:
+    assume(not too_slow(target, value))
+    event(f"exit {check(target, value, wire)}")  # --hypothesis-show-statistics
