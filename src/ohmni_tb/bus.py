@@ -1017,12 +1017,20 @@ class Bus:
             self._wake_at = math.inf
 
     def _arm(self, when: float) -> None:
-        if when == math.inf or self._closed:
+        """Make the one timer fire at ``when`` (``inf``: not at all).
+
+        ``when`` is the whole of what the engine waits for, so a timer set earlier for
+        something that has since happened is moved rather than left to wake the loop
+        for nothing.
+        """
+        if self._closed:
             return
         if self._wake is not None:
-            if self._wake_at <= when + _EPS:
+            if abs(self._wake_at - when) <= _EPS:
                 return
-            self._wake.cancel()
+            self._cancel_wake()
+        if when == math.inf:
+            return
         self._wake_at = when
         self._wake = self._loop_().call_at(when, self._on_wake)
 
@@ -1088,8 +1096,10 @@ class Bus:
             self._drop_hopeless(now)
             if now + _EPS < conn.free_at:
                 # Choose only when the line is free: a slot that arrives meanwhile with a
-                # higher priority must still be able to go first.
-                wake = min(wake, conn.free_at, self._next_wake(now))
+                # higher priority must still be able to go first. With nothing waiting
+                # there is nothing to wake for; a new slot pumps by itself.
+                if self._current is not None or self._waiting:
+                    wake = min(wake, conn.free_at, self._next_wake(now))
                 break
             part = self._current or self._pick(now)
             if part is None:
