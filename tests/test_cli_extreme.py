@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -23,9 +23,14 @@ from hypothesis import HealthCheck, assume, event, example, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from ohmni_tb.cli import app, common
-from ohmni_tb.cli import bus as bus_cli
-from ohmni_tb.transport import Transport, open_transport
+from ohmni_tb.cli import app
+from test_cli_servo import Wire, spy_on_cli
+
+
+@pytest.fixture
+def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
+    return spy_on_cli(monkeypatch)
+
 
 runner = CliRunner()
 #: Wide enough that rich never wraps a message: "one line" means one line.
@@ -201,35 +206,6 @@ def never_valid(text: str) -> bool:
 
 
 # -- the wire -----------------------------------------------------------------------------
-
-
-@dataclass
-class Wire:
-    """Every URL the CLI opened and every byte it wrote."""
-
-    opened: list[str] = field(default_factory=list)
-    written: list[bytes] = field(default_factory=list)
-
-
-@pytest.fixture
-def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
-    spied = Wire()
-
-    async def spy(url: str) -> Transport:
-        transport = await open_transport(url)
-        spied.opened.append(url)
-        write = transport.write_nowait
-
-        def record(data: bytes) -> None:
-            spied.written.append(bytes(data))
-            write(data)
-
-        setattr(transport, "write_nowait", record)  # noqa: B010 - mypy forbids assigning a method
-        return transport
-
-    monkeypatch.setattr(common, "open_transport", spy)
-    monkeypatch.setattr(bus_cli, "open_transport", spy)
-    return spied
 
 
 # -- the property -------------------------------------------------------------------------

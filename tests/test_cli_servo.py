@@ -39,8 +39,8 @@ class Wire:
         return [(p.sid, p.cmd, p.data) for p in PacketDecoder().feed(b"".join(self.written))]
 
 
-@pytest.fixture
-def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
+def spy_on_cli(monkeypatch: pytest.MonkeyPatch) -> Wire:
+    """Record every URL the CLI opens and every byte it writes (for the test's duration)."""
     spied = Wire()
 
     async def spy(url: str) -> Transport:
@@ -58,6 +58,11 @@ def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
     monkeypatch.setattr(common, "open_transport", spy)
     monkeypatch.setattr(bus_cli, "open_transport", spy)
     return spied
+
+
+@pytest.fixture
+def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
+    return spy_on_cli(monkeypatch)
 
 
 def test_scan_finds_the_neck_and_the_external_servos() -> None:
