@@ -21,7 +21,7 @@ from ohmni_tb.transport import open_transport
 
 async def nod(port: str, times: int) -> int:
     async with Bus(await open_transport(port)) as bus:
-        neck = Servo(bus, 3, min_raw=280, max_raw=650)
+        neck = Servo(bus, 3)  # the neck: held to NECK_RAW_RANGE (280..650)
         print(f"neck: {(await neck.model()).name}, at {await neck.position_raw()}")
         await neck.torque(TorqueControl.ON)
         try:
