@@ -35,12 +35,13 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass
 
+from ohmni_tb._checks import integer
 from ohmni_tb.bus import BreakerState, Bus
+from ohmni_tb.control.encoder import COUNT_BITS, unwrap_delta
 from ohmni_tb.errors import (
     BusClosedError,
     DeadlineMissedError,
     OhmniError,
-    OutOfRangeError,
     ProtocolError,
     StopNotConfirmedError,
     TransportError,
@@ -168,12 +169,7 @@ async def stop_wheels(
     check_seconds("repeat_s", repeat_s, 0.005, 1.0)
     # The counts must have time to hold still before the time is up.
     check_seconds("settle_s", settle_s, 0.02, min(10.0, timeout_s / 2))
-    if (
-        isinstance(tolerance_ticks, bool)
-        or not isinstance(tolerance_ticks, int)
-        or not 0 <= tolerance_ticks <= 1000
-    ):
-        raise OutOfRangeError("tolerance_ticks", tolerance_ticks, 0, 1000, "ticks")
+    integer("tolerance_ticks", tolerance_ticks, 0, 1000, "ticks")
     stop = wheel_command(0, 0, profile)
     reads = [read_count(sid, profile) for sid in _SIDES]
     loop = asyncio.get_running_loop()
@@ -281,7 +277,7 @@ class _Window:
     def add(self, count: int, at: float, tolerance_ticks: int) -> None:
         self.answered += 1
         if self.count is not None and self.agreeing:
-            moved = _delta(count, self.reference)
+            moved = unwrap_delta(self.reference, count, COUNT_BITS)
             if abs(moved) <= tolerance_ticks:
                 self.agreeing += 1
                 self.count = count
@@ -381,8 +377,3 @@ def _verdict(bus: Bus, windows: tuple[_Window, _Window], settle_s: float) -> tup
     if not unsettled:  # pragma: no cover - a settled pair returns before any verdict
         return int(_SIDES[0]), "the time was up as the counts settled"
     return unsettled[0], "; ".join(reasons)
-
-
-def _delta(now: int, then: int) -> int:
-    """``now − then`` for int32 counts that wrap."""
-    return (now - then + 2**31) % 2**32 - 2**31
