@@ -112,3 +112,18 @@ def finite_result(
     if not math.isfinite(result):
         raise OutOfRangeError(name, value, low, high, unit)
     return result
+
+
+def check_seconds(name: str, value: float, low: float, high: float) -> None:
+    """Raise unless ``value`` is a finite number of seconds in ``low..high``.
+
+    Raises:
+        OutOfRangeError: Names ``name`` and the range.
+    """
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or not low <= value <= high
+    ):
+        raise OutOfRangeError(name, value, low, high, "s")

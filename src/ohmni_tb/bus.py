@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Self, cast
 
+from ohmni_tb._checks import check_seconds, integer
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
@@ -86,7 +87,6 @@ from ohmni_tb.protocol.connection import (
     ReplyPacket,
     ReplyReceived,
     StrayPacket,
-    check_seconds,
     is_idempotent,
     percentile,
 )
@@ -338,7 +338,7 @@ class Bus:
         close_timeout_s: float = DEFAULT_CLOSE_TIMEOUT_S,
         reopen: Reopen | None = None,
     ) -> None:
-        _check_retries(retries)
+        integer("retries", retries, 0, 10)
         check_seconds("max_wait_s", max_wait_s, 0.0, 3600.0)
         check_seconds("stall_s", stall_s, 0.001, 60.0)
         check_seconds("close_timeout_s", close_timeout_s, 0.0, 60.0)
@@ -869,7 +869,7 @@ class Bus:
         if isinstance(priority, bool) or not isinstance(priority, int):
             raise InvalidArgumentError(f"priority must be an int, not {priority!r}")
         extra = self.retries if retries is None else retries
-        _check_retries(extra)
+        integer("retries", extra, 0, 10)
         if timeout_s is not None:
             check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         if deadline is not None and (
@@ -1281,11 +1281,6 @@ class Bus:
             slot.settle(index, None)
             return
         self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
-
-
-def _check_retries(retries: object) -> None:
-    if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
-        raise OutOfRangeError("retries", retries, 0, 10)
 
 
 def _check_reply_fits(packet: Packet, max_packet_size: int) -> None:

@@ -35,7 +35,7 @@ from __future__ import annotations
 import asyncio
 from dataclasses import dataclass
 
-from ohmni_tb._checks import integer
+from ohmni_tb._checks import check_seconds, integer
 from ohmni_tb.bus import BreakerState, Bus
 from ohmni_tb.control.encoder import COUNT_BITS, unwrap_delta
 from ohmni_tb.errors import (
@@ -47,7 +47,6 @@ from ohmni_tb.errors import (
     TransportError,
 )
 from ohmni_tb.protocol import Packet, ReadReply
-from ohmni_tb.protocol.connection import check_seconds
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import (
     DRIVE_PROFILE,

@@ -68,6 +68,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
+from ohmni_tb._checks import check_seconds, integer
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
 from ohmni_tb.protocol.framing import (
     BROADCAST_ID,
@@ -578,10 +579,7 @@ class BusConnection:
         check_seconds("breaker_quiet_s", breaker_quiet_s, 0.0, 3600.0)
         check_seconds("probe_interval_s", probe_interval_s, 0.001, 3600.0)
         check_seconds("caution_s", caution_s, 0.0, 60.0)
-        if isinstance(breaker_timeouts, bool) or not isinstance(breaker_timeouts, int):
-            raise OutOfRangeError("breaker_timeouts", breaker_timeouts, 1, 1000)
-        if not 1 <= breaker_timeouts <= 1000:
-            raise OutOfRangeError("breaker_timeouts", breaker_timeouts, 1, 1000)
+        integer("breaker_timeouts", breaker_timeouts, 1, 1000)
         self.baudrate = baudrate
         self.byte_s = 0.0 if baudrate is None else BITS_PER_BYTE / baudrate
         self.turnaround_s = float(turnaround_s)
@@ -1119,18 +1117,3 @@ def percentile(sorted_values: list[float], q: float) -> float | None:
         return None
     index = min(len(sorted_values) - 1, max(0, round(q * (len(sorted_values) - 1))))
     return sorted_values[index]
-
-
-def check_seconds(name: str, value: float, low: float, high: float) -> None:
-    """Raise unless ``value`` is a finite number of seconds in ``low..high``.
-
-    Raises:
-        OutOfRangeError: Names ``name`` and the range.
-    """
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int | float)
-        or not math.isfinite(value)
-        or not low <= value <= high
-    ):
-        raise OutOfRangeError(name, value, low, high, "s")
