@@ -44,7 +44,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from types import TracebackType
 from typing import Self, cast
 
@@ -63,7 +63,6 @@ from ohmni_tb.protocol import (
     BROADCAST_ID,
     MAX_PACKET_SIZE,
     Command,
-    DecoderStats,
     Memory,
     Packet,
     ReadReply,
@@ -79,6 +78,7 @@ from ohmni_tb.protocol.connection import (
     DEFAULT_TIMEOUT_S,
     BreakerState,
     BusConnection,
+    ConnectionStats,
     DeviceStats,
     Event,
     Exchange,
@@ -135,24 +135,14 @@ Reopen = Callable[[], Awaitable[Transport]]
 
 
 @dataclass(frozen=True, slots=True)
-class BusStats:
-    """Counters for the whole bus (a snapshot).
+class BusStats(ConnectionStats):
+    """Counters for the whole bus (a snapshot): the line's, and the scheduler's.
+
+    Every field of :class:`~ohmni_tb.protocol.connection.ConnectionStats` (bytes, echoes,
+    unmatched, cautions, wire utilisation, the decoder's and each device's counters…),
+    and:
 
     Attributes:
-        bytes_out: Bytes written.
-        bytes_in: Bytes received.
-        echoes: Copies of our own requests read back (a line that echoes).
-        foreign_requests: Requests seen that we did not send.
-        unmatched: Replies that answered nothing waiting (early, late, strays).
-        abandoned: Replies to requests whose callers gave up.
-        ambiguous: Requests given up because two look-alike replies came.
-        cautions: Times junk on the line (a collision, noise) made the bus send request
-            at a time for ``caution_s``.
-        cautious: Whether it does so now.
-        wire_busy_s: Line time carried since the start (every byte at the baud rate).
-        wire_utilisation: Share of the last second the line carried bytes.
-        reserved_utilisation: Share of the last second the cost model reserved.
-        transactions_per_s: Replies received in the last second.
         slots: Slots started.
         queue_wait_p50_s: Median wait from submission to the slot's start, or ``None``.
         queue_wait_p99_s: 99th percentile of the same, or ``None``.
@@ -161,23 +151,8 @@ class BusStats:
         refused: Requests not sent because the device's breaker was open.
         link_losses: Times the link was lost.
         reconnects: Times it was reopened.
-        decoder: The receive decoder's counters (junk, checksum errors…).
-        devices: Per-device counters by sid.
     """
 
-    bytes_out: int
-    bytes_in: int
-    echoes: int
-    foreign_requests: int
-    unmatched: int
-    abandoned: int
-    ambiguous: int
-    cautions: int
-    cautious: bool
-    wire_busy_s: float
-    wire_utilisation: float
-    reserved_utilisation: float
-    transactions_per_s: float
     slots: int
     queue_wait_p50_s: float | None
     queue_wait_p99_s: float | None
@@ -186,8 +161,6 @@ class BusStats:
     refused: int
     link_losses: int
     reconnects: int
-    decoder: DecoderStats
-    devices: dict[int, DeviceStats]
 
 
 class _Slot:
@@ -809,19 +782,7 @@ class Bus:
         line = self._conn.stats(now)
         waits = sorted(self._waits)
         return BusStats(
-            bytes_out=line.bytes_out,
-            bytes_in=line.bytes_in,
-            echoes=line.echoes,
-            foreign_requests=line.foreign_requests,
-            unmatched=line.unmatched,
-            abandoned=line.abandoned,
-            ambiguous=line.ambiguous,
-            cautions=line.cautions,
-            cautious=line.cautious,
-            wire_busy_s=line.wire_busy_s,
-            wire_utilisation=line.wire_utilisation,
-            reserved_utilisation=line.reserved_utilisation,
-            transactions_per_s=line.transactions_per_s,
+            **{f.name: getattr(line, f.name) for f in fields(ConnectionStats)},
             slots=self._slots,
             queue_wait_p50_s=percentile(waits, 0.50),
             queue_wait_p99_s=percentile(waits, 0.99),
@@ -830,8 +791,6 @@ class Bus:
             refused=self._refused,
             link_losses=self._link_losses,
             reconnects=self._reconnects,
-            decoder=line.decoder,
-            devices=line.devices,
         )
 
     # -- submission ------------------------------------------------------------------
