@@ -85,3 +85,14 @@ def test_velocity_limits_of_the_wrong_type_are_named() -> None:
 def test_an_unknown_drive_torque_is_an_invalid_argument() -> None:
     with pytest.raises(InvalidArgumentError, match=r"torque=5 is not one of FREE"):
         set_torque(0, 5)  # type: ignore[arg-type]  # a caller's mistake
+
+
+def test_a_straight_run_that_makes_one_wheel_turn_backwards_is_refused_not_a_crash() -> None:
+    # A drift almost square to the run on an absurd separation: the diameter ratio comes
+    # out as exactly -1, which used to divide by zero.
+    from ohmni_tb.control.calibration import calibrate_straight_line
+
+    with pytest.raises(InvalidArgumentError, match=r"diameter_ratio=-1\.0: no usable geometry"):
+        calibrate_straight_line(
+            1e308, 5e-324, -1.0, wheel_radius_m=1.0, wheel_separation_m=1.146832227844532e16
+        )

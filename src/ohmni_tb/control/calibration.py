@@ -282,6 +282,12 @@ def _corrected(
     beta_rad: float,
 ) -> WheelCalibration:
     """Split a diameter ratio into two radii with mean ``radius_m · distance_scale``."""
+    if not diameter_ratio > 0.0:
+        # A wheel turning backwards: no geometry (and a ratio of exactly -1 divides by 0).
+        raise InvalidArgumentError(
+            f"the measurements give diameter_ratio={diameter_ratio!r}: no usable geometry; "
+            "check their units"
+        )
     mean = radius_m * distance_scale
     result = WheelCalibration(
         left_wheel_radius_m=mean * 2.0 / (diameter_ratio + 1.0),
