@@ -23,13 +23,13 @@ import argparse
 import asyncio
 import json
 import os
-import signal
 import statistics
 import subprocess
 import sys
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 from ohmni_tb.bus import Bus
@@ -37,6 +37,9 @@ from ohmni_tb.errors import OhmniError
 from ohmni_tb.protocol import core, drive
 from ohmni_tb.protocol.connection import DEFAULT_CAUTION_S
 from ohmni_tb.transport import open_transport
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _pty import simulator_on_pty
 
 SERVOS = (3, 11, 12)
 
@@ -94,27 +97,11 @@ async def client(path: str, seconds: float, caution_s: float) -> dict[str, Any]:
 
 def child(seconds: float, caution_s: float) -> dict[str, Any]:
     """One run: a simulator process on a pty, the schedule against it, the simulator stopped."""
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "ohmni_tb", "sim", "--pty"],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        assert sim.stdout is not None
-        path = sim.stdout.readline().decode().strip()
+    with simulator_on_pty() as path:
         try:
-            result = asyncio.run(client(path, seconds, caution_s))
+            return asyncio.run(client(path, seconds, caution_s))
         except (OhmniError, OSError) as exc:
-            result = {"failures": [f"start: {type(exc).__name__}: {exc}"]}
-    finally:
-        sim.send_signal(signal.SIGINT)
-        try:
-            sim.wait(5)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
-    return result
+            return {"failures": [f"start: {type(exc).__name__}: {exc}"]}
 
 
 def main() -> int:

@@ -35,8 +35,6 @@ import bisect
 import math
 import os
 import platform
-import signal
-import subprocess
 import sys
 import time
 from collections.abc import Awaitable, Callable
@@ -55,6 +53,7 @@ from ohmni_tb.transport.base import LostHandler, Receiver
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _old_bus import OldBus
+from _pty import simulator_on_pty
 
 WHEEL_HZ = 50.0
 SERVO_HZ = 30.0
@@ -267,19 +266,8 @@ async def run(
 def run_on_pty(engine: str, seconds: float) -> Row:
     """One row against ``ohmni sim --pty`` in its own process: this process's CPU is then
     the driver's alone, as on the robot."""
-    server = subprocess.Popen(
-        [sys.executable, "-m", "ohmni_tb", "sim", "--pty"],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        assert server.stdout is not None
-        path = server.stdout.readline().decode().strip()
+    with simulator_on_pty() as path:
         return asyncio.run(run(engine, seconds, 0, (), port=path))
-    finally:
-        server.send_signal(signal.SIGINT)
-        server.wait(timeout=10)
 
 
 async def _run(
