@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Final
 
+from ohmni_tb._checks import show
 from ohmni_tb.errors import (
     InvalidArgumentError,
     MalformedReplyError,
@@ -170,7 +171,7 @@ class JogTarget:
             flags = JogSet.from_byte(set_byte)
             value = decode_jog_word(jog_word, turn=flags.turn)
         except ProtocolError as exc:
-            raise ProtocolError(f"jog tag for sid {sid}: {exc}") from exc
+            raise ProtocolError(f"jog tag for sid {show(sid)}: {exc}") from exc
         if flags.invalid:
             return None
         try:
