@@ -1,0 +1,797 @@
+"""Robot settings: one frozen, validated :class:`RobotConfig` from arguments, env and TOML.
+
+Where a setting comes from, highest first::
+
+    keyword arguments   RobotConfig.load(port="sim://")  or  RobotConfig(port="sim://")
+    environment         OHMNI_PORT=sim://  OHMNI_WATCHDOG_S=0.3   (names in any case)
+    one TOML file       only RobotConfig.load() reads one, the first of:
+                          load(config_file)                 must exist
+                          $OHMNI_CONFIG                     must exist
+                          ./ohmni.toml                      if it exists
+                          $XDG_CONFIG_HOME/ohmni/ohmni.toml if it exists (~/.config/...)
+    defaults            DESIGN §4, via ohmni_tb.control.defaults and ohmni_tb.protocol
+
+The TOML file holds the settings at top level, or in a ``[robot]`` table::
+
+    port = "/dev/ttyUSB0"
+    watchdog_s = 0.3
+    ext_servo_ids = [11, 12]
+
+Every bad value is a :class:`~ohmni_tb.errors.ConfigError` (a ``ValueError``), one line
+per problem, naming the setting, the value, what is allowed and where it came from::
+
+    watchdog_s=-1.0 is out of range: allowed 0 (off) or 0.05..60 s (from OHMNI_WATCHDOG_S)
+
+pydantic stays at this edge: the Robot asks the config for the control layer's own
+frozen objects (:meth:`RobotConfig.drive`, :meth:`RobotConfig.pid_gains`, ...).
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import tomllib
+from collections.abc import Mapping
+from contextvars import ContextVar
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Self, cast
+
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic_core import PydanticCustomError
+from pydantic_settings import (
+    BaseSettings,
+    NoDecode,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+from pydantic_settings.exceptions import SettingsError
+
+from ohmni_tb._checks import show
+from ohmni_tb.control.defaults import (
+    DEFAULT_MAX_ANGULAR_RADPS,
+    DEFAULT_MAX_LINEAR_MPS,
+    DEFAULT_TICKS_PER_REV,
+    DEFAULT_WHEEL_RADIUS_M,
+    DEFAULT_WHEEL_SEPARATION_M,
+    PID_RATE_HZ,
+)
+from ohmni_tb.control.encoder import EncoderConfig
+from ohmni_tb.control.kinematics import DiffDrive, VelocityLimits
+from ohmni_tb.control.limiter import AccelLimits, TwistLimiter
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.errors import ConfigError
+from ohmni_tb.protocol.connection import DEFAULT_TIMEOUT_S
+from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, NECK_RAW_RANGE, DeviceId
+from ohmni_tb.protocol.worm_neck import WORM_MAX, WORM_MIN
+
+if TYPE_CHECKING:
+    from importlib.resources.abc import Traversable
+
+__all__ = ["CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths"]
+
+#: Prefix of the environment variables that set a field (``OHMNI_PORT``), any case.
+ENV_PREFIX = "OHMNI_"
+#: Environment variable naming the TOML file to load (below an explicit ``config_file``).
+CONFIG_ENV = "OHMNI_CONFIG"
+#: Name of the TOML file looked for in the working directory and the user's config dir.
+CONFIG_FILE_NAME = "ohmni.toml"
+
+#: Highest bus id a HerkuleX servo may have (0xFE is the broadcast id).
+_MAX_SERVO_ID = 253
+#: The vendor API addresses two external servos (``servo_ext1``, ``servo_ext2``).
+_MAX_EXT_SERVOS = 2
+#: Ids of the robot's own boards: an external servo on one of them would answer for it.
+_BOARD_IDS = {d.value: d.name.lower() for d in DeviceId if d is not DeviceId.BROADCAST}
+#: HerkuleX positions are 10 bits.
+_RAW_MAX = 1023
+#: Event-loop delay the bus allows on top of the adapter's latency timer: DEFAULT_TIMEOUT_S
+#: is the default 16 ms latency timer plus this.
+_LOOP_MARGIN_S = 0.009
+#: The PWM limit of the drive boards, for the PID descriptions.
+_PWM = "PWM -1000..1000"
+
+
+def config_paths() -> list[Path]:
+    """The TOML files :meth:`RobotConfig.load` looks for, in order; it reads the first found.
+
+    ``$OHMNI_CONFIG`` (when set) comes first and must exist; the others are read only if
+    they exist. An explicit ``config_file`` argument comes before all of them.
+    """
+    named = os.environ.get(CONFIG_ENV)
+    return ([Path(named).expanduser()] if named else []) + _default_paths()
+
+
+def _num(value: float) -> str:
+    """A range bound or default as text: ``60`` not ``60.0``, ``1000000`` not ``1e+06``."""
+    if isinstance(value, int) or value.is_integer():
+        return str(int(value))
+    return format(value, ".10g")
+
+
+def _setting(
+    default: float,
+    low: float,
+    high: float,
+    unit: str,
+    description: str,
+    *,
+    above: bool = False,
+    off: str = "",
+) -> Any:
+    """A range-checked number: ``low..high``, ``above``: low excluded; ``off``: 0 allowed too.
+
+    The allowed range is written into the description, and kept for error messages.
+    """
+    span = f"{'>' if above else ''}{_num(low)}..{_num(high)}"
+    allowed = (f"0 ({off}) or {span}" if off else span) + (f" {unit}" if unit else "")
+    return Field(
+        default,
+        description=f"{description} Allowed: {allowed}.",
+        gt=low if above else None,
+        ge=None if above else (0 if off else low),
+        le=high,
+        json_schema_extra={"allowed": allowed, "off_below": low if off else None},
+    )
+
+
+class RobotConfig(BaseSettings):
+    """Every setting of a Robot: connection, geometry, limits, PID, safety, neck, rates.
+
+    Frozen and validated: a bad value raises :class:`~ohmni_tb.errors.ConfigError`
+    naming the setting, the value, the allowed range and where the value came from.
+
+    ``RobotConfig(**settings)`` reads the arguments and ``OHMNI_*`` environment variables
+    only; :meth:`load` also reads a TOML file. :meth:`describe` lists every setting.
+
+    Example:
+        >>> config = RobotConfig(port="sim://", watchdog_s=0.3)
+        >>> config.drive().wheel_separation_m
+        0.33
+    """
+
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        case_sensitive=False,
+        frozen=True,
+        extra="forbid",
+        allow_inf_nan=False,
+        validate_default=True,
+    )
+
+    # Connection.
+    port: str = Field(
+        default="/dev/ttyUSB0",
+        min_length=1,
+        description="Serial port of the robot's bus: a device path, or a transport URL "
+        "(serial:///dev/ttyUSB0, sim://). On the robot also /dev/usb/tty1-2.1.",
+        json_schema_extra={"allowed": "a device path or transport URL"},
+    )
+    baudrate: int = _setting(115200, 1200, 4_000_000, "baud", "Bus speed, baud.")
+    usb_latency_ms: int = _setting(
+        16,
+        0,
+        32,
+        "ms",
+        "Latency timer of the USB serial adapter, ms: it may hold a reply this long, so "
+        "the bus waits this much longer for replies.",
+    )
+    reconnect: bool = Field(default=True, description="Reopen the port when the link is lost.")
+    reconnect_max_backoff_s: float = _setting(
+        5.0, 0.01, 60, "s", "Longest wait between two attempts to reopen a lost link, s."
+    )
+
+    # Geometry.
+    wheel_radius_m: float = _setting(
+        DEFAULT_WHEEL_RADIUS_M, 0.01, 1, "m", "Wheel radius, m (robots measure 0.07525)."
+    )
+    wheel_separation_m: float = _setting(
+        DEFAULT_WHEEL_SEPARATION_M,
+        0.05,
+        2,
+        "m",
+        "Distance between the wheels' contact points, m (robots measure 0.330-0.332).",
+    )
+    ticks_per_rev: float = _setting(
+        DEFAULT_TICKS_PER_REV,
+        1,
+        1e7,
+        "ticks",
+        "Encoder ticks per wheel turn: 16384 * 30/11 (inferred).",
+    )
+
+    # Limits.
+    max_linear_mps: float = _setting(
+        DEFAULT_MAX_LINEAR_MPS,
+        0,
+        5,
+        "m/s",
+        "Largest forward or backward speed, m/s; faster commands are scaled down, keeping "
+        "their curvature.",
+        above=True,
+    )
+    max_angular_radps: float = _setting(
+        DEFAULT_MAX_ANGULAR_RADPS, 0, 20, "rad/s", "Largest yaw rate either way, rad/s.", above=True
+    )
+    max_wheel_mps: float = _setting(
+        DEFAULT_MAX_LINEAR_MPS,
+        0,
+        5,
+        "m/s",
+        "Largest rim speed of either wheel, m/s (a fast turn while driving fast asks more "
+        "of the outer wheel).",
+        above=True,
+    )
+    linear_accel_mps2: float = _setting(
+        0.5, 0, 100, "m/s²", "Linear acceleration limit while speeding up, m/s².", above=True
+    )
+    linear_decel_mps2: float = _setting(
+        1.0, 0, 100, "m/s²", "Linear deceleration limit while braking, m/s².", above=True
+    )
+    angular_accel_radps2: float = _setting(
+        2.0, 0, 100, "rad/s²", "Yaw acceleration limit while speeding up, rad/s².", above=True
+    )
+    angular_decel_radps2: float = _setting(
+        4.0, 0, 100, "rad/s²", "Yaw deceleration limit while braking, rad/s².", above=True
+    )
+
+    # Wheel PID: the loop's output is the drive board's PWM.
+    pid_kp: float = _setting(
+        400.0, 0, 1e6, "PWM/(m/s)", f"Wheel PID proportional gain, PWM per m/s of error ({_PWM})."
+    )
+    pid_ki: float = _setting(
+        2000.0, 0, 1e6, "PWM/m", "Wheel PID integral gain, PWM per m/s of error and second."
+    )
+    pid_kd: float = _setting(
+        0.0, 0, 1e6, "PWM/(m/s²)", "Wheel PID derivative gain on the measured speed, PWM per m/s²."
+    )
+    pid_kff: float = _setting(
+        940.0, 0, 1e6, "PWM/(m/s)", "Wheel velocity feed-forward, PWM per m/s of setpoint."
+    )
+    pid_ff_offset: float = _setting(
+        60.0,
+        0,
+        1e6,
+        "PWM",
+        "PWM added in the direction of a non-zero wheel setpoint, to overcome the motor's "
+        "dead band.",
+    )
+    controllers: bool = Field(default=True, description="Run the wheel speed PID controllers.")
+
+    # Safety.
+    watchdog_s: float = _setting(
+        0.5,
+        0.05,
+        60,
+        "s",
+        "Motion watchdog: the wheels are stopped this long after the last drive command, s.",
+        off="off",
+    )
+    stale_ticks: int = _setting(
+        5,
+        1,
+        100,
+        "ticks",
+        "Control ticks without both wheel counts before the wheels are stopped.",
+    )
+    implausible_mps: float = _setting(
+        3.0,
+        0.5,
+        50,
+        "m/s",
+        "A wheel count jump implying a faster wheel than this is rejected, m/s.",
+    )
+    thermal_guard: bool = Field(
+        default=True,
+        description="Watch the neck servo's temperature and status; rest, then free it.",
+    )
+    thermal_limit_raw: int = _setting(
+        200,
+        1,
+        254,
+        "raw",
+        "Raw HerkuleX temperature at which a servo is rested, then freed.",
+    )
+    neck_hold_s: float = _setting(
+        600.0,
+        1,
+        86400,
+        "s",
+        "Neck torque is held this long after the last neck command, then the neck is "
+        "rested and freed, s.",
+        off="never",
+    )
+    on_exit_neck: Literal["rest", "free", "keep"] = Field(
+        default="free",
+        description="The neck when the Robot closes: rest (move to the rest position), "
+        "free (torque off) or keep (leave it as it is).",
+    )
+    stop_timeout_s: float = _setting(
+        1.0, 0.05, 10, "s", "Time allowed to confirm the wheel stop on exit, s."
+    )
+
+    # Neck and servos.
+    neck: Literal["auto", "herkulex", "worm", "none"] = Field(
+        default="auto",
+        description="The neck fitted: auto (probe the bus), herkulex (servo neck_id), worm "
+        "(the worm-gear neck board) or none.",
+    )
+    neck_id: int = _setting(3, 0, _MAX_SERVO_ID, "", "Bus id of the HerkuleX neck servo.")
+    neck_min_raw: int = _setting(
+        NECK_RAW_RANGE[0],
+        0,
+        _RAW_MAX,
+        "raw",
+        "Lowest HerkuleX neck position, raw; below neck_max_raw.",
+    )
+    neck_max_raw: int = _setting(
+        NECK_RAW_RANGE[1], 0, _RAW_MAX, "raw", "Highest HerkuleX neck position, raw."
+    )
+    neck_rest_raw: int = _setting(
+        465,
+        0,
+        _RAW_MAX,
+        "raw",
+        "Rest position of the HerkuleX neck, raw; within neck_min_raw..neck_max_raw.",
+    )
+    neck_zero_offset_raw: int = _setting(
+        0,
+        -512,
+        511,
+        "raw",
+        "Offset of the level-head position from the neck servo's nominal zero, raw.",
+    )
+    worm_min_raw: int = _setting(
+        WORM_MIN,
+        WORM_MIN,
+        WORM_MAX,
+        "raw",
+        "Lowest worm neck target (up), raw; below worm_max_raw. Beyond the hardware range "
+        "the motor stalls until power-cycled.",
+    )
+    worm_max_raw: int = _setting(
+        WORM_MAX, WORM_MIN, WORM_MAX, "raw", "Highest worm neck target (down), raw."
+    )
+    ext_servo_ids: Annotated[tuple[int, ...], NoDecode] = Field(
+        default=DEFAULT_EXT_SERVO_IDS,
+        description="Bus ids of the external HerkuleX servos (assumed 11, 12). From the "
+        "environment or TOML: a list, '11,12', or '' / 'none'. Allowed: at most "
+        f"{_MAX_EXT_SERVOS} ids 0..{_MAX_SERVO_ID}, no repeats, none of the board ids "
+        f"{', '.join(map(str, _BOARD_IDS))} nor neck_id.",
+        json_schema_extra={"allowed": f"at most {_MAX_EXT_SERVOS} bus ids 0..{_MAX_SERVO_ID}"},
+    )
+
+    # Stream rates.
+    wheel_hz: float = _setting(
+        PID_RATE_HZ,
+        1,
+        100,
+        "Hz",
+        "Rate of the control slot (both wheel counts, odometry, the wheel command), Hz.",
+    )
+    servo_hz: float = _setting(
+        30.0, 0, 50, "Hz", "Rate of the HerkuleX servo status reads, Hz; 0 turns them off."
+    )
+    core_hz: float = _setting(
+        10.0, 0, 20, "Hz", "Rate of the core board status reads, Hz; 0 turns them off."
+    )
+    new_neck_hz: float = _setting(
+        30.0,
+        0,
+        50,
+        "Hz",
+        "Rate of the worm neck feedback reads (new_neck), Hz; 0 turns them off.",
+    )
+    state_hz: float = _setting(1.0, 0.1, 10, "Hz", "Rate of the robot_state stream, Hz.")
+    pid_debug: bool = Field(
+        default=False,
+        description="Publish the pid_debug stream: both wheels' PID terms every tick.",
+    )
+
+    if not TYPE_CHECKING:
+        # Hidden from mypy, which then checks calls against the fields' own signature.
+        def __init__(self, **values: Any) -> None:
+            self._validate_into(values)
+
+    @classmethod
+    def load(
+        cls, config_file: str | os.PathLike[str] | None = None, **overrides: object
+    ) -> RobotConfig:
+        """Settings from the arguments, the environment and a TOML file.
+
+        Args:
+            config_file: The TOML file to read; it must exist. Without it:
+                ``$OHMNI_CONFIG`` (must exist), else ``./ohmni.toml``, else
+                ``$XDG_CONFIG_HOME/ohmni/ohmni.toml``, else no file.
+            **overrides: Settings that beat every other source.
+
+        Returns:
+            The validated settings.
+
+        Raises:
+            ConfigError: A file is missing or not valid TOML, a setting is unknown, or a
+                value is invalid.
+        """
+        loading = _Loading(_find_config_file(config_file))
+        token = _LOADING.set(loading)
+        try:
+            return cls(**cast("dict[str, Any]", overrides))
+        finally:
+            _LOADING.reset(token)
+
+    @classmethod
+    def describe(cls) -> list[tuple[str, str, str]]:
+        """Every setting as ``(name, default as text, description)``, for docs and ``--help``."""
+        return [
+            (name, _default_text(info.default), info.description or "")
+            for name, info in cls.model_fields.items()
+        ]
+
+    def replace(self, **changes: Any) -> RobotConfig:
+        """A copy with ``changes`` applied and validated (the config itself is frozen).
+
+        Raises:
+            ConfigError: A change is unknown or invalid.
+        """
+        return type(self)(**{**self.model_dump(), **changes})
+
+    def drive(self) -> DiffDrive:
+        """The wheel geometry."""
+        return DiffDrive(self.wheel_radius_m, self.wheel_separation_m)
+
+    def velocity_limits(self) -> VelocityLimits:
+        """The speed limits a command is scaled into."""
+        return VelocityLimits(self.max_linear_mps, self.max_angular_radps, self.max_wheel_mps)
+
+    def twist_limiter(self) -> TwistLimiter:
+        """A new acceleration limiter, standing, with the configured limits."""
+        return TwistLimiter(
+            AccelLimits(self.linear_accel_mps2, self.linear_decel_mps2),
+            AccelLimits(self.angular_accel_radps2, self.angular_decel_radps2),
+        )
+
+    def pid_gains(self) -> PidGains:
+        """The wheel PID gains."""
+        return PidGains(
+            kp=self.pid_kp,
+            ki=self.pid_ki,
+            kd=self.pid_kd,
+            kff=self.pid_kff,
+            ff_offset=self.pid_ff_offset,
+        )
+
+    def encoders(self) -> tuple[EncoderConfig, EncoderConfig]:
+        """The left and right wheel encoders (the right one counts mirrored)."""
+        return (
+            EncoderConfig(ticks_per_rev=self.ticks_per_rev, wheel_radius_m=self.wheel_radius_m),
+            EncoderConfig(
+                ticks_per_rev=self.ticks_per_rev,
+                wheel_radius_m=self.wheel_radius_m,
+                mirrored=True,
+            ),
+        )
+
+    def bus_timeout_s(self) -> float:
+        """The bus's reply timeout: the adapter's latency timer plus event-loop delay.
+
+        Never less than the bus default (25 ms, for the default 16 ms latency timer).
+        """
+        return max(DEFAULT_TIMEOUT_S, self.usb_latency_ms / 1000 + _LOOP_MARGIN_S)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise ConfigError(
+            f"RobotConfig is frozen: cannot set {name}; use .replace({name}=...) for a copy"
+        )
+
+    def __delattr__(self, name: str) -> None:
+        raise ConfigError(f"RobotConfig is frozen: cannot delete {name}")
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Arguments, then ``OHMNI_*``, then the TOML file of a :meth:`load` call."""
+        # No .env or secrets directory: a robot's settings come from three places only.
+        loading = _LOADING.get()
+        if loading is None or loading.path is None:
+            return (init_settings, env_settings)
+        return (init_settings, env_settings, _TomlSource(settings_cls, loading))
+
+    def _validate_into(self, values: dict[str, Any]) -> None:
+        """Run pydantic-settings' validation, turning its errors into one ConfigError."""
+        # BaseSettings takes "_env_file" and friends as arguments: not here, so that the
+        # sources stay the three documented ones.
+        for key in values:
+            if key.startswith("_"):
+                raise ConfigError(_unknown_message(key, " (argument)"))
+        try:
+            super().__init__(**values)
+        except ValidationError as exc:
+            raise ConfigError(_explain(exc, values)) from exc
+        except SettingsError as exc:
+            raise ConfigError(str(exc)) from exc
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _refuse_bool_numbers(cls, value: object, info: ValidationInfo) -> object:
+        # pydantic's lax mode reads True as 1; a switch given for a number is a mistake.
+        declared = cls.model_fields.get(info.field_name or "")
+        if isinstance(value, bool) and declared is not None and declared.annotation in (int, float):
+            raise PydanticCustomError("not_a_number", "a boolean is not a number")
+        return value
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _check_off_gap(cls, value: object, info: ValidationInfo) -> object:
+        off_below = _extra(info.field_name or "").get("off_below")
+        if (
+            isinstance(off_below, float | int)
+            and isinstance(value, float | int)
+            and 0 < value < off_below
+        ):
+            raise PydanticCustomError("out_of_range", "between off and the lowest value")
+        return value
+
+    @field_validator("ext_servo_ids", mode="before")
+    @classmethod
+    def _parse_id_list(cls, value: object) -> object:
+        return _parse_ids(value) if isinstance(value, str) else value
+
+    @field_validator("ext_servo_ids", mode="after")
+    @classmethod
+    def _check_ext_ids(cls, ids: tuple[int, ...]) -> tuple[int, ...]:
+        shown = f"ext_servo_ids={ids}"
+        if len(ids) > _MAX_EXT_SERVOS:
+            raise ValueError(f"{shown} lists {len(ids)} servos: at most {_MAX_EXT_SERVOS}")
+        for sid in ids:
+            if not 0 <= sid <= _MAX_SERVO_ID:
+                raise ValueError(f"{shown}: id {sid} is out of range: allowed 0..{_MAX_SERVO_ID}")
+            if sid in _BOARD_IDS:
+                raise ValueError(
+                    f"{shown}: id {sid} is the {_BOARD_IDS[sid]} board's; board ids "
+                    f"{', '.join(map(str, _BOARD_IDS))} are taken"
+                )
+            if ids.count(sid) > 1:
+                raise ValueError(f"{shown} repeats id {sid}")
+        return ids
+
+    @model_validator(mode="after")
+    def _check_relations(self) -> Self:
+        problems: list[tuple[str, str]] = []
+        low, high, rest = self.neck_min_raw, self.neck_max_raw, self.neck_rest_raw
+        if not low < high:
+            problems.append(
+                ("neck_min_raw", f"neck_min_raw={low} must be below neck_max_raw={high}")
+            )
+        elif not low <= rest <= high:
+            problems.append(
+                (
+                    "neck_rest_raw",
+                    f"neck_rest_raw={rest} is outside the neck's range: allowed "
+                    f"neck_min_raw..neck_max_raw = {low}..{high}",
+                )
+            )
+        if not self.worm_min_raw < self.worm_max_raw:
+            problems.append(
+                (
+                    "worm_min_raw",
+                    f"worm_min_raw={self.worm_min_raw} must be below "
+                    f"worm_max_raw={self.worm_max_raw}",
+                )
+            )
+        if self.neck_id in self.ext_servo_ids:
+            problems.append(
+                (
+                    "ext_servo_ids",
+                    f"ext_servo_ids={self.ext_servo_ids} includes neck_id={self.neck_id}: "
+                    "an external servo needs an id of its own",
+                )
+            )
+        if problems:
+            raise _RelationError(problems)
+        return self
+
+
+@dataclass
+class _Loading:
+    """The TOML file of one :meth:`RobotConfig.load` call, and what it held once read."""
+
+    path: Path | None
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+#: Set for the duration of a load() call, so plain RobotConfig() never reads a file.
+_LOADING: ContextVar[_Loading | None] = ContextVar("ohmni_config_loading", default=None)
+
+
+class _RelationError(ValueError):
+    """Cross-field problems, each ``(field, message)``, raised from the model validator."""
+
+    def __init__(self, problems: list[tuple[str, str]]) -> None:
+        super().__init__("; ".join(message for _, message in problems))
+        self.problems = problems
+
+
+class _TomlSource(TomlConfigSettingsSource):
+    """pydantic-settings' TOML source: ``[robot]`` merged up, errors naming the file."""
+
+    def __init__(self, settings_cls: type[BaseSettings], loading: _Loading) -> None:
+        self._loading = loading
+        super().__init__(settings_cls, toml_file=loading.path)
+
+    def _read_file(self, file_path: Path | Traversable) -> dict[str, Any]:
+        try:
+            with file_path.open("rb") as file:
+                data = tomllib.load(file)
+        except tomllib.TOMLDecodeError as exc:  # its message ends "(at line 3, column 7)"
+            raise ConfigError(f"{file_path}: not valid TOML: {exc}") from exc
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{file_path}: not UTF-8 text: {exc}") from exc
+        except OSError as exc:
+            raise ConfigError(f"cannot read config file {file_path}: {exc}") from exc
+        table = data.pop("robot", None)
+        if table is not None:
+            if not isinstance(table, dict):
+                raise ConfigError(f"{file_path}: robot must be a [robot] table, not {table!r}")
+            for key in table:
+                if key in data:
+                    raise ConfigError(f"{file_path}: {key} is set both at top level and in [robot]")
+            data.update(table)
+        self._loading.data = data
+        return data
+
+
+#: pydantic error types that mean "a number outside its range".
+_RANGE_ERRORS = frozenset(
+    {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "out_of_range"}
+)
+#: pydantic error types that mean "not the right kind of value", and that kind.
+_KIND_ERRORS = {
+    "int_parsing": "an integer",
+    "int_from_float": "an integer",
+    "int_type": "an integer",
+    "float_parsing": "a number",
+    "float_type": "a number",
+    "not_a_number": "a number",
+    "finite_number": "a finite number",
+    "bool_parsing": "a boolean",
+    "bool_type": "a boolean",
+    "string_type": "a string",
+    "string_too_short": "empty",
+    "tuple_type": "a list",
+}
+
+
+def _explain(error: ValidationError, arguments: Mapping[str, object]) -> str:
+    """One line per problem of ``error``: the setting, the value, what is allowed, whence."""
+    unknown: list[str] = []  # first: a mistyped name often explains the rest
+    lines: list[str] = []
+    for problem in error.errors():
+        loc = problem["loc"]
+        kind = problem["type"]
+        context = problem.get("ctx") or {}
+        cause = context.get("error")
+        if isinstance(cause, _RelationError):
+            lines += [msg + _origin(name, arguments)[0] for name, msg in cause.problems]
+            continue
+        name = str(loc[0]) if loc else ""
+        origin, from_env = _origin(name, arguments)
+        if kind == "extra_forbidden":
+            unknown.append(_unknown_message(name, origin))
+            continue
+        where = name + "".join(f"[{part}]" for part in loc[1:])
+        value = problem["input"]
+        shown = value if from_env and isinstance(value, str) else show(value)
+        allowed = _allowed(name)
+        if kind in _RANGE_ERRORS:
+            text = f"{where}={shown} is out of range: allowed {allowed}"
+        elif kind == "string_too_short":
+            text = f"{where}={shown} is empty: allowed {allowed}"
+        elif kind in {"bool_parsing", "bool_type"}:
+            text = f"{where}={shown} is not a boolean: allowed true/false, 1/0, yes/no, on/off"
+        elif kind in _KIND_ERRORS:
+            text = f"{where}={shown} is not {_KIND_ERRORS[kind]}: allowed {allowed}"
+        elif kind == "literal_error":
+            text = f"{where}={shown} is not a choice: allowed {context.get('expected', '')}"
+        elif kind == "value_error" and cause is not None:
+            text = str(cause)
+        else:
+            text = f"{where}={shown} is invalid: {problem['msg']}"
+        lines.append(text + origin)
+    return "\n".join(unknown + lines)
+
+
+def _origin(name: str, arguments: Mapping[str, object]) -> tuple[str, bool]:
+    """Where the value of setting ``name`` came from, as `` (…)``, and whether from env."""
+    if name.lower() in {key.lower() for key in arguments}:
+        return " (argument)", False
+    wanted = f"{ENV_PREFIX}{name}".lower()
+    for key in os.environ:
+        if key.lower() == wanted:
+            return f" (from {key})", True
+    loading = _LOADING.get()
+    if loading is not None and name.lower() in {key.lower() for key in loading.data}:
+        return f" (in {loading.path})", False
+    return "", False
+
+
+def _unknown_message(key: str, origin: str) -> str:
+    """An unknown setting, with the closest names as a suggestion."""
+    close = difflib.get_close_matches(key.lower(), list(RobotConfig.model_fields), n=3)
+    hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
+    return f"unknown setting {key!r}{origin}{hint}"
+
+
+def _extra(name: str) -> dict[str, Any]:
+    """The ``json_schema_extra`` of field ``name`` (empty when it has none)."""
+    info = RobotConfig.model_fields.get(name)
+    extra = info.json_schema_extra if info is not None else None
+    return extra if isinstance(extra, dict) else {}
+
+
+def _allowed(name: str) -> str:
+    """What field ``name`` allows, in words."""
+    return str(_extra(name).get("allowed", "see RobotConfig.describe()"))
+
+
+def _parse_ids(text: str) -> list[int]:
+    """Bus ids from text: ``"11,12"``, ``"[11, 12]"``, or ``""`` / ``"none"`` for none."""
+    body = text.strip()
+    if body.startswith("[") and body.endswith("]"):
+        body = body[1:-1].strip()
+    if body.lower() in {"", "none"}:
+        return []
+    ids: list[int] = []
+    for part in body.split(","):
+        try:
+            ids.append(int(part.strip()))
+        except ValueError:
+            raise ValueError(
+                f"ext_servo_ids={text!r}: {part.strip()!r} is not a bus id "
+                "(write ids like 11,12, or none)"
+            ) from None
+    return ids
+
+
+def _default_text(value: object) -> str:
+    """A default as one would write it in the environment."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return ",".join(map(str, value)) if value else "none"
+    if isinstance(value, int | float):
+        return _num(value)
+    return str(value)
+
+
+def _default_paths() -> list[Path]:
+    """./ohmni.toml, then $XDG_CONFIG_HOME/ohmni/ohmni.toml (default ~/.config)."""
+    xdg = os.environ.get("XDG_CONFIG_HOME", "")
+    # The XDG spec ignores a relative path.
+    home = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".config"
+    return [Path.cwd() / CONFIG_FILE_NAME, home / "ohmni" / CONFIG_FILE_NAME]
+
+
+def _find_config_file(config_file: str | os.PathLike[str] | None) -> Path | None:
+    """The TOML file a load() call reads, or None."""
+    if config_file is not None:
+        return _existing(Path(config_file).expanduser(), "")
+    named = os.environ.get(CONFIG_ENV)
+    if named:
+        return _existing(Path(named).expanduser(), f" (named by {CONFIG_ENV})")
+    return next((path for path in _default_paths() if path.is_file()), None)
+
+
+def _existing(path: Path, why: str) -> Path:
+    """``path`` if it is a file, else a ConfigError naming it."""
+    if not path.exists():
+        raise ConfigError(f"config file not found: {path}{why}")
+    if not path.is_file():
+        raise ConfigError(f"config file is not a file: {path}{why}")
+    return path
