@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import pytest
 
-from ohmni_tb.bus import Bus, BusStats
+from ohmni_tb.bus import Bus, BusStats, ReplyPacket
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
@@ -753,3 +753,69 @@ def test_a_length_zero_read_at_1200_baud_is_answered_not_unmatched() -> None:
     stats = virtual(main)
     assert stats.unmatched == 0
     assert stats.devices[20].timeouts == 0
+
+
+# -- submit: slots without a task ----------------------------------------------------------
+
+
+def test_submit_returns_a_slot_whose_future_and_start_time_tell_what_happened() -> None:
+    async def main() -> tuple[list[int], float, float | None, float | None, list[Packet]]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            done: list[list[ReplyPacket | None]] = []
+            t0 = loop.time()
+            first = bus.submit([read_count(0), read_count(1)], priority=1)
+            second = bus.submit([read_request(3, 48, 2)], priority=1)
+            first.future.add_done_callback(lambda f: done.append(f.result()))
+            assert first.started_at == t0  # the line was free: it went at once
+            assert second.started_at is None  # it waits behind the first
+            replies = await second.future
+            await asyncio.sleep(0)
+        await end.aclose()
+        values = [value(r) for r in done[0]] + [value(r) for r in replies]
+        return values, t0, first.started_at, second.started_at, device.sent()
+
+    values, t0, started_first, started_second, sent = virtual(main)
+    assert values == [1, 2, 3]  # each reply is its own request's, in order
+    assert started_first == t0
+    assert started_second is not None
+    assert started_second > t0 + transaction_cost_s(read_count(0))  # after both reads
+    assert [p.sid for p in sent] == [0, 1, 3]
+
+
+def test_cancelling_a_submitted_future_withdraws_the_slot_unsent() -> None:
+    async def main() -> tuple[list[Packet], int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            bus.submit([read_count(0)])
+            waiting = bus.submit([read_request(3, 48, 2)])
+            waiting.future.cancel()
+            after = await bus.transact([read_count(1)])
+            await asyncio.sleep(0.05)
+        await end.aclose()
+        return device.sent(), value(after[0])
+
+    sent, answer = virtual(main)
+    assert [p.sid for p in sent] == [0, 1]
+    assert answer == 2  # the second read served: the withdrawn one never went
+
+
+def test_a_submitted_slot_past_its_deadline_fails_its_future() -> None:
+    async def main() -> BaseException | None:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            bus.submit([read_count(0)])
+            late = bus.submit([read_count(1)], deadline=loop.time() + 0.0001)
+            with contextlib.suppress(DeadlineMissedError):
+                await late.future
+            exc = late.future.exception()
+        await end.aclose()
+        return exc
+
+    exc = virtual(main)
+    assert isinstance(exc, DeadlineMissedError)

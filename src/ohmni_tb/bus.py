@@ -111,6 +111,7 @@ __all__ = [
     "BusStats",
     "DeviceStats",
     "ReplyPacket",
+    "Slot",
     "transaction_cost_s",
 ]
 
@@ -163,8 +164,13 @@ class BusStats(ConnectionStats):
     reconnects: int
 
 
-class _Slot:
-    """One ``transact`` call: its packets, and what became of each."""
+class Slot:
+    """One atomic slot: its packets, and what became of each (:meth:`Bus.submit`).
+
+    Public attributes: :attr:`future` (resolves to one reply or ``None`` per packet, as
+    :meth:`Bus.transact` returns, or to its exception), :attr:`started_at` (the loop time
+    its first packet was written, ``None`` until then) and :attr:`packets`.
+    """
 
     __slots__ = (
         "active",
@@ -182,6 +188,7 @@ class _Slot:
         "retries",
         "seq",
         "started",
+        "started_at",
         "submitted_at",
         "timeout_s",
     )
@@ -214,9 +221,10 @@ class _Slot:
         self.exchanges: list[Exchange] = []
         self.remaining = len(packets)
         self.started = False
+        self.started_at: float | None = None
         self.cancelled = False
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
-        self.active: set[_Slot] | None = None
+        self.active: set[Slot] | None = None
 
     def settle(self, index: int, result: ReplyPacket | None) -> None:
         self.results[index] = result
@@ -243,7 +251,7 @@ class _Part:
 
     __slots__ = ("indices", "pos", "seq", "slot", "submitted_at")
 
-    def __init__(self, slot: _Slot, indices: list[int], *, seq: int, submitted_at: float) -> None:
+    def __init__(self, slot: Slot, indices: list[int], *, seq: int, submitted_at: float) -> None:
         self.slot = slot
         self.indices = indices
         self.pos = 0
@@ -337,7 +345,7 @@ class Bus:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._waiting: list[_Part] = []
         # Every slot whose caller still waits, wherever its packets are.
-        self._active: set[_Slot] = set()
+        self._active: set[Slot] = set()
         self._current: _Part | None = None
         self._urgent: deque[_Urgent] = deque()
         self._urgent_done: asyncio.Future[None] | None = None
@@ -662,6 +670,46 @@ class Bus:
         )
         return await self._await(slot)
 
+    def submit(
+        self,
+        packets: Sequence[Packet],
+        *,
+        priority: int = 0,
+        deadline: float | None = None,
+        retries: int | None = None,
+        timeout_s: float | None = None,
+    ) -> Slot:
+        """Queue ``packets`` as one atomic slot and return at once: :meth:`transact`
+        without a task.
+
+        For schedulers that start many slots a second from timer callbacks: attach a
+        done-callback to ``slot.future`` instead of awaiting a coroutine per slot.
+        Cancelling the future withdraws the slot (what has gone out stays out).
+
+        Raises:
+            The same as :meth:`transact`, except that :class:`DeadlineMissedError` and a
+            lost link come through the future.
+        """
+        slot = self._submit(
+            packets,
+            None,
+            priority=priority,
+            deadline=deadline,
+            retries=retries,
+            timeout_s=timeout_s,
+        )
+        slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
+        return slot
+
+    def _withdraw_if_cancelled(
+        self, slot: Slot
+    ) -> Callable[[asyncio.Future[list[ReplyPacket | None]]], None]:
+        def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
+            if future.cancelled() and not slot.cancelled:
+                self._cancel(slot)
+
+        return done
+
     async def request(
         self,
         packet: Packet,
@@ -820,7 +868,7 @@ class Bus:
         retries: int | None,
         timeout_s: float | None,
         fail_fast: bool = False,
-    ) -> _Slot:
+    ) -> Slot:
         conn = self._conn
         packets = list(packets)
         if not packets:
@@ -861,7 +909,7 @@ class Bus:
         self._check_usable()
         loop = self._loop_()
         now = loop.time()
-        slot = _Slot(
+        slot = Slot(
             packets,
             wants,
             priority=priority,
@@ -889,14 +937,14 @@ class Bus:
         self._pump()
         return slot
 
-    async def _await(self, slot: _Slot) -> list[ReplyPacket | None]:
+    async def _await(self, slot: Slot) -> list[ReplyPacket | None]:
         try:
             return await slot.future
         except asyncio.CancelledError:
             self._cancel(slot)
             raise
 
-    def _raise_missing(self, slot: _Slot, index: int) -> None:
+    def _raise_missing(self, slot: Slot, index: int) -> None:
         packet = slot.packets[index]
         retry_in = slot.refused[index]
         if retry_in is not None:
@@ -912,7 +960,7 @@ class Bus:
             sid=packet.sid, cmd=packet.cmd, attempts=max(1, slot.attempts[index]), timeout_s=timeout
         )
 
-    def _cancel(self, slot: _Slot) -> None:
+    def _cancel(self, slot: Slot) -> None:
         slot.cancelled = True
         self._active.discard(slot)
         self._waiting = [p for p in self._waiting if p.slot is not slot]
@@ -1115,6 +1163,7 @@ class Bus:
         slot = best.slot
         if not slot.started:
             slot.started = True
+            slot.started_at = now
             self._slots += 1
             self._waits.append(now - best.submitted_at)
         self._current = best
@@ -1212,7 +1261,7 @@ class Bus:
     def _handle(self, events: list[Event]) -> None:
         for event in events:
             if isinstance(event, ReplyReceived):
-                slot, index = cast(tuple[_Slot, int], event.exchange.token)
+                slot, index = cast(tuple[Slot, int], event.exchange.token)
                 slot.settle(index, event.reply)
             elif isinstance(event, ReplyMissing):
                 self._missing(event)
@@ -1224,7 +1273,7 @@ class Bus:
         if not isinstance(token, tuple):
             return
         slot, index = token
-        assert isinstance(slot, _Slot)
+        assert isinstance(slot, Slot)
         if slot.future.done() or slot.cancelled:
             return
         packet = slot.packets[index]
