@@ -60,7 +60,7 @@ PUBLIC = {
     "ohmni_tb.bus": [
         "DEFAULT_CLOSE_TIMEOUT_S", "DEFAULT_GUARD_S", "DEFAULT_MAX_WAIT_S", "DEFAULT_RETRIES",
         "DEFAULT_STALL_S", "DEFAULT_TIMEOUT_S", "DEFAULT_TURNAROUND_S", "BreakerState", "Bus",
-        "BusStats", "DeviceStats", "ReplyPacket", "transaction_cost_s",
+        "BusStats", "DeviceStats", "ReplyPacket", "Slot", "transaction_cost_s",
     ],
     "ohmni_tb.herkulex.servo": ["Requester", "Servo", "ServoStatus", "move_group"],
     "ohmni_tb.safety": [
@@ -76,7 +76,26 @@ PUBLIC = {
     "ohmni_tb.sim.url": ["build_line", "open_sim"],
     "ohmni_tb.sim.robot": ["NECK_CHOICES", "SimRobot"],
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
+    "ohmni_tb": ["OhmniError", "Robot", "RobotConfig", "__version__"],
+    "ohmni_tb.config": [
+        "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
+    ],
+    "ohmni_tb.robot": [
+        "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAM_NAMES", "BusFigures", "Link",
+        "PidDebugSample", "Robot", "RobotStateSample", "RobotStats", "Sample", "ServoHandle",
+        "ServoSample", "StreamStats", "Subscription", "TbcoreStatusSample",
+        "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
+    ],
 }  # fmt: skip
+
+
+def test_the_robot_and_its_config_are_importable_from_the_package() -> None:
+    from ohmni_tb import Robot, RobotConfig
+    from ohmni_tb.config import RobotConfig as Config
+    from ohmni_tb.robot import Robot as RobotClass
+
+    assert Robot is RobotClass
+    assert RobotConfig is Config
 
 
 @pytest.mark.parametrize("module", sorted(PUBLIC))

@@ -1,9 +1,33 @@
-"""ohmni_tb: drive the OhmniLabs Ohmni robot over its serial bus, without ROS."""
+"""ohmni_tb: drive the OhmniLabs Ohmni robot over its serial bus, without ROS.
+
+``from ohmni_tb import Robot, RobotConfig`` gives the asyncio Robot and its settings;
+they are imported on first use, so ``import ohmni_tb`` (and the CLI's start-up) stays
+light.
+"""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from ohmni_tb.errors import OhmniError
 
-__all__ = ["OhmniError", "__version__"]
+if TYPE_CHECKING:
+    from ohmni_tb.config import RobotConfig
+    from ohmni_tb.robot import Robot
+
+__all__ = ["OhmniError", "Robot", "RobotConfig", "__version__"]
 
 __version__ = "0.1.0"
+
+_LAZY = {"Robot": "ohmni_tb.robot", "RobotConfig": "ohmni_tb.config"}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'ohmni_tb' has no attribute {name!r}")
+    import importlib  # noqa: PLC0415  # lazy on purpose: see the module docstring
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value

@@ -1,0 +1,270 @@
+"""The Robot's whole schedule in real time: stream rates, jitter, wire, command latency, CPU.
+
+Run: ``python bench/robot.py`` (``--seconds`` per row, 60 by default; ``--quick`` for
+5 s rows).
+
+Each row opens ``Robot.open(...)`` with every stream on (wheels 50 Hz, three HerkuleX
+servos at 30 Hz, the core board at 10 Hz, robot_state 1 Hz) and, the whole time, sends
+the kind of commands a teleop does: a new open-loop wheel PWM every 50–150 ms
+(``drive_pwm``, so the packet on the wire carries exactly the commanded value). A tap
+under the bus notes when each wheel packet is written. Printed per row:
+
+* every stream's achieved rate (samples over the window) against the requested one;
+* control-slot start jitter (when the slot's first byte went on the wire after its due
+  time; p50/p99) from the Robot's own figures;
+* command → wire: from ``drive_pwm`` returning to the first wheel packet carrying the new
+  value being written to the port (p50/p99), against one control period (20 ms);
+* the line: measured utilisation (the simulator's busy time; ``-`` on a pty) beside the
+  cost model's share for the schedule;
+* CPU share of one core of the whole process over the window (``time.process_time``).
+
+Rows: ``sim://`` in this process at USB latency 0 and 16 ms and with one external servo
+silent (the simulator's CPU is then in the figure: ``bench/sim_cpu.py`` measures it
+alone), and ``pty``: ``ohmni sim --pty`` in its own process, so the CPU is the driver's
+alone, as on the robot. The last row runs the same schedule the simple way beside it —
+one asyncio task per stream looping on ``await bus.transact(...)`` (``bench/schedule.py``'s
+loops) on the pty — and the CPU ratio is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import random
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ohmni_tb.bus import Bus
+from ohmni_tb.protocol import Command, PacketDecoder
+from ohmni_tb.protocol.drive import decode_wheel_command
+from ohmni_tb.robot import Robot
+from ohmni_tb.sim.transport import SimTransport
+from ohmni_tb.transport import Transport, open_transport
+from ohmni_tb.transport.base import LostHandler, Receiver
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _pty import simulator_on_pty
+from schedule import PHASES_S, Stream, machine, new_bodies, periodic
+
+POLLED = ("wheel_encoder", "servo_neck", "servo_ext1", "servo_ext2", "tbcore_status")
+WHEEL_PERIOD_S = 0.020
+
+
+class WheelTap(Transport):
+    """Passes everything through; notes the time and PWM of every wheel packet written."""
+
+    def __init__(self, inner: Transport) -> None:
+        self.inner = inner
+        self.baudrate = inner.baudrate
+        self.robot = getattr(inner, "robot", None)
+        self.line = getattr(inner, "line", None)
+        self._decoder = PacketDecoder()
+        self.writes: list[tuple[float, tuple[int, int]]] = []
+
+    @property
+    def closed(self) -> bool:
+        return self.inner.closed
+
+    @property
+    def backlog(self) -> int:
+        return self.inner.backlog
+
+    async def drain(self) -> None:
+        await self.inner.drain()
+
+    def write_nowait(self, data: bytes) -> None:
+        self.inner.write_nowait(data)
+        for packet in self._decoder.feed(data):
+            if packet.cmd in (Command.S_JOG, Command.I_JOG) and packet.sid == 0xFE:
+                pwm = decode_wheel_command(packet)
+                # The right board counts mirrored: un-mirror to the commanded value.
+                self.writes.append((asyncio.get_running_loop().time(), (pwm[0], -pwm[1])))
+
+    async def read(self) -> bytes:
+        return await self.inner.read()
+
+    def start_receiving(self, on_data: Receiver, on_lost: LostHandler) -> None:
+        self.inner.start_receiving(on_data, on_lost)
+
+    async def aclose(self) -> None:
+        await self.inner.aclose()
+
+
+@dataclass
+class Row:
+    name: str
+    seconds: float
+    rates: dict[str, float] = field(default_factory=dict)
+    requested: dict[str, float] = field(default_factory=dict)
+    jitter_p50_ms: float = math.nan
+    jitter_p99_ms: float = math.nan
+    latency_ms: list[float] = field(default_factory=list)
+    wire: float = math.nan
+    budget: float = math.nan
+    cpu: float = math.nan
+
+
+def pct(values: list[float], q: float) -> float:
+    if not values:
+        return math.nan
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
+
+
+async def teleop(
+    robot: Robot, stop_at: float, commands: list[tuple[float, tuple[int, int]]]
+) -> None:
+    """New open-loop PWM every 50–150 ms, as a teleop sends; note when each was given."""
+    loop = asyncio.get_running_loop()
+    rng = random.Random(7)
+    previous = (0, 0)
+    while loop.time() < stop_at:
+        pwm = previous
+        while pwm == previous:
+            value = rng.randrange(-300, 301, 10)
+            pwm = (value, value)
+        robot.drive_pwm(*pwm)
+        commands.append((loop.time(), pwm))
+        previous = pwm
+        await asyncio.sleep(rng.uniform(0.05, 0.15))
+
+
+def latencies(
+    commands: list[tuple[float, tuple[int, int]]], writes: list[tuple[float, tuple[int, int]]]
+) -> list[float]:
+    """Command → first wheel packet written with its value, in ms."""
+    out: list[float] = []
+    j = 0
+    for i, (at, pwm) in enumerate(commands):
+        until = commands[i + 1][0] if i + 1 < len(commands) else math.inf
+        while j < len(writes) and writes[j][0] < at:
+            j += 1
+        k = j
+        while k < len(writes) and writes[k][0] < until:
+            if writes[k][1] == pwm:
+                out.append((writes[k][0] - at) * 1e3)
+                break
+            k += 1
+    return out
+
+
+async def run_robot(name: str, port: str, seconds: float, *, usb_latency_ms: int = 0) -> Row:
+    inner = await open_transport(port)
+    tap = WheelTap(inner)
+    row = Row(name, seconds)
+    loop = asyncio.get_running_loop()
+    async with Robot.open(tap, usb_latency_ms=usb_latency_ms, watchdog_s=1.0) as robot:
+        await asyncio.sleep(1.0)  # settle: discovery done, every stream running
+        start = robot.stats()
+        busy0 = inner.line.stats.busy_s if isinstance(inner, SimTransport) else math.nan
+        cpu0 = time.process_time()
+        wall0 = time.perf_counter()
+        commands: list[tuple[float, tuple[int, int]]] = []
+        await teleop(robot, loop.time() + seconds, commands)
+        cpu = time.process_time() - cpu0
+        wall = time.perf_counter() - wall0
+        end = robot.stats()
+        busy = inner.line.stats.busy_s if isinstance(inner, SimTransport) else math.nan
+        robot.drive_pwm(0, 0)
+    for stream in POLLED:
+        got = end.streams[stream].samples - start.streams[stream].samples
+        row.rates[stream] = got / wall
+        row.requested[stream] = end.streams[stream].requested_hz
+    control = end.streams["wheel_encoder"]
+    row.jitter_p50_ms = control.jitter_p50_ms or math.nan
+    row.jitter_p99_ms = control.jitter_p99_ms or math.nan
+    row.latency_ms = latencies(commands, tap.writes)
+    row.wire = (busy - busy0) / wall
+    row.budget = end.bus.budget_share
+    row.cpu = cpu / wall
+    return row
+
+
+async def run_tasks(name: str, port: str, seconds: float) -> Row:
+    """The same polling schedule the simple way: one task per stream on bus.transact."""
+    row = Row(name, seconds)
+    loop = asyncio.get_running_loop()
+    async with Bus(await open_transport(port)) as bus:
+        bodies = new_bodies(bus)
+        streams = {key: Stream(key, 1.0 / period) for key, period in _periods().items()}
+        t0 = loop.time() + 0.05
+        cpu0 = time.process_time()
+        wall0 = time.perf_counter()
+        async with asyncio.TaskGroup() as tg:
+            for key, body in bodies.items():
+                tg.create_task(periodic(streams[key], body, t0, t0 + seconds, PHASES_S[key]))
+        cpu = time.process_time() - cpu0
+        wall = time.perf_counter() - wall0
+    names = dict(zip(("wheels", "servo 3", "servo 11", "servo 12", "core"), POLLED, strict=True))
+    for key, stream in streams.items():
+        row.rates[names[key]] = stream.done / seconds
+        row.requested[names[key]] = stream.hz
+    row.cpu = cpu / wall
+    return row
+
+
+def _periods() -> dict[str, float]:
+    return {
+        "wheels": 1 / 50,
+        "servo 3": 1 / 30,
+        "servo 11": 1 / 30,
+        "servo 12": 1 / 30,
+        "core": 1 / 10,
+    }
+
+
+def show(row: Row) -> None:
+    rates = " ".join(f"{row.rates.get(s, math.nan):6.2f}" for s in POLLED)
+    latency = row.latency_ms
+    print(
+        f"{row.name:<16} | {rates} | {row.jitter_p50_ms:5.1f} {row.jitter_p99_ms:5.1f} | "
+        f"{pct(latency, 0.5):5.1f} {pct(latency, 0.99):5.1f} {len(latency):5d} | "
+        f"{'    -' if math.isnan(row.wire) else f'{row.wire:5.1%}'} "
+        f"{'    -' if math.isnan(row.budget) else f'{row.budget:5.1%}'} | {row.cpu:5.1%}"
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--quick", action="store_true", help="5 s a row")
+    args = parser.parse_args()
+    seconds = 5.0 if args.quick else args.seconds
+    print(machine())
+    print(f"{seconds:g} s a row, real time; requested: wheels 50, servos 3 at 30, core 10 Hz")
+    header = (
+        f"{'row':<16} | {'wheel':>6} {'neck':>6} {'ext1':>6} {'ext2':>6} {'core':>6} | "
+        f"{'jit50':>5} {'jit99':>5} | {'cmd50':>5} {'cmd99':>5} {'cmds':>5} | "
+        f"{'wire':>5} {'model':>5} | {'CPU':>5}"
+    )
+    print(header)
+    print("-" * len(header))
+    rows = [
+        asyncio.run(run_robot("robot usb0", "sim://", seconds)),
+        asyncio.run(
+            run_robot("robot usb16", "sim://?usb_latency_ms=16", seconds, usb_latency_ms=16)
+        ),
+        asyncio.run(run_robot("robot silent 11", "sim://?silent=11", seconds)),
+    ]
+    for row in rows:
+        show(row)
+    with simulator_on_pty() as path:
+        pty_row = asyncio.run(run_robot("robot pty", path, seconds))
+    show(pty_row)
+    with simulator_on_pty() as path:
+        tasks_row = asyncio.run(run_tasks("tasks pty", path, seconds))
+    show(tasks_row)
+    print(
+        f"CPU, driver alone on the pty: Robot {pty_row.cpu:.1%} (with teleop commands and "
+        f"control) vs one task per stream {tasks_row.cpu:.1%} (polling only): "
+        f"ratio {pty_row.cpu / tasks_row.cpu:.2f}"
+    )
+    print("units: Hz | ms | ms | share of the line | share of one core")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1488 @@
+"""The asyncio Robot: tb_control's job on one bus — streams, commands and safety.
+
+::
+
+    from ohmni_tb import Robot
+
+    async with Robot.open("sim://") as robot:
+        robot.drive(0.3, 0.0)                        # m/s, rad/s: sets the target
+        await asyncio.sleep(1.0)
+        print(robot.latest("wheel_odom"))
+        async for status in robot.subscribe("tbcore_status"):
+            print(status.pack_v)
+            break
+
+The Robot owns one schedule on the bus (:mod:`ohmni_tb.robot.schedule`): the control
+slot every 20 ms at top priority (the wheel command computed at send time, then both
+wheel counts, in one atomic slot), each HerkuleX servo's feedback at 30 Hz, the
+worm-gear neck at 30 Hz, the core board at 10 Hz, on absolute deadlines with staggered
+phases. Commands (neck moves, light ring, PID writes) go in the free time at a priority
+between the control slot and the feedback reads.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, overload
+
+from ohmni_tb.bus import Bus, ReplyPacket
+from ohmni_tb.config import RobotConfig
+from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, unwrap_delta
+from ohmni_tb.control.kinematics import (
+    LimitedTwist,
+    Twist,
+    WheelSpeeds,
+    limit_twist,
+    saturate_wheel_speeds,
+)
+from ohmni_tb.control.odometry import Odometry
+from ohmni_tb.control.pid import PidController, PidGains, PidStep
+from ohmni_tb.errors import (
+    BusTimeoutError,
+    InvalidArgumentError,
+    MalformedReplyError,
+    OhmniError,
+    OutOfRangeError,
+    StateError,
+    StopNotConfirmedError,
+)
+from ohmni_tb.herkulex import TorqueControl, stat
+from ohmni_tb.herkulex.units import angle_rad_from_raw, voltage_v_from_raw
+from ohmni_tb.protocol import Memory, Packet, ReadReply, read_request
+from ohmni_tb.protocol.core import parse_status, read_status, set_light_ring
+from ohmni_tb.protocol.devices import DeviceId
+from ohmni_tb.protocol.drive import PWM_LIMIT, parse_count, read_count, wheel_command
+from ohmni_tb.protocol.messages import StatusDetail, StatusError
+from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
+from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
+from ohmni_tb.robot.samples import (
+    STREAM_NAMES,
+    Link,
+    PidDebugSample,
+    RobotStateSample,
+    ServoSample,
+    TbcoreStatusSample,
+    WheelEncoderSample,
+    WheelOdomSample,
+    WormNeckSample,
+)
+from ohmni_tb.robot.schedule import CycleResult, Periodic
+from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE, StreamStats, Subscription, Topic
+from ohmni_tb.safety import stop_wheels
+from ohmni_tb.transport import Transport, open_transport
+
+__all__ = ["BusFigures", "Robot", "RobotStats"]
+
+_log = logging.getLogger(__name__)
+
+#: Bus priorities: the control slot, then commands (7), then every feedback read at one
+#: priority, so they go in the order they fall due: a near-full line slows them all a
+#: little instead of starving the least urgent.
+CONTROL_PRIORITY = 10
+FEEDBACK_PRIORITY = 5
+CORE_PRIORITY = FEEDBACK_PRIORITY
+PROBE_PRIORITY = 0
+#: The control slot must start this share of a period after its due time, or it is
+#: skipped (a late wheel command is worse than the next one on time).
+CONTROL_SLACK = 0.5
+#: Phase of the first servo read and of the core read after the control slot, seconds:
+#: between control slots, so the 50 Hz and 30 Hz grids do not pile up.
+SERVO_PHASE_S = 0.010
+CORE_PHASE_S = 0.013
+#: HerkuleX feedback block: RAM 48 (status error) … 59 (calibrated position, high byte).
+SERVO_BLOCK_ADDR = 48
+SERVO_BLOCK_LEN = 12
+#: Absent devices are asked again this often.
+REPROBE_S = 5.0
+#: Wheel reads rejected in a row before the count is taken as a new origin.
+REBASE_AFTER = 3
+#: A thermal fault clears this many raw degrees below the limit.
+THERMAL_HYSTERESIS_RAW = 10
+#: Servo sample index for the stream names of the external servos.
+EXT_STREAMS = ("servo_ext1", "servo_ext2")
+
+
+@dataclass(frozen=True, slots=True)
+class BusFigures:
+    """The line's figures (part of :meth:`Robot.stats`).
+
+    Attributes:
+        wire_utilisation: Share of the last second the line carried bytes.
+        budget_share: The schedule's share of the line by the cost model, computed at
+            open from the enabled streams.
+        transactions_per_s: Replies per second.
+        timeouts: Requests that got no reply.
+        rejected_samples: Wheel counts refused as implausible.
+        clamped_commands: Drive commands scaled into the limits.
+        deadline_misses: Slots dropped because they could not start in time.
+        link_losses: Times the link was lost.
+        reconnects: Times it was reopened.
+    """
+
+    wire_utilisation: float
+    budget_share: float
+    transactions_per_s: float
+    timeouts: int
+    rejected_samples: int
+    clamped_commands: int
+    deadline_misses: int
+    link_losses: int
+    reconnects: int
+
+
+@dataclass(frozen=True, slots=True)
+class RobotStats:
+    """Every stream's figures and the bus's (:meth:`Robot.stats`)."""
+
+    streams: dict[str, StreamStats]
+    bus: BusFigures
+    uptime_s: float
+
+    def __str__(self) -> str:
+        lines = [
+            f"{'stream':<14} {'Hz want':>7} {'Hz got':>7} {'jit p50':>8} {'p99 ms':>7} "
+            f"{'samples':>8} {'missed':>6} {'skipped':>7} {'dropped':>7}"
+        ]
+        for name, s in self.streams.items():
+            if not s.enabled and not s.samples:
+                continue
+
+            def ms(value: float | None) -> str:
+                return "-" if value is None else f"{value:.1f}"
+
+            lines.append(
+                f"{name:<14} {s.requested_hz:7.1f} {s.achieved_hz:7.1f} "
+                f"{ms(s.jitter_p50_ms):>8} {ms(s.jitter_p99_ms):>7} {s.samples:8d} "
+                f"{s.missed:6d} {s.skipped:7d} {s.dropped:7d}"
+            )
+        b = self.bus
+        lines.append(
+            f"bus: wire {b.wire_utilisation:.0%} (schedule budget {b.budget_share:.0%}), "
+            f"{b.transactions_per_s:.0f} transactions/s, {b.timeouts} timeouts, "
+            f"{b.rejected_samples} rejected samples, {b.deadline_misses} deadline misses"
+        )
+        return "\n".join(lines)
+
+
+@dataclass
+class _Wheel:
+    """One wheel's feedback state."""
+
+    encoder: WheelEncoder
+    pid: PidController
+    last_raw: int | None = None
+    last_t: float | None = None
+    rejected_in_row: int = 0
+    last_step: PidStep | None = None
+
+
+@dataclass
+class _ServoWatch:
+    """What the thermal and hold guards know of one HerkuleX servo."""
+
+    handle: ServoHandle
+    stream: str
+    last_command_s: float = -math.inf
+    tripped: bool = False
+    guard: asyncio.Task[None] | None = None
+    sample: ServoSample | None = None
+
+
+@dataclass
+class _State:
+    link: Link = Link.CONNECTED
+    estopped: bool = False
+    watchdog_tripped: bool = False
+    faults: set[str] = field(default_factory=set)
+
+
+class Robot:
+    """One Ohmni robot on its bus (module docstring). Create it with :meth:`open`."""
+
+    def __init__(self, bus: Bus, config: RobotConfig, *, sim: Any = None) -> None:
+        self._bus = bus
+        self.config = config
+        #: The simulated robot (ground truth) on ``sim://``, else ``None``.
+        self.sim = sim
+        self._loop = asyncio.get_running_loop()
+        self._opened_at = self._loop.time()
+        self._closed = False
+        self._topics: dict[str, Topic[Any]] = {name: Topic(name) for name in STREAM_NAMES}
+        self._topics["pid_debug"].enabled = config.pid_debug
+        self._periodic: dict[str, Periodic] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._state = _State()
+        self._neck_kind = "none"
+        self._present: set[int] = set()
+        self._expected: set[int] = set()
+        self._state_timer: asyncio.TimerHandle | None = None
+        self._reprobe_timer: asyncio.TimerHandle | None = None
+        # Control.
+        self._drive = config.drive()
+        self._limits = config.velocity_limits()
+        self._limiter = config.twist_limiter()
+        left_cfg, right_cfg = config.encoders()
+        gains = config.pid_gains()
+        self._wheels = (
+            _Wheel(WheelEncoder(left_cfg), PidController(gains)),
+            _Wheel(WheelEncoder(right_cfg), PidController(gains)),
+        )
+        self._odometry = Odometry(config.wheel_separation_m)
+        self._mode: Literal["twist", "wheels", "pwm"] = "twist"
+        self._target = Twist()
+        self._target_wheels = WheelSpeeds(0.0, 0.0)
+        self._target_pwm = (0, 0)
+        self._controllers = config.controllers
+        self._pwm = (0, 0)
+        self._last_step_s: float | None = None
+        self._last_command_s = -math.inf
+        self._stale_ticks = 0
+        self._rejected = 0
+        self._clamped = 0
+        self._neck: ServoHandle | WormNeckHandle | None = None
+        self._servos: dict[int, _ServoWatch] = {}
+        self._write_cost_s = bus.cost_s(wheel_command(0, 0))
+        self._read_cost_s = bus.cost_s(read_count(DeviceId.LEFT_DRIVE))
+        self._budget_share = 0.0
+        self._early_pending = False
+        self._early_writes = 0
+
+    # -- opening and closing -----------------------------------------------------------
+
+    @classmethod
+    @contextlib.asynccontextmanager
+    async def open(
+        cls,
+        port: str | Transport | None = None,
+        *,
+        config: RobotConfig | None = None,
+        **overrides: Any,
+    ) -> AsyncIterator[Robot]:
+        """Open the robot on ``port`` (a URL: ``sim://``, ``/dev/ttyUSB0`` …) and run it.
+
+        An async context manager. Leaving it stops the wheels (confirmed by their counts,
+        within ``stop_timeout_s``) and rests or frees the neck (``on_exit_neck``), even on
+        an error or a cancellation; then the port closes.
+
+        Args:
+            port: The port's URL (default ``config.port``), or an open
+                :class:`~ohmni_tb.transport.Transport` (reopened after a loss only when
+                it is a simulated line).
+            config: The settings (default: :class:`RobotConfig` from the environment).
+            overrides: Settings that replace the config's, by field name.
+
+        Raises:
+            ConfigError: A setting is invalid; the message names it.
+            TransportError: The port cannot be opened.
+        """
+        if config is None:
+            config = RobotConfig(**overrides)
+        elif overrides:
+            config = config.replace(**overrides)
+        if isinstance(port, Transport):
+            # An open link, injected (a test's, a tap's): reopened only if simulated.
+            transport = port
+            reopen = _reopener(None, transport)
+        else:
+            url = port if port is not None else config.port
+            transport = await open_transport(url)
+            reopen = _reopener(url, transport)
+        sim = getattr(transport, "robot", None)
+        bus = Bus(transport, timeout_s=config.bus_timeout_s(), reopen=reopen)
+        bus.start()
+        robot: Robot | None = None
+        try:
+            robot = cls(bus, config, sim=sim)
+            await robot._start()
+        except BaseException:
+            await bus.aclose(final=[wheel_command(0, 0)])
+            raise
+        try:
+            yield robot
+        finally:
+            await robot._close_shielded()
+
+    async def _start(self) -> None:
+        await self._discover()
+        self._build_schedule()
+        t0 = self._loop.time() + 0.005
+        for periodic in self._periodic.values():
+            periodic.start(t0)
+        self._state_timer = self._loop.call_later(1.0 / self.config.state_hz, self._state_tick)
+        self._spawn(self._watch_link(), "link watcher")
+        if self._expected - self._present:
+            self._reprobe_timer = self._loop.call_later(REPROBE_S, self._reprobe)
+        self._publish_state("opened")
+
+    async def _close_shielded(self) -> None:
+        """Close, and finish closing even if the caller is cancelled meanwhile."""
+        task = self._loop.create_task(self._close(), name="ohmni robot close")
+        cancelled: asyncio.CancelledError | None = None
+        while not task.done():
+            try:
+                await asyncio.shield(task)
+            except asyncio.CancelledError as exc:
+                cancelled = exc
+        task.result()
+        if cancelled is not None:
+            raise cancelled
+
+    async def _close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for periodic in self._periodic.values():
+            periodic.stop()
+        for timer in (self._state_timer, self._reprobe_timer):
+            if timer is not None:
+                timer.cancel()
+        for task in list(self._tasks):
+            task.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        bus = self._bus
+        stop = wheel_command(0, 0)
+        if bus.connected:
+            for periodic in self._periodic.values():
+                periodic.cancel_in_flight()
+            try:
+                await stop_wheels(bus, timeout_s=self.config.stop_timeout_s)
+            except StopNotConfirmedError as exc:
+                _log.warning("closing: %s", exc)
+            except OhmniError as exc:
+                _log.warning("closing: stop not confirmed: %s", exc)
+            await self._neck_on_exit()
+        self._state.link = Link.CLOSED
+        self._publish_state("closed")
+        for topic in self._topics.values():
+            topic.close()
+        await bus.aclose(final=[stop])
+
+    async def _neck_on_exit(self) -> None:
+        choice = self.config.on_exit_neck
+        if choice == "keep" or not isinstance(self._neck, ServoHandle):
+            return
+        try:
+            async with asyncio.timeout(self.config.stop_timeout_s + 1.5):
+                if choice == "rest":
+                    await self._neck.rest()
+                else:
+                    await self._neck.free()
+        except (OhmniError, TimeoutError) as exc:
+            _log.warning(
+                "closing: the neck was not %s: %s", "rested" if choice == "rest" else "freed", exc
+            )
+
+    @property
+    def closed(self) -> bool:
+        """Whether the Robot was closed."""
+        return self._closed
+
+    @property
+    def bus(self) -> Bus:
+        """The bus the Robot schedules (for figures and raw access; mind the schedule)."""
+        return self._bus
+
+    # -- discovery -----------------------------------------------------------------------
+
+    async def _answers(self, packet: Packet) -> ReplyPacket | None:
+        try:
+            return await self._bus.request(
+                packet, expect_reply=True, retries=1, priority=PROBE_PRIORITY
+            )
+        except (BusTimeoutError, MalformedReplyError):
+            return None
+
+    async def _discover(self) -> None:
+        config = self.config
+        for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+            self._expected.add(int(sid))
+            if await self._answers(read_count(sid)) is not None:
+                self._present.add(int(sid))
+        if config.core_hz > 0:
+            self._expected.add(int(DeviceId.CORE))
+            if await self._answers(read_status()) is not None:
+                self._present.add(int(DeviceId.CORE))
+        kind = config.neck
+        if kind in ("auto", "herkulex") and await self._answers(stat(config.neck_id)):
+            self._neck_kind = "herkulex"
+            self._present.add(config.neck_id)
+        elif kind in ("auto", "worm") and await self._answers(read_feedback()):
+            self._neck_kind = "worm"
+            self._present.add(int(DeviceId.WORM_NECK))
+        elif kind == "herkulex":
+            self._expected.add(config.neck_id)
+        elif kind == "worm":
+            self._expected.add(int(DeviceId.WORM_NECK))
+        if self._neck_kind == "herkulex":
+            self._neck = self._servo_handle(config.neck_id, "servo_neck", neck=True)
+        elif self._neck_kind == "worm":
+            self._neck = WormNeckHandle(
+                self._bus, min_raw=config.worm_min_raw, max_raw=config.worm_max_raw
+            )
+        for ext_id, stream in zip(config.ext_servo_ids, EXT_STREAMS, strict=False):
+            self._expected.add(ext_id)
+            if await self._answers(stat(ext_id)):
+                self._present.add(ext_id)
+                self._servo_handle(ext_id, stream, neck=False)
+        for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+            if int(sid) not in self._present:
+                self._state.faults.add(f"drive_absent:{int(sid)}")
+
+    def _servo_handle(self, sid: int, stream: str, *, neck: bool) -> ServoHandle:
+        config = self.config
+        handle = ServoHandle(
+            self._bus,
+            sid,
+            min_raw=config.neck_min_raw if neck else 21,
+            max_raw=config.neck_max_raw if neck else 1002,
+            rest_raw=config.neck_rest_raw if neck else 512,
+            zero_offset_raw=config.neck_zero_offset_raw if neck else 0,
+            on_command=self._servo_commanded,
+        )
+        self._servos[sid] = _ServoWatch(handle, stream)
+        return handle
+
+    def _servo_commanded(self, sid: int) -> None:
+        watch = self._servos.get(sid)
+        if watch is not None:
+            watch.last_command_s = self._loop.time()
+
+    def _reprobe(self) -> None:
+        self._reprobe_timer = None
+        if self._closed:
+            return
+        self._spawn(self._reprobe_once(), "reprobe")
+
+    async def _reprobe_once(self) -> None:
+        config = self.config
+        for sid in sorted(self._expected - self._present):
+            if not self._bus.connected:
+                break
+            if sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
+                packet = read_count(sid)
+            elif sid == DeviceId.CORE:
+                packet = read_status()
+            elif sid == DeviceId.WORM_NECK:
+                packet = read_feedback()
+            else:
+                packet = stat(sid)
+            if await self._answers(packet) is None:
+                continue
+            self._present.add(sid)
+            self._state.faults.discard(f"drive_absent:{sid}")
+            if sid in config.ext_servo_ids:
+                index = config.ext_servo_ids.index(sid)
+                if index < len(EXT_STREAMS):
+                    self._servo_handle(sid, EXT_STREAMS[index], neck=False)
+                    self._add_servo_stream(sid, EXT_STREAMS[index], index + 1)
+            elif sid == config.neck_id and self._neck_kind == "none":
+                self._neck_kind = "herkulex"
+                self._neck = self._servo_handle(sid, "servo_neck", neck=True)
+                self._add_servo_stream(sid, "servo_neck", 0)
+            elif sid == DeviceId.CORE and "tbcore_status" not in self._periodic:
+                self._add_core_stream()
+            self._publish_state(f"device {sid} answers")
+        if not self._closed and self._expected - self._present:
+            self._reprobe_timer = self._loop.call_later(REPROBE_S, self._reprobe)
+
+    # -- the schedule ----------------------------------------------------------------------
+
+    def _build_schedule(self) -> None:
+        config = self.config
+        period = 1.0 / config.wheel_hz
+        self._periodic["wheel_encoder"] = Periodic(
+            self._bus,
+            "control",
+            config.wheel_hz,
+            phase_s=0.0,
+            priority=CONTROL_PRIORITY,
+            slack_s=period * CONTROL_SLACK,
+            build=self._control_packets,
+            handle=self._control_result,
+            fail=self._control_failed,
+            skipped=self._counter("wheel_encoder", "skipped"),
+        )
+        self._topics["wheel_encoder"].requested_hz = config.wheel_hz
+        self._topics["wheel_odom"].requested_hz = config.wheel_hz
+        self._topics["pid_debug"].requested_hz = config.wheel_hz
+        for index, (sid, watch) in enumerate(self._servos.items()):
+            self._add_servo_stream(sid, watch.stream, index)
+        if self._neck_kind == "worm" and config.new_neck_hz > 0:
+            self._topics["new_neck"].requested_hz = config.new_neck_hz
+            self._periodic["new_neck"] = Periodic(
+                self._bus,
+                "new_neck",
+                config.new_neck_hz,
+                phase_s=SERVO_PHASE_S,
+                priority=FEEDBACK_PRIORITY,
+                slack_s=1.0 / config.new_neck_hz,
+                build=lambda due: [read_feedback()],
+                handle=self._worm_result,
+                fail=self._feedback_failed("new_neck"),
+                skipped=self._counter("new_neck", "skipped"),
+            )
+        if int(DeviceId.CORE) in self._present:
+            self._add_core_stream()
+        self._topics["robot_state"].requested_hz = config.state_hz
+        for name in STREAM_NAMES:
+            topic = self._topics[name]
+            if name not in ("robot_state", "pid_debug", "wheel_odom") and (
+                name not in self._periodic
+            ):
+                topic.enabled = False
+        self._budget_share = self._schedule_share()
+
+    def _add_servo_stream(self, sid: int, stream: str, index: int) -> None:
+        hz = self.config.servo_hz
+        if hz <= 0:
+            return
+        self._topics[stream].requested_hz = hz
+        self._topics[stream].enabled = True
+        packet = read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)
+        periodic = Periodic(
+            self._bus,
+            stream,
+            hz,
+            # Three servos spread over their period, between control slots.
+            phase_s=SERVO_PHASE_S + index / hz / 3,
+            priority=FEEDBACK_PRIORITY,
+            slack_s=1.0 / hz,
+            build=lambda due: [packet],
+            handle=lambda result: self._servo_result(sid, result),
+            fail=self._feedback_failed(stream),
+            skipped=self._counter(stream, "skipped"),
+        )
+        self._periodic[stream] = periodic
+        if (
+            self._periodic.get("wheel_encoder") is not None
+            and self._periodic["wheel_encoder"].running
+        ):
+            periodic.start(self._periodic["wheel_encoder"].next_due_s)
+
+    def _add_core_stream(self) -> None:
+        hz = self.config.core_hz
+        if hz <= 0:
+            return
+        topic = self._topics["tbcore_status"]
+        topic.requested_hz = hz
+        topic.enabled = True
+        periodic = Periodic(
+            self._bus,
+            "tbcore_status",
+            hz,
+            phase_s=CORE_PHASE_S,
+            priority=CORE_PRIORITY,
+            slack_s=1.0 / hz,
+            build=lambda due: [read_status()],
+            handle=self._core_result,
+            fail=self._feedback_failed("tbcore_status"),
+            skipped=self._counter("tbcore_status", "skipped"),
+        )
+        self._periodic["tbcore_status"] = periodic
+        control = self._periodic.get("wheel_encoder")
+        if control is not None and control.running:
+            periodic.start(control.next_due_s)
+
+    def _schedule_share(self) -> float:
+        """The enabled streams' share of the line by the cost model."""
+        share = 0.0
+        bus = self._bus
+        for name, periodic in self._periodic.items():
+            if not self._topics[name].enabled:
+                continue
+            hz = 1.0 / periodic.period_s
+            if name == "wheel_encoder":
+                packets: Sequence[Packet] = self._control_template()
+            elif name == "tbcore_status":
+                packets = [read_status()]
+            elif name == "new_neck":
+                packets = [read_feedback()]
+            else:
+                sid = next(s for s, w in self._servos.items() if w.stream == name)
+                packets = [read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)]
+            share += hz * sum(bus.cost_s(p) for p in packets)
+        return share
+
+    @staticmethod
+    def _control_template() -> list[Packet]:
+        return [
+            wheel_command(0, 0),
+            read_count(DeviceId.LEFT_DRIVE),
+            read_count(DeviceId.RIGHT_DRIVE),
+        ]
+
+    def schedule(self) -> list[tuple[str, float, float, float]]:
+        """The schedule: per stream its rate (Hz), phase (s) and line time per cycle (s)."""
+        rows = []
+        for name, periodic in self._periodic.items():
+            if name == "wheel_encoder":
+                packets: Sequence[Packet] = self._control_template()
+            elif name == "tbcore_status":
+                packets = [read_status()]
+            elif name == "new_neck":
+                packets = [read_feedback()]
+            else:
+                sid = next(s for s, w in self._servos.items() if w.stream == name)
+                packets = [read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)]
+            rows.append(
+                (
+                    name,
+                    1.0 / periodic.period_s,
+                    periodic.phase_s,
+                    sum(self._bus.cost_s(p) for p in packets),
+                )
+            )
+        return rows
+
+    def _counter(self, stream: str, what: Literal["skipped", "missed"]) -> Callable[[int], None]:
+        topic = self._topics[stream]
+
+        def count(n: int) -> None:
+            setattr(topic, what, getattr(topic, what) + n)
+
+        return count
+
+    def _feedback_failed(self, stream: str) -> Callable[[float, BaseException], None]:
+        topic = self._topics[stream]
+
+        def failed(due: float, exc: BaseException) -> None:
+            topic.missed += 1
+            if not isinstance(exc, OhmniError):
+                _log.error("%s: cycle failed", stream, exc_info=exc)
+
+        return failed
+
+    # -- control ---------------------------------------------------------------------------
+
+    def _control_packets(self, due: float) -> list[Packet]:
+        now = self._loop.time()
+        left, right = self._control_step(now)
+        return [
+            wheel_command(left, right),
+            read_count(DeviceId.LEFT_DRIVE),
+            read_count(DeviceId.RIGHT_DRIVE),
+        ]
+
+    def _control_step(self, now: float) -> tuple[int, int]:
+        """The wheel PWM to send now: watchdog, estop, limits, ramps and the PIDs."""
+        config = self.config
+        previous = self._last_step_s
+        self._last_step_s = now
+        dt = 1.0 / config.wheel_hz if previous is None else max(now - previous, 1e-6)
+        state = self._state
+        if (
+            config.watchdog_s > 0
+            and not state.watchdog_tripped
+            and self._moving_target()
+            and now - self._last_command_s > config.watchdog_s
+        ):
+            state.watchdog_tripped = True
+            self._target = Twist()
+            self._target_wheels = WheelSpeeds(0.0, 0.0)
+            self._target_pwm = (0, 0)
+            self._mode = "twist" if self._mode == "pwm" else self._mode
+            self._publish_state(f"watchdog: no drive command for {config.watchdog_s:g} s, stopping")
+        if state.estopped or state.link is not Link.CONNECTED or "stale_feedback" in state.faults:
+            self._limiter.reset()
+            self._reset_pids()
+            self._pwm = (0, 0)
+            return self._pwm
+        if self._mode == "pwm" or not self._controllers:
+            self._limiter.reset()
+            self._pwm = self._target_pwm if self._mode == "pwm" else (0, 0)
+            return self._pwm
+        if self._mode == "wheels":
+            wheels = self._target_wheels
+            twist = self._drive.twist(wheels)
+            self._limiter.reset(twist)
+        else:
+            twist = self._limiter.step(self._target, dt)
+            wheels = saturate_wheel_speeds(
+                self._drive.wheel_speeds(twist), self._limits.max_wheel_mps
+            )
+        if twist.linear_mps == 0.0 and twist.angular_radps == 0.0:
+            # Standing: no PWM at all, and no integral left to creep with.
+            self._reset_pids()
+            self._pwm = (0, 0)
+            return self._pwm
+        outputs = []
+        for wheel, setpoint in zip(self._wheels, (wheels.left_mps, wheels.right_mps), strict=True):
+            last = wheel.encoder.last
+            measured = 0.0 if last is None else last.velocity_mps
+            step = wheel.pid.step(setpoint, measured, dt)
+            wheel.last_step = step
+            outputs.append(round(step.output))
+        self._pwm = (outputs[0], outputs[1])
+        return self._pwm
+
+    def _moving_target(self) -> bool:
+        if self._mode == "pwm":
+            return self._target_pwm != (0, 0)
+        if self._mode == "wheels":
+            return self._target_wheels != WheelSpeeds(0.0, 0.0)
+        return self._target != Twist()
+
+    def _reset_pids(self) -> None:
+        for wheel in self._wheels:
+            wheel.pid.reset()
+            wheel.last_step = None
+
+    def _control_result(self, result: CycleResult) -> None:
+        replies = result.replies
+        t_left = result.started_s + self._write_cost_s
+        t_right = t_left + self._read_cost_s
+        self._topics["wheel_encoder"].note_lateness(result.started_s - result.due_s)
+        samples = []
+        for wheel, reply, t in zip(self._wheels, replies[1:3], (t_left, t_right), strict=True):
+            samples.append(self._wheel_update(wheel, reply, t))
+        left, right = samples
+        if left is None or right is None:
+            self._topics["wheel_encoder"].missed += 1
+            self._stale_ticks += 1
+            if (
+                self._stale_ticks >= self.config.stale_ticks
+                and "stale_feedback" not in self._state.faults
+            ):
+                self._state.faults.add("stale_feedback")
+                self._stop_targets()
+                self._publish_state(
+                    f"stale feedback: no wheel counts for {self._stale_ticks} ticks, stopping"
+                )
+            return
+        self._stale_ticks = 0
+        if "stale_feedback" in self._state.faults:
+            self._state.faults.discard("stale_feedback")
+            self._publish_state("wheel feedback is back")
+        lw, rw = self._wheels
+        assert lw.last_raw is not None
+        assert rw.last_raw is not None
+        encoder = WheelEncoderSample(
+            stamp_s=t_left,
+            left_raw=lw.last_raw,
+            right_raw=rw.last_raw,
+            left_ticks=left.count,
+            right_ticks=right.count,
+            left_m=left.position_m,
+            right_m=right.position_m,
+            left_mps=left.velocity_mps,
+            right_mps=right.velocity_mps,
+        )
+        self._topics["wheel_encoder"].publish(encoder, t_left)
+        odometry = self._odometry
+        if odometry.t_s is None or t_left > odometry.t_s:
+            odometry.update(left.delta_m, right.delta_m, t_left)
+            pose = odometry.pose
+            twist = odometry.twist
+            commanded = self._limiter.current
+            odom = WheelOdomSample(
+                stamp_s=t_left,
+                x_m=pose.x,
+                y_m=pose.y,
+                yaw_rad=pose.yaw,
+                heading_rad=odometry.heading_rad,
+                linear_mps=twist.linear_mps,
+                angular_radps=twist.angular_radps,
+                covariance=tuple(float(v) for v in odometry.covariance.flat),
+                commanded_linear_mps=commanded.linear_mps,
+                commanded_angular_radps=commanded.angular_radps,
+            )
+            self._topics["wheel_odom"].publish(odom, t_left)
+        debug = self._topics["pid_debug"]
+        if debug.enabled and lw.last_step is not None and rw.last_step is not None:
+            debug.publish(PidDebugSample(t_left, lw.last_step, rw.last_step), t_left)
+
+    def _wheel_update(self, wheel: _Wheel, reply: ReplyPacket | None, t: float) -> Any:
+        if reply is None:
+            return None
+        try:
+            raw = parse_count(ReadReply.parse(reply))
+        except OhmniError:
+            self._rejected += 1
+            return None
+        if wheel.last_raw is not None and wheel.last_t is not None and t > wheel.last_t:
+            ticks = abs(unwrap_delta(wheel.last_raw, raw, COUNT_BITS))
+            delta_m = ticks * wheel.encoder.config.metres_per_tick
+            # A jump no wheel can make: a bit flipped past the 7-bit checksum.
+            if delta_m > self.config.implausible_mps * (t - wheel.last_t) + 0.002:
+                self._rejected += 1
+                wheel.rejected_in_row += 1
+                if wheel.rejected_in_row < REBASE_AFTER:
+                    return None
+                # The count really moved (a board reset): start again from here.
+                _log.warning("wheel count jumped for %d reads in a row: new origin", REBASE_AFTER)
+                wheel.encoder.reset()
+                wheel.encoder.update(raw, t)
+                wheel.last_raw, wheel.last_t, wheel.rejected_in_row = raw, t, 0
+                return None
+        if wheel.last_t is not None and t <= wheel.last_t:
+            return None
+        wheel.rejected_in_row = 0
+        wheel.last_raw, wheel.last_t = raw, t
+        return wheel.encoder.update(raw, t)
+
+    def _control_failed(self, due: float, exc: BaseException) -> None:
+        self._topics["wheel_encoder"].missed += 1
+        if not isinstance(exc, OhmniError):
+            _log.error("control cycle failed", exc_info=exc)
+
+    def _stop_targets(self) -> None:
+        self._target = Twist()
+        self._target_wheels = WheelSpeeds(0.0, 0.0)
+        self._target_pwm = (0, 0)
+        if self._mode == "pwm":
+            self._mode = "twist"
+
+    # -- feedback streams ------------------------------------------------------------------
+
+    def _servo_result(self, sid: int, result: CycleResult) -> None:
+        watch = self._servos.get(sid)
+        if watch is None:
+            return
+        topic = self._topics[watch.stream]
+        topic.note_lateness(result.started_s - result.due_s)
+        reply = result.replies[0]
+        if reply is None:
+            topic.missed += 1
+            return
+        try:
+            data = ReadReply.parse(reply).data
+            if len(data) != SERVO_BLOCK_LEN:
+                raise MalformedReplyError(f"servo {sid}: {len(data)} bytes, not {SERVO_BLOCK_LEN}")
+            torque = TorqueControl(data[4])
+        except (OhmniError, ValueError):
+            topic.missed += 1
+            return
+        position = (data[10] | data[11] << 8) & 0x3FF
+        handle = watch.handle
+        sample = ServoSample(
+            stamp_s=result.started_s,
+            sid=sid,
+            position_raw=position,
+            angle_rad=angle_rad_from_raw(position, zero_offset_raw=handle.zero_offset_raw),
+            temperature_raw=data[7],
+            voltage_v=voltage_v_from_raw(data[6]),
+            torque=torque,
+            status_error=StatusError(data[0]),
+            status_detail=StatusDetail(data[1]),
+        )
+        watch.sample = sample
+        topic.publish(sample, result.started_s)
+        self._thermal_check(watch, sample)
+
+    def _worm_result(self, result: CycleResult) -> None:
+        topic = self._topics["new_neck"]
+        topic.note_lateness(result.started_s - result.due_s)
+        reply = result.replies[0]
+        if reply is None:
+            topic.missed += 1
+            return
+        try:
+            feedback = parse_feedback(ReadReply.parse(reply))
+        except OhmniError:
+            topic.missed += 1
+            return
+        sample = WormNeckSample(result.started_s, feedback.position, feedback.flags)
+        topic.publish(sample, result.started_s)
+        fault = "neck_stalled"
+        if sample.stalled and fault not in self._state.faults:
+            self._state.faults.add(fault)
+            self._publish_state("the worm-gear neck stalled: power-cycle the robot")
+
+    def _core_result(self, result: CycleResult) -> None:
+        topic = self._topics["tbcore_status"]
+        topic.note_lateness(result.started_s - result.due_s)
+        reply = result.replies[0]
+        if reply is None:
+            topic.missed += 1
+            return
+        try:
+            status = parse_status(ReadReply.parse(reply))
+        except OhmniError:
+            topic.missed += 1
+            return
+        sample = TbcoreStatusSample(
+            stamp_s=result.started_s,
+            cell_v=tuple(mv / 1000 for mv in status.cell_mv),
+            pack_v=status.pack_mv / 1000,
+            current_a=status.charging_current_ma / 1000,
+            docked=status.docked,
+            charging=status.charging,
+            percent=status.percent,
+            fet_status=status.fet_status,
+            status=status.status,
+        )
+        topic.publish(sample, result.started_s)
+
+    # -- the thermal and hold guards ---------------------------------------------------------
+
+    def _thermal_check(self, watch: _ServoWatch, sample: ServoSample) -> None:
+        config = self.config
+        if not config.thermal_guard:
+            return
+        fault = f"thermal:{sample.sid}"
+        hot = bool(sample.status_error & (StatusError.TEMPERATURE | StatusError.OVERLOAD)) or (
+            sample.temperature_raw >= config.thermal_limit_raw
+        )
+        if hot and not watch.tripped:
+            watch.tripped = True
+            self._state.faults.add(fault)
+            self._publish_state(
+                f"thermal guard: servo {sample.sid} at temperature {sample.temperature_raw} "
+                f"(limit {config.thermal_limit_raw}), errors {sample.status_error!r}: "
+                "resting, then freeing it"
+            )
+            self._guard(watch, rest=watch.stream == "servo_neck")
+            return
+        cool = (
+            not sample.status_error & (StatusError.TEMPERATURE | StatusError.OVERLOAD)
+            and sample.temperature_raw < config.thermal_limit_raw - THERMAL_HYSTERESIS_RAW
+        )
+        if watch.tripped and cool:
+            watch.tripped = False
+            self._state.faults.discard(fault)
+            self._publish_state(f"thermal guard: servo {sample.sid} cooled down")
+        held = self._loop.time() - watch.last_command_s
+        if (
+            config.neck_hold_s > 0
+            and watch.stream == "servo_neck"
+            and sample.torque is TorqueControl.ON
+            and held > config.neck_hold_s
+            and (watch.guard is None or watch.guard.done())
+        ):
+            self._publish_state(
+                f"hold guard: neck torque on for {held:.0f} s since its last command: resting"
+            )
+            watch.last_command_s = self._loop.time()
+            self._guard(watch, rest=True)
+
+    def _guard(self, watch: _ServoWatch, *, rest: bool) -> None:
+        if watch.guard is not None and not watch.guard.done():
+            return
+
+        async def run() -> None:
+            handle = watch.handle
+            try:
+                if rest and sample_ok(watch.sample):
+                    await handle.rest()
+                else:
+                    await handle.free()
+            except OhmniError as exc:
+                # A servo in a fault refuses moves: freeing still takes the load off.
+                _log.warning("guard: servo %d: %s; freeing it", handle.sid, exc)
+                with contextlib.suppress(OhmniError):
+                    await handle.free()
+
+        watch.guard = self._spawn(run(), f"guard servo {watch.handle.sid}")
+
+    # -- link loss -------------------------------------------------------------------------
+
+    async def _watch_link(self) -> None:
+        bus = self._bus
+        while not self._closed:
+            reason = await bus.wait_lost()
+            if self.closed:  # close() may have run while this waited
+                return
+            for periodic in self._periodic.values():
+                periodic.stop()
+            self._state.link = Link.LOST
+            self._state.faults.add("link_lost")
+            self._stop_targets()
+            self._limiter.reset()
+            self._reset_pids()
+            self._publish_state(f"link lost: {reason}")
+            if not self.config.reconnect:
+                return
+            try:
+                await bus.reconnect(max_backoff_s=self.config.reconnect_max_backoff_s)
+            except StateError as exc:  # an injected link that cannot be reopened
+                self._publish_state(f"not reconnecting: {exc}")
+                return
+            with contextlib.suppress(OhmniError):
+                await bus.send_now(wheel_command(0, 0))
+            self._state.link = Link.CONNECTED
+            self._state.faults.discard("link_lost")
+            self._last_step_s = None
+            t0 = self._loop.time() + 0.005
+            for periodic in self._periodic.values():
+                periodic.start(t0)
+            self._publish_state("link back: reconnected")
+
+    # -- robot_state -----------------------------------------------------------------------
+
+    def _state_sample(self, event: str | None) -> RobotStateSample:
+        state = self._state
+        return RobotStateSample(
+            stamp_s=self._loop.time(),
+            link=state.link,
+            estopped=state.estopped,
+            watchdog_tripped=state.watchdog_tripped,
+            faults=tuple(sorted(state.faults)),
+            neck=self._neck_kind,
+            present=tuple(sorted(self._present)),
+            absent=tuple(sorted(self._expected - self._present)),
+            event=event,
+        )
+
+    def _publish_state(self, event: str | None) -> None:
+        sample = self._state_sample(event)
+        if event is not None:
+            _log.info("robot: %s", event)
+        self._topics["robot_state"].publish(sample, sample.stamp_s)
+
+    def _state_tick(self) -> None:
+        if self._closed:
+            return
+        self._publish_state(None)
+        self._state_timer = self._loop.call_later(1.0 / self.config.state_hz, self._state_tick)
+
+    # -- tasks -------------------------------------------------------------------------------
+
+    def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]:
+        task = self._loop.create_task(coro, name=f"ohmni robot: {name}")
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        self._tasks.discard(task)
+        if task.cancelled():
+            return
+        exc = task.exception()
+        if exc is not None:
+            _log.error("%s failed", task.get_name(), exc_info=exc)
+            self._publish_state(f"{task.get_name()} failed: {exc}")
+
+    # -- streams (public) --------------------------------------------------------------------
+
+    def _topic(self, name: str) -> Topic[Any]:
+        topic = self._topics.get(name)
+        if topic is None:
+            raise InvalidArgumentError(
+                f"no stream {name!r}: the streams are {', '.join(STREAM_NAMES)}"
+            )
+        return topic
+
+    @overload
+    def latest(self, name: Literal["wheel_encoder"]) -> WheelEncoderSample | None: ...
+    @overload
+    def latest(self, name: Literal["wheel_odom"]) -> WheelOdomSample | None: ...
+    @overload
+    def latest(self, name: Literal["tbcore_status"]) -> TbcoreStatusSample | None: ...
+    @overload
+    def latest(
+        self, name: Literal["servo_neck", "servo_ext1", "servo_ext2"]
+    ) -> ServoSample | None: ...
+    @overload
+    def latest(self, name: Literal["new_neck"]) -> WormNeckSample | None: ...
+    @overload
+    def latest(self, name: Literal["robot_state"]) -> RobotStateSample | None: ...
+    @overload
+    def latest(self, name: Literal["pid_debug"]) -> PidDebugSample | None: ...
+    @overload
+    def latest(self, name: str) -> Any: ...
+    def latest(self, name: str) -> Any:
+        """The newest sample of stream ``name``, or ``None`` before the first.
+
+        Raises:
+            InvalidArgumentError: No such stream; the message lists them.
+        """
+        return self._topic(name).latest
+
+    def subscribe(self, name: str, *, maxlen: int = DEFAULT_QUEUE_SIZE) -> Subscription[Any]:
+        """An async iterator over stream ``name``'s samples from now on.
+
+        It keeps at most ``maxlen`` samples; a reader that falls behind loses the oldest
+        (counted in the subscription's ``dropped`` and the stream's stats), and the
+        schedule never waits for it. Iteration ends when the Robot closes.
+
+        Raises:
+            InvalidArgumentError: No such stream.
+            OutOfRangeError: ``maxlen`` is not 1..100000.
+        """
+        return self._topic(name).subscribe(maxlen)
+
+    def enable_stream(self, name: str, enabled: bool = True) -> None:
+        """Turn a stream on or off at run time (tb_control's ``enable_sensor_stream``).
+
+        Turning off ``wheel_encoder`` stops only its samples: the control slot keeps
+        running while the wheels are driven. Off streams stop their bus reads.
+
+        Raises:
+            InvalidArgumentError: No such stream.
+            StateError: The stream's device is absent (it cannot be turned on).
+        """
+        topic = self._topic(name)
+        if not isinstance(enabled, bool):
+            raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+        periodic = self._periodic.get(name)
+        if name in ("wheel_encoder", "wheel_odom", "robot_state", "pid_debug"):
+            topic.enabled = enabled
+            return
+        if periodic is None:
+            if enabled:
+                raise StateError(f"stream {name!r} has no device on this robot")
+            topic.enabled = False
+            return
+        topic.enabled = enabled
+        if enabled and not periodic.running and self._state.link is Link.CONNECTED:
+            periodic.start(self._periodic["wheel_encoder"].next_due_s)
+        elif not enabled:
+            periodic.stop()
+        self._budget_share = self._schedule_share()
+
+    def set_rate(self, name: str, hz: float) -> None:
+        """Change a polled stream's rate (the control tick's too, ``wheel_encoder``).
+
+        Raises:
+            InvalidArgumentError: No such stream, or it is not polled.
+            OutOfRangeError: ``hz`` is not 0.1..100.
+        """
+        self._topic(name)
+        if isinstance(hz, bool) or not isinstance(hz, int | float) or not math.isfinite(hz):
+            raise InvalidArgumentError(f"hz must be a number, not {hz!r}")
+        if not 0.1 <= hz <= 100.0:
+            raise OutOfRangeError(f"{name} rate", hz, 0.1, 100.0, "Hz")
+        periodic = self._periodic.get(name)
+        if periodic is None:
+            raise InvalidArgumentError(f"stream {name!r} is not polled on this robot")
+        periodic.set_rate(hz)
+        if name == "wheel_encoder":
+            periodic.slack_s = CONTROL_SLACK / hz
+            for linked in ("wheel_encoder", "wheel_odom", "pid_debug"):
+                self._topics[linked].requested_hz = hz
+        else:
+            periodic.slack_s = 1.0 / hz
+            self._topics[name].requested_hz = hz
+        self._budget_share = self._schedule_share()
+
+    def stats(self) -> RobotStats:
+        """Per-stream rates, jitter, missed/skipped cycles and the bus's figures."""
+        now = self._loop.time()
+        bus = self._bus.stats
+        return RobotStats(
+            streams={name: topic.stats(now) for name, topic in self._topics.items()},
+            bus=BusFigures(
+                wire_utilisation=bus.wire_utilisation,
+                budget_share=self._budget_share,
+                transactions_per_s=bus.transactions_per_s,
+                timeouts=sum(d.timeouts for d in bus.devices.values()),
+                rejected_samples=self._rejected,
+                clamped_commands=self._clamped,
+                deadline_misses=bus.deadline_misses,
+                link_losses=bus.link_losses,
+                reconnects=bus.reconnects,
+            ),
+            uptime_s=now - self._opened_at,
+        )
+
+    @property
+    def state(self) -> RobotStateSample:
+        """The Robot's state now (as ``robot_state`` would publish it)."""
+        return self._state_sample(None)
+
+    # -- motion commands (public) ----------------------------------------------------------
+
+    def _check_can_drive(self) -> None:
+        if self._closed:
+            raise StateError("the robot is closed")
+        if self._state.estopped:
+            raise StateError("an emergency stop is latched: call robot.clear_estop() first")
+
+    def _commanded(self, changed: bool) -> None:
+        self._last_command_s = self._loop.time()
+        if changed:
+            self._write_early()
+        if self._state.watchdog_tripped:
+            self._state.watchdog_tripped = False
+            self._publish_state("watchdog re-armed by a drive command")
+
+    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
+        """Set the body velocity target (m/s forward, rad/s counter-clockwise).
+
+        Not a coroutine: the control tick drives toward the target, within the speed
+        limits (scaled keeping the curvature; the return value says by how much) and the
+        acceleration limits. The watchdog stops the wheels ``watchdog_s`` after the last
+        call: repeat it (at 5..20 Hz) to keep moving.
+
+        Raises:
+            InvalidArgumentError: A value is not a finite number.
+            StateError: An emergency stop is latched, or the robot is closed.
+        """
+        for name, value in (("linear_mps", linear_mps), ("angular_radps", angular_radps)):
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
+            if not math.isfinite(value):
+                raise InvalidArgumentError(f"{name}={value!r} is not finite")
+        self._check_can_drive()
+        limited = limit_twist(
+            Twist(float(linear_mps), float(angular_radps)), self._limits, self._drive
+        )
+        if limited.limited:
+            self._clamped += 1
+            _log.debug(
+                "drive(%g, %g) scaled by %.3f into the limits",
+                linear_mps,
+                angular_radps,
+                limited.scale,
+            )
+        changed = self._mode != "twist" or self._target != limited.twist
+        self._mode = "twist"
+        self._target = limited.twist
+        self._commanded(changed)
+        return limited
+
+    def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
+        """Set each wheel's rim speed target (m/s, forward positive), no ramp.
+
+        Both are scaled by one factor into ``max_wheel_mps``; the return value is what
+        is driven.
+
+        Raises:
+            InvalidArgumentError: A value is not a finite number.
+            StateError: An emergency stop is latched, or the robot is closed.
+        """
+        for name, value in (("left_mps", left_mps), ("right_mps", right_mps)):
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
+            if not math.isfinite(value):
+                raise InvalidArgumentError(f"{name}={value!r} is not finite")
+        self._check_can_drive()
+        wheels = saturate_wheel_speeds(
+            WheelSpeeds(float(left_mps), float(right_mps)), self._limits.max_wheel_mps
+        )
+        if wheels != WheelSpeeds(float(left_mps), float(right_mps)):
+            self._clamped += 1
+        changed = self._mode != "wheels" or self._target_wheels != wheels
+        self._mode = "wheels"
+        self._target_wheels = wheels
+        self._commanded(changed)
+        return wheels
+
+    def drive_pwm(self, left: int, right: int) -> None:
+        """Drive the wheels open loop with raw PWM −1000..1000 (the controllers step aside).
+
+        Forward positive for both wheels (the right board's mirror is handled in the
+        packet). The watchdog still applies.
+
+        Raises:
+            InvalidArgumentError: Not ints.
+            OutOfRangeError: Outside −1000..1000; nothing changes.
+            StateError: An emergency stop is latched, or the robot is closed.
+        """
+        for name, value in (("left", left), ("right", right)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
+            if not -PWM_LIMIT <= value <= PWM_LIMIT:
+                raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
+        self._check_can_drive()
+        changed = self._mode != "pwm" or self._target_pwm != (left, right)
+        self._mode = "pwm"
+        self._target_pwm = (left, right)
+        self._commanded(changed)
+
+    def _write_early(self) -> None:
+        """Send a changed command now when the next control slot is over half a period
+        away, so a command reaches the wheels within half a period (plus the slot on the
+        wire), not a whole one. At most one such write between two control slots."""
+        control = self._periodic.get("wheel_encoder")
+        if control is None or not control.running or self._early_pending:
+            return
+        now = self._loop.time()
+        if control.next_due_s - now <= control.period_s / 2:
+            return
+        try:
+            slot = self._bus.submit(
+                [wheel_command(*self._control_step(now))],
+                priority=CONTROL_PRIORITY,
+                deadline=now + control.period_s / 2,
+            )
+        except OhmniError:
+            return
+        self._early_pending = True
+        self._early_writes += 1
+
+        def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
+            self._early_pending = False
+            if not future.cancelled():
+                future.exception()  # retrieved: a missed deadline needs no report
+
+        slot.future.add_done_callback(done)
+
+    def stop(self) -> None:
+        """Target zero: the wheels ramp down at the deceleration limits."""
+        if self._closed:
+            return
+        self._stop_targets()
+        self._last_command_s = self._loop.time()
+
+    async def estop(self) -> None:
+        """Emergency stop: zero PWM ahead of everything queued, latched until cleared.
+
+        Drive commands are refused until :meth:`clear_estop`.
+        """
+        self._state.estopped = True
+        self._stop_targets()
+        self._limiter.reset()
+        self._reset_pids()
+        self._pwm = (0, 0)
+        self._publish_state("emergency stop latched")
+        if self._bus.connected:
+            await self._bus.send_now(wheel_command(0, 0))
+
+    def clear_estop(self) -> None:
+        """Release a latched emergency stop (the robot stays still until commanded)."""
+        if self._state.estopped:
+            self._state.estopped = False
+            self._publish_state("emergency stop cleared")
+
+    def enable_controllers(self, enabled: bool = True) -> None:
+        """Run the wheel PIDs (default), or not: then only :meth:`drive_pwm` moves."""
+        if not isinstance(enabled, bool):
+            raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+        self._controllers = enabled
+        self._reset_pids()
+
+    def get_pid(self) -> PidGains:
+        """The wheel PIDs' gains (both wheels share them)."""
+        return self._wheels[0].pid.gains
+
+    def set_pid(self, gains: PidGains) -> None:
+        """Change the wheel PIDs' gains, bumplessly (the output does not jump).
+
+        Raises:
+            InvalidArgumentError: Not a :class:`PidGains`.
+        """
+        if not isinstance(gains, PidGains):
+            raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
+        for wheel in self._wheels:
+            wheel.pid.set_gains(gains)
+
+    def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
+        """Set the odometry pose (tb_control's ``reset_odom``).
+
+        Raises:
+            InvalidArgumentError: A value is not finite.
+        """
+        for name, value in (("x_m", x_m), ("y_m", y_m), ("yaw_rad", yaw_rad)):
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
+            if not math.isfinite(value):
+                raise InvalidArgumentError(f"{name}={value!r} is not finite")
+        self._odometry.reset(float(x_m), float(y_m), float(yaw_rad))
+
+    # -- devices (public) --------------------------------------------------------------------
+
+    @property
+    def neck_kind(self) -> str:
+        """``herkulex``, ``worm`` or ``none``: which neck answered at open."""
+        return self._neck_kind
+
+    @property
+    def neck(self) -> ServoHandle | WormNeckHandle:
+        """The neck: a HerkuleX servo handle or the worm-gear neck's.
+
+        Raises:
+            StateError: No neck answered at open.
+        """
+        if self._neck is None:
+            raise StateError(
+                f"no neck answered (looked for {self.config.neck}: HerkuleX at "
+                f"{self.config.neck_id}, worm gear at 4)"
+            )
+        return self._neck
+
+    def servo(self, sid: int) -> ServoHandle:
+        """The HerkuleX servo ``sid`` (the neck or an external one found at open).
+
+        Raises:
+            StateError: No such servo answered.
+        """
+        watch = self._servos.get(sid)
+        if watch is None:
+            found = ", ".join(map(str, sorted(self._servos))) or "none"
+            raise StateError(f"no HerkuleX servo {sid!r} on this robot (found: {found})")
+        return watch.handle
+
+    async def light_ring(self, hue: int, saturation: int, value: int) -> None:
+        """Set the light ring's colour (0..255 each).
+
+        Raises:
+            OutOfRangeError: A component is outside 0..255; nothing sent.
+        """
+        packet = set_light_ring(hue, saturation, value)
+        await self._bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
+
+    async def info(self) -> dict[str, Any]:
+        """Firmware tags, servo models and the neck kind."""
+        tags: dict[str, str | None] = {}
+        for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE):
+            try:
+                reply = await self._bus.read(sid, 0xF1, 0, Memory.EEP)
+                tags[sid.name.lower()] = reply.data.decode("ascii", errors="replace")
+            except OhmniError:
+                tags[sid.name.lower()] = None
+        models: dict[int, str | None] = {}
+        for servo_id, watch in self._servos.items():
+            try:
+                models[servo_id] = (await watch.handle.servo.model()).name
+            except OhmniError:
+                models[servo_id] = None
+        return {
+            "firmware": tags,
+            "servos": models,
+            "neck": self._neck_kind,
+            "present": sorted(self._present),
+            "absent": sorted(self._expected - self._present),
+        }
+
+    @staticmethod
+    def ports() -> list[dict[str, Any]]:
+        """Serial ports on this machine with their USB ids (pyserial's list)."""
+        from serial.tools import list_ports  # noqa: PLC0415  # only when asked: slow import
+
+        return [
+            {
+                "device": port.device,
+                "description": port.description,
+                "vid": port.vid,
+                "pid": port.pid,
+                "serial_number": port.serial_number,
+            }
+            for port in list_ports.comports()
+        ]
+
+
+def sample_ok(sample: ServoSample | None) -> bool:
+    """Whether a servo may still move: no error that blocks moves."""
+    if sample is None:
+        return True
+    return not sample.status_error & (
+        StatusError.TEMPERATURE | StatusError.OVERLOAD | StatusError.DRIVER_FAULT
+    )
+
+
+def _reopener(url: str | None, transport: Transport) -> Callable[[], Any] | None:
+    """How the bus reopens the port: the same simulated line, or the URL again."""
+    line = getattr(transport, "line", None)
+    if line is not None:
+        from ohmni_tb.sim.transport import SimTransport  # noqa: PLC0415  # sim only
+
+        robot = getattr(transport, "robot", None)
+
+        async def reopen_sim() -> Transport:
+            return SimTransport(line, robot=robot)
+
+        return reopen_sim
+    if url is None:
+        return None
+
+    async def reopen() -> Transport:
+        return await open_transport(url)
+
+    return reopen

@@ -1,0 +1,244 @@
+"""What the Robot's streams carry: one frozen dataclass per stream, named like tb_control's.
+
+Every sample has ``stamp_s``: the event loop's clock (monotonic) at the moment the data
+was taken — for bus reads, when the request went on the wire, not when the host saw the
+reply (a USB adapter may hold replies up to 16 ms).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from ohmni_tb.control.pid import PidStep
+from ohmni_tb.herkulex import TorqueControl
+from ohmni_tb.protocol.messages import StatusDetail, StatusError
+from ohmni_tb.protocol.worm_neck import WormFlags
+
+__all__ = [
+    "STREAM_NAMES",
+    "Link",
+    "PidDebugSample",
+    "RobotStateSample",
+    "Sample",
+    "ServoSample",
+    "TbcoreStatusSample",
+    "WheelEncoderSample",
+    "WheelOdomSample",
+    "WormNeckSample",
+]
+
+#: Every stream of a Robot, in schedule order (tb_control's topic names).
+STREAM_NAMES: tuple[str, ...] = (
+    "wheel_encoder",
+    "wheel_odom",
+    "tbcore_status",
+    "servo_neck",
+    "servo_ext1",
+    "servo_ext2",
+    "new_neck",
+    "robot_state",
+    "pid_debug",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class WheelEncoderSample:
+    """Both wheel counters and speeds (``wheel_encoder``, 50 Hz).
+
+    Attributes:
+        stamp_s: When the left count was read.
+        left_raw: The left board's accumulated count as read (int32).
+        right_raw: The right board's, as read (it counts mirrored).
+        left_ticks: Left count since the Robot opened, forward positive.
+        right_ticks: Right count since the Robot opened, forward positive.
+        left_m: Distance the left rim rolled since the Robot opened.
+        right_m: The right rim's.
+        left_mps: Left rim speed estimate.
+        right_mps: Right rim speed estimate.
+    """
+
+    stamp_s: float
+    left_raw: int
+    right_raw: int
+    left_ticks: int
+    right_ticks: int
+    left_m: float
+    right_m: float
+    left_mps: float
+    right_mps: float
+
+
+@dataclass(frozen=True, slots=True)
+class WheelOdomSample:
+    """Wheel odometry (``wheel_odom``, 50 Hz): pose in the odometry frame and body speed.
+
+    Attributes:
+        stamp_s: Time of the wheel counts it integrates.
+        x_m: Position, metres.
+        y_m: Position, metres.
+        yaw_rad: Heading, wrapped into (−π, π].
+        heading_rad: Heading, unwrapped (counts whole turns).
+        linear_mps: Forward speed.
+        angular_radps: Yaw rate, counter-clockwise positive.
+        covariance: 3 × 3 covariance of (x, y, yaw), row-major.
+        commanded_linear_mps: The limited command the wheels were following.
+        commanded_angular_radps: Its yaw rate.
+    """
+
+    stamp_s: float
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    heading_rad: float
+    linear_mps: float
+    angular_radps: float
+    covariance: tuple[float, ...]
+    commanded_linear_mps: float
+    commanded_angular_radps: float
+
+
+@dataclass(frozen=True, slots=True)
+class TbcoreStatusSample:
+    """Battery and dock (``tbcore_status``, 10 Hz).
+
+    Attributes:
+        stamp_s: When it was read.
+        cell_v: The five cell voltages.
+        pack_v: Pack voltage (sum of the cells).
+        current_a: Pack current; positive while charging.
+        docked: On the dock.
+        charging: Current flows into the pack.
+        percent: The vendor's coarse state of charge (20, 50, 80 or 100).
+        fet_status: Charge/discharge FET bits as reported.
+        status: Status bytes 1..4 as reported.
+    """
+
+    stamp_s: float
+    cell_v: tuple[float, ...]
+    pack_v: float
+    current_a: float
+    docked: bool
+    charging: bool
+    percent: int
+    fet_status: int
+    status: tuple[int, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class ServoSample:
+    """A HerkuleX servo's feedback (``servo_neck``, ``servo_ext1``, ``servo_ext2``; 30 Hz).
+
+    Attributes:
+        stamp_s: When it was read.
+        sid: The servo's id.
+        position_raw: Calibrated position, 0..1023.
+        angle_rad: Its angle (0 at 512 + the zero offset).
+        temperature_raw: The temperature sensor, raw (compare with the servo's max).
+        voltage_v: Supply voltage.
+        torque: Torque mode (free, brake, on).
+        status_error: RAM 48 error bits.
+        status_detail: RAM 49 detail bits (moving, in position, motor on …).
+    """
+
+    stamp_s: float
+    sid: int
+    position_raw: int
+    angle_rad: float
+    temperature_raw: int
+    voltage_v: float
+    torque: TorqueControl
+    status_error: StatusError
+    status_detail: StatusDetail
+
+    @property
+    def moving(self) -> bool:
+        """The servo is moving."""
+        return bool(self.status_detail & StatusDetail.MOVING)
+
+
+@dataclass(frozen=True, slots=True)
+class WormNeckSample:
+    """The worm-gear neck's feedback (``new_neck``, 30 Hz).
+
+    Attributes:
+        stamp_s: When it was read.
+        position_raw: −127000 (up) … 120000 (down).
+        flags: Moving / stalled.
+    """
+
+    stamp_s: float
+    position_raw: int
+    flags: WormFlags
+
+    @property
+    def moving(self) -> bool:
+        """Travelling to its target."""
+        return bool(self.flags & WormFlags.MOVING)
+
+    @property
+    def stalled(self) -> bool:
+        """The motor stalled (only a power cycle clears it)."""
+        return bool(self.flags & WormFlags.STALLED)
+
+
+class Link(enum.StrEnum):
+    """The state of the Robot's serial link."""
+
+    CONNECTED = "connected"
+    LOST = "lost"
+    CLOSED = "closed"
+
+
+@dataclass(frozen=True, slots=True)
+class RobotStateSample:
+    """The Robot's own state (``robot_state``: on every change and at ``state_hz``).
+
+    Attributes:
+        stamp_s: When it was published.
+        link: The serial link.
+        estopped: An emergency stop is latched (:meth:`Robot.clear_estop`).
+        watchdog_tripped: No drive command for ``watchdog_s``: the wheels were stopped.
+        faults: What is wrong now, short names: ``stale_feedback``, ``link_lost``,
+            ``thermal:<sid>``, ``drive_absent:<sid>``, ``neck_stalled``.
+        neck: ``herkulex``, ``worm`` or ``none`` (found at open).
+        present: Ids of the devices that answer.
+        absent: Ids of expected devices that do not (re-probed slowly).
+        event: What changed, in words (``None`` on a periodic sample).
+    """
+
+    stamp_s: float
+    link: Link
+    estopped: bool
+    watchdog_tripped: bool
+    faults: tuple[str, ...]
+    neck: str
+    present: tuple[int, ...]
+    absent: tuple[int, ...]
+    event: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PidDebugSample:
+    """Both wheel PID steps of one control tick (``pid_debug``, on request).
+
+    Attributes:
+        stamp_s: Time of the wheel counts the step used.
+        left: The left wheel's terms (setpoint, feedback, p, i, d, feed-forward, output).
+        right: The right wheel's.
+    """
+
+    stamp_s: float
+    left: PidStep
+    right: PidStep
+
+
+Sample = (
+    WheelEncoderSample
+    | WheelOdomSample
+    | TbcoreStatusSample
+    | ServoSample
+    | WormNeckSample
+    | RobotStateSample
+    | PidDebugSample
+)
