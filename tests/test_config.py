@@ -474,7 +474,7 @@ def test_pid_gains() -> None:
     got = gains.pid_gains()
     assert (got.kp, got.ki, got.kd, got.kff, got.ff_offset) == (1.0, 2.0, 3.0, 4.0, 5.0)
     default = RobotConfig().pid_gains()
-    assert (default.kp, default.ki, default.kff, default.ff_offset) == (400, 2000, 940, 60)
+    assert (default.kp, default.ki, default.kff, default.ff_offset) == (600, 300, 940, 60)
 
 
 def test_encoders_left_then_mirrored_right() -> None:
