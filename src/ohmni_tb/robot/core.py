@@ -415,10 +415,12 @@ class Robot:
         elif kind in ("auto", "worm") and await self._answers(read_feedback()):
             self._neck_kind = "worm"
             self._present.add(int(DeviceId.WORM_NECK))
-        elif kind == "herkulex":
-            self._expected.add(config.neck_id)
-        elif kind == "worm":
-            self._expected.add(int(DeviceId.WORM_NECK))
+        else:
+            # Not found: looked for again slowly (a neck powered up late, a loose cable).
+            if kind in ("auto", "herkulex"):
+                self._expected.add(config.neck_id)
+            if kind in ("auto", "worm"):
+                self._expected.add(int(DeviceId.WORM_NECK))
         if self._neck_kind == "herkulex":
             self._neck = self._servo_handle(config.neck_id, "servo_neck", neck=True)
         elif self._neck_kind == "worm":
@@ -485,6 +487,14 @@ class Robot:
                 self._neck_kind = "herkulex"
                 self._neck = self._servo_handle(sid, "servo_neck", neck=True)
                 self._add_servo_stream(sid, "servo_neck", 0)
+                self._expected.discard(int(DeviceId.WORM_NECK))
+            elif sid == DeviceId.WORM_NECK and self._neck_kind == "none":
+                self._neck_kind = "worm"
+                self._neck = WormNeckHandle(
+                    self._bus, min_raw=config.worm_min_raw, max_raw=config.worm_max_raw
+                )
+                self._add_worm_stream()
+                self._expected.discard(config.neck_id)
             elif sid == DeviceId.CORE and "tbcore_status" not in self._periodic:
                 self._add_core_stream()
             self._publish_state(f"device {sid} answers")
@@ -513,20 +523,8 @@ class Robot:
         self._topics["pid_debug"].requested_hz = config.wheel_hz
         for index, (sid, watch) in enumerate(self._servos.items()):
             self._add_servo_stream(sid, watch.stream, index)
-        if self._neck_kind == "worm" and config.new_neck_hz > 0:
-            self._topics["new_neck"].requested_hz = config.new_neck_hz
-            self._periodic["new_neck"] = Periodic(
-                self._bus,
-                "new_neck",
-                config.new_neck_hz,
-                phase_s=SERVO_PHASE_S,
-                priority=FEEDBACK_PRIORITY,
-                slack_s=1.0 / config.new_neck_hz,
-                build=lambda due: [read_feedback()],
-                handle=self._worm_result,
-                fail=self._feedback_failed("new_neck"),
-                skipped=self._counter("new_neck", "skipped"),
-            )
+        if self._neck_kind == "worm":
+            self._add_worm_stream()
         if int(DeviceId.CORE) in self._present:
             self._add_core_stream()
         self._topics["robot_state"].requested_hz = config.state_hz
@@ -559,11 +557,35 @@ class Robot:
             skipped=self._counter(stream, "skipped"),
         )
         self._periodic[stream] = periodic
-        if (
-            self._periodic.get("wheel_encoder") is not None
-            and self._periodic["wheel_encoder"].running
-        ):
-            periodic.start(self._periodic["wheel_encoder"].next_due_s)
+        control = self._periodic.get("wheel_encoder")
+        if control is not None and control.running:
+            periodic.start(control.next_due_s)
+        self._budget_share = self._schedule_share()
+
+    def _add_worm_stream(self) -> None:
+        hz = self.config.new_neck_hz
+        if hz <= 0:
+            return
+        topic = self._topics["new_neck"]
+        topic.requested_hz = hz
+        topic.enabled = True
+        periodic = Periodic(
+            self._bus,
+            "new_neck",
+            hz,
+            phase_s=SERVO_PHASE_S,
+            priority=FEEDBACK_PRIORITY,
+            slack_s=1.0 / hz,
+            build=lambda due: [read_feedback()],
+            handle=self._worm_result,
+            fail=self._feedback_failed("new_neck"),
+            skipped=self._counter("new_neck", "skipped"),
+        )
+        self._periodic["new_neck"] = periodic
+        control = self._periodic.get("wheel_encoder")
+        if control is not None and control.running:
+            periodic.start(control.next_due_s)
+        self._budget_share = self._schedule_share()
 
     def _add_core_stream(self) -> None:
         hz = self.config.core_hz
@@ -588,14 +610,15 @@ class Robot:
         control = self._periodic.get("wheel_encoder")
         if control is not None and control.running:
             periodic.start(control.next_due_s)
+        self._budget_share = self._schedule_share()
 
     def _schedule_share(self) -> float:
         """The enabled streams' share of the line by the cost model."""
         share = 0.0
         bus = self._bus
         for name, periodic in self._periodic.items():
-            if not self._topics[name].enabled:
-                continue
+            if name != "wheel_encoder" and not self._topics[name].enabled:
+                continue  # the control slot runs whether its samples are wanted or not
             hz = 1.0 / periodic.period_s
             if name == "wheel_encoder":
                 packets: Sequence[Packet] = self._control_template()
@@ -621,6 +644,8 @@ class Robot:
         """The schedule: per stream its rate (Hz), phase (s) and line time per cycle (s)."""
         rows = []
         for name, periodic in self._periodic.items():
+            if name != "wheel_encoder" and not self._topics[name].enabled:
+                continue
             if name == "wheel_encoder":
                 packets: Sequence[Packet] = self._control_template()
             elif name == "tbcore_status":
@@ -773,8 +798,10 @@ class Robot:
             left_mps=left.velocity_mps,
             right_mps=right.velocity_mps,
         )
-        self._topics["wheel_encoder"].publish(encoder, t_left)
+        if self._topics["wheel_encoder"].enabled:
+            self._topics["wheel_encoder"].publish(encoder, t_left)
         odometry = self._odometry
+        odom_topic = self._topics["wheel_odom"]
         if odometry.t_s is None or t_left > odometry.t_s:
             odometry.update(left.delta_m, right.delta_m, t_left)
             pose = odometry.pose
@@ -792,7 +819,8 @@ class Robot:
                 commanded_linear_mps=commanded.linear_mps,
                 commanded_angular_radps=commanded.angular_radps,
             )
-            self._topics["wheel_odom"].publish(odom, t_left)
+            if odom_topic.enabled:
+                odom_topic.publish(odom, t_left)
         debug = self._topics["pid_debug"]
         if debug.enabled and lw.last_step is not None and rw.last_step is not None:
             debug.publish(PidDebugSample(t_left, lw.last_step, rw.last_step), t_left)
@@ -1038,7 +1066,8 @@ class Robot:
     def _state_tick(self) -> None:
         if self._closed:
             return
-        self._publish_state(None)
+        if self._topics["robot_state"].enabled:
+            self._publish_state(None)
         self._state_timer = self._loop.call_later(1.0 / self.config.state_hz, self._state_tick)
 
     # -- tasks -------------------------------------------------------------------------------
@@ -1099,7 +1128,8 @@ class Robot:
 
         It keeps at most ``maxlen`` samples; a reader that falls behind loses the oldest
         (counted in the subscription's ``dropped`` and the stream's stats), and the
-        schedule never waits for it. Iteration ends when the Robot closes.
+        schedule never waits for it. Iteration ends when the Robot closes (at once for
+        a subscription taken after).
 
         Raises:
             InvalidArgumentError: No such stream.
@@ -1122,7 +1152,8 @@ class Robot:
             raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
         periodic = self._periodic.get(name)
         if name in ("wheel_encoder", "wheel_odom", "robot_state", "pid_debug"):
-            topic.enabled = enabled
+            topic.enabled = enabled  # the control slot and the state keep running
+            self._budget_share = self._schedule_share()
             return
         if periodic is None:
             if enabled:
@@ -1287,14 +1318,14 @@ class Robot:
         self._commanded(changed)
 
     def _write_early(self) -> None:
-        """Send a changed command now when the next control slot is over half a period
-        away, so a command reaches the wheels within half a period (plus the slot on the
-        wire), not a whole one. At most one such write between two control slots."""
+        """Send a changed command now when the next control slot is over a quarter period
+        away, so a command reaches the wheels within a quarter period (plus the slot on
+        the wire), not a whole one. At most one such write between two control slots."""
         control = self._periodic.get("wheel_encoder")
         if control is None or not control.running or self._early_pending:
             return
         now = self._loop.time()
-        if control.next_due_s - now <= control.period_s / 2:
+        if control.next_due_s - now <= control.period_s / 4:
             return
         try:
             slot = self._bus.submit(

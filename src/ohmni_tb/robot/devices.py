@@ -1,8 +1,9 @@
 """Handles for the Robot's neck and external servos: checked commands on the bus.
 
-Commands go through the Robot's bus at :data:`COMMAND_PRIORITY`: above the feedback
-reads, below the control slot, so a neck move waits at most for the slot on the wire
-and the control tick never waits for a move.
+Commands go through the Robot's bus at :data:`COMMAND_PRIORITY`, the feedback reads'
+priority: below the control slot, so the control tick never waits for a move, and in
+order of arrival with the feedback reads, so a move waits at most for the reads already
+due (a few ms) and a stream of commands cannot starve the feedback.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
 
 __all__ = ["COMMAND_PRIORITY", "ServoHandle", "WormNeckHandle"]
 
-#: Bus priority of commands (the control slot is 10, servo feedback 5, the core 1).
-COMMAND_PRIORITY = 7
+#: Bus priority of commands: the feedback reads' (the control slot is 10).
+COMMAND_PRIORITY = 5
 #: The playtime of a rest move, seconds.
 REST_PLAYTIME_S = 1.0
 

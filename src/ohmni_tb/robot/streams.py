@@ -153,6 +153,7 @@ class Topic(Generic[T]):
         self._subscriptions: weakref.WeakSet[Subscription[T]] = weakref.WeakSet()
         self._stamps: deque[float] = deque(maxlen=_WINDOW)
         self._lateness: deque[float] = deque(maxlen=_WINDOW)
+        self._closed = False
 
     def publish(self, sample: T, stamp_s: float) -> None:
         """Make ``sample`` the newest and hand it to every subscription."""
@@ -174,11 +175,15 @@ class Topic(Generic[T]):
         """
         integer("maxlen", maxlen, 1, 100_000)
         subscription = Subscription(self, maxlen)
-        self._subscriptions.add(subscription)
+        if self._closed:
+            subscription.close()  # the stream has ended: iteration ends at once
+        else:
+            self._subscriptions.add(subscription)
         return subscription
 
     def close(self) -> None:
-        """End every subscription's iteration."""
+        """End every subscription's iteration, and any made later."""
+        self._closed = True
         for subscription in list(self._subscriptions):
             subscription.close()
 
