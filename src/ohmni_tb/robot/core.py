@@ -30,7 +30,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, overload
 
-from ohmni_tb.bus import Bus, ReplyPacket
+from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, unwrap_delta
 from ohmni_tb.control.kinematics import (
@@ -250,6 +250,7 @@ class Robot:
         self._read_cost_s = bus.cost_s(read_count(DeviceId.LEFT_DRIVE))
         self._budget_share = 0.0
         self._early_pending = False
+        self._early_slot: Slot | None = None
         self._early_writes = 0
 
     # -- opening and closing -----------------------------------------------------------
@@ -960,12 +961,13 @@ class Robot:
         if hot and not watch.tripped:
             watch.tripped = True
             self._state.faults.add(fault)
+            rest = watch.stream == "servo_neck"
             self._publish_state(
                 f"thermal guard: servo {sample.sid} at temperature {sample.temperature_raw} "
                 f"(limit {config.thermal_limit_raw}), errors {sample.status_error!r}: "
-                "resting, then freeing it"
+                + ("resting, then freeing it" if rest else "freeing it")
             )
-            self._guard(watch, rest=watch.stream == "servo_neck")
+            self._guard(watch, rest=rest)
             return
         cool = (
             not sample.status_error & (StatusError.TEMPERATURE | StatusError.OVERLOAD)
@@ -1336,10 +1338,12 @@ class Robot:
         except OhmniError:
             return
         self._early_pending = True
+        self._early_slot = slot
         self._early_writes += 1
 
         def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
             self._early_pending = False
+            self._early_slot = None
             if not future.cancelled():
                 future.exception()  # retrieved: a missed deadline needs no report
 
@@ -1362,6 +1366,13 @@ class Robot:
         self._limiter.reset()
         self._reset_pids()
         self._pwm = (0, 0)
+        # Wheel commands computed before now and still queued must not follow the stop.
+        control = self._periodic.get("wheel_encoder")
+        if control is not None:
+            control.withdraw_unstarted()
+        early = self._early_slot
+        if early is not None and early.started_at is None:
+            early.future.cancel()
         self._publish_state("emergency stop latched")
         if self._bus.connected:
             await self._bus.send_now(wheel_command(0, 0))

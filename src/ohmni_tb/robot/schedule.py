@@ -126,6 +126,14 @@ class Periodic:
             self.running = True
             self._arm()
 
+    def withdraw_unstarted(self) -> None:
+        """Withdraw the slots not yet on the wire (an emergency stop must not be followed
+        by a wheel command computed before it)."""
+        for slot in list(self._in_flight):
+            if slot.started_at is None:
+                slot.future.cancel()
+                self._in_flight.discard(slot)
+
     def cancel_in_flight(self) -> None:
         """Withdraw the slots still waiting (those on the wire finish)."""
         for slot in list(self._in_flight):
