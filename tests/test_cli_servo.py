@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 
 import pytest
@@ -183,11 +184,26 @@ def test_bad_sid_names_the_value() -> None:
 def test_demo_runs_on_the_simulator() -> None:
     code, out = invoke("demo")
     assert code == 0, out
+    text = words(out)
     assert "firmware 'sim-drive-1.0'" in out
-    assert "simulator ground truth" in out
+    assert "DRS_0101 at 512" in out  # the neck, from the servo_neck stream
+    assert "battery (tbcore_status): cells 3.294" in text
+    assert "drive: forward at 0.30 m/s for 1.0 s" in text
+    assert re.search(r"stop confirmed \d\.\d{3} s after the stop by both wheel counts", text)
+    truth = re.search(r"simulator ground truth: x=(\d\.\d{3}) m", text)
+    assert truth is not None
+    assert 0.2 < float(truth.group(1)) < 0.35  # 1 s at 0.3 m/s, with the ramps
+    assert "wheels 0.000 m/s, 0.000 m/s" in text
+    odometry_error = re.search(r"odometry is (\d+\.\d) mm from the truth", text)
+    assert odometry_error is not None
+    assert float(odometry_error.group(1)) < 5.0
     assert "0.0s:280" in out
     assert ":650" in out
-    assert "bus statistics" in out
+    assert "streams (robot.stats())" in out
+    stats = re.search(r"wheel_encoder │\s+50 │\s+(\d+\.\d)", out)
+    assert stats is not None
+    assert float(stats.group(1)) > 40  # the control tick ran near its 50 Hz
+    assert "bus: the wire carried bytes" in text
 
 
 def test_version() -> None:
@@ -200,7 +216,8 @@ def test_demo_moves_a_worm_neck_when_the_robot_has_one() -> None:
     code, out = invoke("demo", "--port", "sim://?neck=worm")
     assert code == 0, out
     assert "firmware 'sim-worm-1.0'" in out
-    assert "worm neck: 0 → 60000" in out
+    assert "worm neck: 0 → 60000 (new_neck samples)" in out
+    assert re.search(r"\d\.\d\ds:60000\n", out)  # it got there
 
 
 # -- hardening: every argument checked before the first byte, one line per error -----------

@@ -73,3 +73,42 @@ def test_odometry_example_refuses_a_real_robot_without_consent() -> None:
     )
     assert result.returncode == 2
     assert "--i-am-clear-of-obstacles" in result.stderr
+
+
+def test_square_example_closes_the_square(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    square = load("square")
+    png = tmp_path / "square.png"
+    assert run_virtual(square.run("sim://", png=png)) == 0
+    out = capsys.readouterr().out
+    drift = re.search(r"final error \(odometry vs truth\): (\S+) cm, (\S+)°", out)
+    closure = re.search(r"back at the start \(truth\): (\S+) cm, (\S+)° away", out)
+    assert drift is not None, out
+    assert closure is not None, out
+    assert float(drift.group(1)) < 2.0
+    assert float(drift.group(2)) < 1.0
+    assert float(closure.group(1)) < 2.0
+    assert float(closure.group(2)) < 1.0
+    # Four legs, each ending about a metre from the last corner.
+    legs = re.findall(r"leg \d: odometry x=(\S+) m\s+y=(\S+) m", out)
+    corners = [(round(float(x)), round(float(y))) for x, y in legs]
+    assert corners == [(1, 0), (1, 1), (0, 1), (0, 0)]
+    if importlib.util.find_spec("matplotlib") is None:
+        assert "plot skipped: matplotlib is not installed" in out
+        assert not png.exists()
+    else:
+        assert f"plot: {png}" in out
+        assert png.read_bytes().startswith(b"\x89PNG")
+
+
+def test_square_example_refuses_a_real_robot_without_consent() -> None:
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "square.py"), "--port", "/dev/ttyUSB9"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 2
+    assert "--yes" in result.stderr

@@ -22,8 +22,8 @@ from typer.testing import CliRunner
 from ohmni_tb.bus import Bus
 from ohmni_tb.cli import app
 from ohmni_tb.errors import (
-    BusTimeoutError,
     DeviceError,
+    OhmniError,
     OutOfRangeError,
     StopNotConfirmedError,
     TransportError,
@@ -353,26 +353,45 @@ def _words(text: str) -> str:
 
 
 def test_the_demo_says_loudly_and_does_not_drive_when_the_wheels_cannot_be_confirmed() -> None:
+    # The Robot finds no drive board; the demo does not drive, and when the Robot closes it
+    # cannot confirm the wheel stop: one bold line, exit 1.
     result = runner.invoke(app, ["demo", "--port", "sim://?silent=0,1"])
     assert result.exit_code == 1, result.output
     err = _words(result.stderr)
     assert "WHEEL STOP NOT CONFIRMED, the robot may still be moving" in err
     assert err.count("NOT CONFIRMED") == 1  # one line, not a traceback
     assert "Traceback" not in result.output
-    assert "forward at PWM" not in result.stdout
+    assert "drive: forward" not in result.stdout
+    assert "drive skipped: drive boards 0 and 1 do not answer" in _words(result.stdout)
+
+
+def _lossy_demo(capsys: pytest.CaptureFixture[str]) -> str:
+    """The demo's own coroutine in virtual time on a line losing 3 % of its bytes (the
+    same every run); its output, words unwrapped."""
+    from ohmni_tb.cli.demo import _demo
+
+    # The neck's part, after the drive, may lose its commands on this line too.
+    with contextlib.suppress(OhmniError):
+        run_virtual(_demo("sim://?drop=0.03&seed=3&ext=none", True))
+    return _words(capsys.readouterr().out)
 
 
 def test_the_demo_confirms_its_stop_on_a_lossy_line(capsys: pytest.CaptureFixture[str]) -> None:
-    # The demo's own coroutine in virtual time, so the lossy line is the same every run.
-    from ohmni_tb.cli.demo import _demo
-
-    # The neck's part, after the drive, may lose its reads on this line too.
-    with contextlib.suppress(BusTimeoutError):
-        run_virtual(_demo("sim://?drop=0.03&seed=3&ext=none", True))
-    out = _words(capsys.readouterr().out)
-    assert "forward at PWM 400" in out
-    assert re.search(r"stop confirmed in 0\.\d{3} s after \d+ stops", out), out
+    out = _lossy_demo(capsys)
+    assert "drive: forward at 0.30 m/s" in out
+    assert re.search(r"stop confirmed \d\.\d{3} s after the stop by both wheel counts", out), out
     travelled = re.search(r"simulator ground truth: x=(\d\.\d{3}) m", out)
     assert travelled is not None
-    assert 0.3 < float(travelled.group(1)) < 0.4  # ~35 cm: it drove, and then it stopped
+    # It drove, and then it stopped. Half the transactions fail on this line, so the
+    # stale-feedback guard may stop it before the second is up: short of 0.3 m is safe.
+    assert 0.02 < float(travelled.group(1)) < 0.4
     assert "wheels 0.000 m/s, 0.000 m/s" in out
+
+
+def test_the_demo_odometry_keeps_to_the_truth_on_a_lossy_line(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = _lossy_demo(capsys)
+    error = re.search(r"odometry is (\d+\.\d) mm from the truth", out)
+    assert error is not None
+    assert float(error.group(1)) < 10.0

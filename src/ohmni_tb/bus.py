@@ -226,6 +226,25 @@ class Slot:
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
         self.active: set[Slot] | None = None
 
+    def replace_unsent(self, index: int, packet: Packet) -> None:
+        """Put ``packet`` in place of packet ``index``, which must expect no reply, before
+        the slot starts: a scheduler updating a queued command to the newest value.
+
+        Raises:
+            StateError: The slot has started (or finished).
+            InvalidArgumentError: Packet ``index`` waits for a reply, or ``packet`` is
+                not of the same command and id (its reply would be judged differently).
+        """
+        if self.started or self.remaining <= 0:
+            raise StateError("the slot has started: its packets can no longer change")
+        old = self.packets[index]
+        if self.expect[index] or (old.sid, old.cmd) != (packet.sid, packet.cmd):
+            raise InvalidArgumentError(
+                f"only a packet that waits for no reply can be replaced, by one of the same "
+                f"command and id: {old!r} by {packet!r}"
+            )
+        self.packets[index] = packet
+
     def settle(self, index: int, result: ReplyPacket | None) -> None:
         self.results[index] = result
         self.remaining -= 1
@@ -1120,7 +1139,12 @@ class Bus:
 
     def _drop_hopeless(self, now: float) -> None:
         """Drop waiting parts that can no longer start before their deadlines."""
-        start_at = max(now, self._conn.free_at)
+        free_at = self._conn.free_at
+        if free_at == math.inf:
+            # Request at a time (caution): the line frees when the reply in flight comes
+            # or goes missing, which is not known yet; judge then.
+            free_at = now
+        start_at = max(now, free_at)
         if not any(
             part.slot.future.done()
             or (part.slot.deadline is not None and start_at > part.slot.deadline + _EPS)

@@ -1,46 +1,41 @@
-"""``ohmni demo``: a tour of the bus on the simulator (or, carefully, on a robot)."""
+"""``ohmni demo``: a tour of the Robot on the simulator (or, carefully, on a robot)."""
 
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated
+import logging
+import math
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
-from ohmni_tb.bus import Bus
-from ohmni_tb.cli.common import PortOption, console, run, stats_rows
-from ohmni_tb.control import EncoderConfig
-from ohmni_tb.errors import BusTimeoutError, OhmniError, StopNotConfirmedError
-from ohmni_tb.herkulex import (
-    TorqueControl,
-    angle_deg_from_raw,
-)
-from ohmni_tb.herkulex.servo import Servo
+from ohmni_tb.cli.common import PortOption, console, run
+from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 from ohmni_tb.protocol import Memory
-from ohmni_tb.protocol.core import parse_status, read_status
-from ohmni_tb.protocol.devices import (
-    DEFAULT_EXT_SERVO_IDS,
-    NECK_RAW_RANGE,
-    DeviceId,
-    device_name,
-)
-from ohmni_tb.protocol.drive import wheel_command
-from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback, set_target
-from ohmni_tb.safety import StopReport, stop_wheels
-from ohmni_tb.transport import open_transport
+from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
+
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot, RobotStats, ServoHandle, WormNeckHandle
+    from ohmni_tb.safety import StopReport
 
 __all__ = ["demo"]
 
-#: Ticks to metres with the configured wheel radius and ticks per wheel turn.
-_ENCODER = EncoderConfig()
+#: The drive: forward at this speed for this long, drive() re-sent at 20 Hz (the
+#: watchdog stops the wheels 0.5 s after the last one).
+_SPEED_MPS = 0.3
+_DRIVE_S = 1.0
+_COMMAND_PERIOD_S = 0.05
+#: How long the demo waits for the wheel counts to confirm the stop, the ramp down
+#: included: longer than stop_wheels' default, so a lossy line's lost reads are ridden out.
+_STOP_TIMEOUT_S = 2.0
 _NECK_FROM, _NECK_TO = NECK_RAW_RANGE
 #: A worm-neck target inside its range (−127000 up … 120000 down): tilt down a little.
 _WORM_TARGET = 60_000
-#: How long the demo keeps stopping the wheels until their counts confirm it: longer
-#: than stop_wheels' default, so a lossy line's lost count reads are ridden out.
-_STOP_TIMEOUT_S = 2.0
+#: How long to wait for a stream's first sample.
+_FIRST_SAMPLE_S = 1.0
 _err = Console(stderr=True)
 
 
@@ -54,195 +49,350 @@ def demo(
         ),
     ] = False,
 ) -> None:
-    """Scan the bus, read the battery, drive the wheels, move the neck, show bus figures.
+    """Open the Robot, show its devices and battery, drive, move the neck, show its figures.
 
     On the built-in simulator (the default, sim://) everything runs. On a real robot the
-    wheels stay still unless --allow-motion is given: the robot would drive ~40 cm.
+    wheels stay still unless --allow-motion is given: the robot would drive ~30 cm.
     """
     motion = allow_motion or port.startswith("sim:")
     run(lambda: _demo(port, motion))
 
 
 async def _demo(port: str, motion: bool) -> None:
-    transport = await open_transport(port)
-    robot = getattr(transport, "robot", None)  # the simulator's ground truth, if any
-    bus = Bus(transport)
-    bus.start()
+    # Imported here: `ohmni --help` and the other commands start without the Robot.
+    from ohmni_tb import Robot, RobotConfig  # noqa: PLC0415
+
+    watch = _ExitStop()
+    logger = logging.getLogger("ohmni_tb")
+    logger.addHandler(watch)
+    failure: OhmniError | None = None
     try:
-        console.rule(f"ohmni demo on {port}")
-        await _scan(bus)
-        await _battery(bus)
-        if motion:
-            await _drive(bus, robot)
-        else:
-            console.print("[yellow]drive skipped[/yellow]: pass --allow-motion on a robot")
-        await _neck(bus)
-        _show_stats(bus)
-    except StopNotConfirmedError as exc:
-        # The robot may be moving: one line nobody can miss, and a failed exit.
-        _err.print(f"[bold red]{exc}[/bold red]", soft_wrap=True)
-        raise typer.Exit(1) from exc
+        async with Robot.open(port, config=RobotConfig.load()) as robot:
+            console.rule(f"ohmni demo on {port}")
+            await _devices(robot)
+            await _battery(robot)
+            if not motion:
+                console.print("[yellow]drive skipped[/yellow]: pass --allow-motion on a robot")
+            elif silent := [sid for sid in (0, 1) if sid not in robot.state.present]:
+                boards = "boards 0 and 1 do" if len(silent) == 2 else f"board {silent[0]} does"
+                console.print(f"[yellow]drive skipped[/yellow]: drive {boards} not answer")
+            else:
+                await _drive(robot)
+            await _neck(robot)
+            _show_stats(robot.stats())
+    except OhmniError as exc:
+        failure = exc
+    except BaseException:
+        # Ctrl-C or a cancellation: still say it if the Robot could not confirm its stop.
+        if watch.error is not None:
+            _print_stop(watch.error)
+        raise
     finally:
-        # One more stop on the way out, after whatever happened.
-        await bus.aclose(final=[wheel_command(0, 0)] if motion else ())
+        logger.removeHandler(watch)
+    # The Robot's verdict on closing is the last word on whether the wheels stopped.
+    stop = watch.error or (failure if isinstance(failure, StopNotConfirmedError) else None)
+    if stop is None:
+        if failure is not None:
+            raise failure  # run() prints it as one red line
+        return
+    if failure is not None and failure is not stop:
+        _err.print(f"[red]error:[/red] {escape(str(failure))}", soft_wrap=True)
+    _print_stop(stop)
+    raise typer.Exit(1) from stop
 
 
-async def _scan(bus: Bus) -> None:
+def _print_stop(exc: StopNotConfirmedError) -> None:
+    """The robot may be moving: one line nobody can miss."""
+    _err.print(f"[bold red]{escape(str(exc))}[/bold red]", soft_wrap=True)
+
+
+class _ExitStop(logging.Handler):
+    """Shows the Robot's warnings as they come, and keeps the one that matters most: a
+    wheel stop the Robot could not confirm while closing (it logs it, as a close must
+    finish), so the demo can fail on it."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.error: StopNotConfirmedError | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        args = record.args if isinstance(record.args, tuple) else ()
+        for arg in args:
+            if isinstance(arg, StopNotConfirmedError):
+                self.error = arg
+                return
+        _err.print(f"[yellow]robot: {escape(record.getMessage())}[/yellow]", soft_wrap=True)
+
+
+async def _devices(robot: Robot) -> None:
+    info = await robot.info()
+    state = robot.state
+    firmware: dict[str, str | None] = info["firmware"]
+    models: dict[int, str | None] = info["servos"]
     table = Table(title="devices on the bus")
     for column in ("sid", "device", "answer"):
         table.add_column(column)
-    for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE, DeviceId.WORM_NECK):
-        try:
-            tag = await bus.read(sid, 0xF1, 0, Memory.EEP)
-            answer = f"firmware {tag.data.decode('ascii', errors='replace')!r}"
-        except BusTimeoutError:
+    for sid in sorted({*state.present, *state.absent}):
+        if sid not in state.present:
             answer = "[dim]no answer[/dim]"
-        table.add_row(str(int(sid)), device_name(sid), answer)
-    for servo_id in (DeviceId.HERKULEX_NECK, *DEFAULT_EXT_SERVO_IDS):
-        servo = Servo(bus, servo_id)
-        try:
-            model = await servo.model()
-            pos = await servo.position_raw()
-            answer = f"{model.name} at {pos} ({angle_deg_from_raw(pos):+.1f}°)"
-        except BusTimeoutError:
-            answer = "[dim]no answer[/dim]"
-        table.add_row(str(servo_id), device_name(servo_id), answer)
+        elif sid in models:
+            answer = _servo_answer(robot, sid, models[sid])
+        elif sid == DeviceId.WORM_NECK:
+            answer = await _worm_answer(robot)
+        else:
+            tag = firmware.get(DeviceId(sid).name.lower())
+            answer = "[dim]no firmware tag[/dim]" if tag is None else f"firmware {tag!r}"
+        table.add_row(str(sid), device_name(sid), answer)
     console.print(table)
+    faults = f", faults: {', '.join(state.faults)}" if state.faults else ""
+    console.print(f"robot: link {state.link}, neck {state.neck}{faults}", highlight=False)
 
 
-async def _battery(bus: Bus) -> None:
+def _servo_answer(robot: Robot, sid: int, model: str | None) -> str:
+    stream = {int(DeviceId.HERKULEX_NECK): "servo_neck"}.get(sid)
+    if stream is None:
+        ext = robot.config.ext_servo_ids
+        stream = f"servo_ext{ext.index(sid) + 1}" if sid in ext else None
+    sample = robot.latest(stream) if stream is not None else None
+    where = (
+        ""
+        if sample is None
+        else f" at {sample.position_raw} ({math.degrees(sample.angle_rad):+.1f}°)"
+    )
+    return f"{model or 'HerkuleX (model unread)'}{where}"
+
+
+async def _worm_answer(robot: Robot) -> str:
+    # Robot.info() tags the drive and core boards only; the worm neck is read directly.
     try:
-        status = parse_status(await bus.query(read_status()))
-    except OhmniError as exc:
-        console.print(f"battery: [yellow]{exc}[/yellow]")
+        reply = await robot.bus.read(DeviceId.WORM_NECK, 0xF1, 0, Memory.EEP)
+    except OhmniError:
+        return "worm-gear neck (no firmware tag)"
+    return f"firmware {reply.data.decode('ascii', errors='replace')!r}"
+
+
+async def _first(robot: Robot, stream: str) -> object | None:
+    """The newest sample of ``stream``, waiting up to a second for the first one."""
+    sample: object | None = robot.latest(stream)
+    if sample is not None:
+        return sample
+    try:
+        async with asyncio.timeout(_FIRST_SAMPLE_S):
+            async for first in robot.subscribe(stream, maxlen=1):
+                sample = first
+                break
+    except TimeoutError:
+        pass
+    return sample
+
+
+async def _battery(robot: Robot) -> None:
+    if DeviceId.CORE not in robot.state.present:
+        console.print("battery: [yellow]the core board does not answer[/yellow]")
         return
-    cells = " ".join(f"{mv / 1000:.3f}" for mv in status.cell_mv)
+    from ohmni_tb.robot import TbcoreStatusSample  # noqa: PLC0415
+
+    status = await _first(robot, "tbcore_status")
+    if not isinstance(status, TbcoreStatusSample):
+        console.print("battery: [yellow]no tbcore_status sample within 1 s[/yellow]")
+        return
+    cells = " ".join(f"{v:.3f}" for v in status.cell_v)
     console.print(
-        f"battery: cells {cells} V, pack {status.pack_mv / 1000:.2f} V, "
-        f"{status.charging_current_ma / 1000:+.2f} A, "
-        f"{'docked' if status.docked else 'undocked'}, {status.percent} % (vendor rule)"
+        f"battery (tbcore_status): cells {cells} V, pack {status.pack_v:.2f} V, "
+        f"{status.current_a:+.2f} A, {'docked' if status.docked else 'undocked'}, "
+        f"{status.percent} % (vendor rule)"
     )
 
 
-async def _stop(bus: Bus) -> tuple[StopReport, tuple[int, int]]:
-    """Stop the wheels until their counts confirm it; the report and the counts."""
-    report = await stop_wheels(bus, timeout_s=_STOP_TIMEOUT_S)
-    assert report.counts is not None  # a confirmed stop has read both counts
-    return report, report.counts
-
-
-async def _drive(bus: Bus, robot: object) -> None:
-    # From rest to rest: the counts the wheels stand at before and after.
-    _, start = await _stop(bus)
+async def _drive(robot: Robot) -> None:
     console.print(
-        "drive: forward at PWM 400 for 1.0 s (the command is re-sent at 10 Hz), then stop"
+        f"drive: forward at {_SPEED_MPS:.2f} m/s for {_DRIVE_S:.1f} s "
+        f"(robot.drive re-sent at {1 / _COMMAND_PERIOD_S:.0f} Hz), then stop"
     )
+    loop = asyncio.get_running_loop()
     try:
-        for _ in range(10):
-            await bus.send(wheel_command(400, 400))
-            await asyncio.sleep(0.1)
+        end = loop.time() + _DRIVE_S
+        while loop.time() < end:
+            robot.drive(_SPEED_MPS, 0.0)
+            await asyncio.sleep(_COMMAND_PERIOD_S)
     finally:
-        # Stop whatever happened above, Ctrl-C included: repeated until the counts hold
-        # still, or StopNotConfirmedError.
-        report, end = await _stop(bus)
+        # Whatever happened above, Ctrl-C included: the target goes to zero, the ramp
+        # brings the wheels down, and leaving the Robot would stop them anyway.
+        robot.stop()
+    report = await _confirm_stop(robot)
     console.print(
-        f"  stop confirmed in {report.elapsed_s:.3f} s after {report.stops_sent} stops "
-        f"(wheel counts held still; {report.missed_reads} count reads unanswered)"
+        f"  stop confirmed {report.elapsed_s:.3f} s after the stop by both wheel counts "
+        f"holding still ({report.reads} wheel_encoder samples, {report.missed_reads} control "
+        "ticks without counts)"
     )
-    # The right wheel counts mirrored: negate before converting forward-positive ticks.
-    d_left = _ENCODER.ticks_to_m(end[0] - start[0])
-    d_right = _ENCODER.ticks_to_m(-(end[1] - start[1]))
-    console.print(
-        f"  wheel counts: left {end[0] - start[0]:+d}, right {end[1] - start[1]:+d} "
-        f"(mirrored) → left {d_left:.3f} m, right {d_right:.3f} m"
-    )
-    pose = getattr(robot, "pose", None)
-    speeds = getattr(robot, "wheel_speeds_mps", None)
-    if pose is not None and callable(speeds):
-        left_mps, right_mps = speeds()
+    odom = robot.latest("wheel_odom")
+    if odom is not None:
+        console.print(
+            f"  odometry (wheel_odom): x={odom.x_m:.3f} m, y={odom.y_m:.3f} m, "
+            f"yaw={odom.yaw_rad:.4f} rad",
+            highlight=False,
+        )
+    if robot.sim is not None:
+        pose = robot.sim.pose
+        left_mps, right_mps = robot.sim.wheel_speeds_mps()
         console.print(
             f"  simulator ground truth: x={pose.x:.3f} m, y={pose.y:.3f} m, "
-            f"yaw={pose.yaw:.4f} rad, wheels {abs(left_mps):.3f} m/s, {abs(right_mps):.3f} m/s"
+            f"yaw={pose.yaw:.4f} rad, wheels {abs(left_mps):.3f} m/s, {abs(right_mps):.3f} m/s",
+            highlight=False,
         )
+        if odom is not None:
+            error_mm = math.hypot(odom.x_m - pose.x, odom.y_m - pose.y) * 1000
+            console.print(f"  odometry is {error_mm:.1f} mm from the truth", highlight=False)
 
 
-async def _neck(bus: Bus) -> None:
-    neck = Servo(bus, DeviceId.HERKULEX_NECK, min_raw=_NECK_FROM, max_raw=_NECK_TO)
+async def _confirm_stop(robot: Robot) -> StopReport:
+    """Wait until the ``wheel_encoder`` stream shows both wheels standing still.
+
+    Standing still: :data:`SETTLE_READS` samples in a row, over at least ``settle_s``,
+    whose counts stay within :data:`DEFAULT_TOLERANCE_TICKS` of the first — the rule of
+    :func:`ohmni_tb.safety.stop_wheels`, read from the Robot's own 50 Hz counts (every
+    control tick carries the zero wheel command meanwhile).
+
+    Raises:
+        StopNotConfirmedError: Not within :data:`_STOP_TIMEOUT_S`: the robot may still be
+            moving.
+    """
+    from ohmni_tb.safety import (  # noqa: PLC0415
+        DEFAULT_SETTLE_S,
+        DEFAULT_TOLERANCE_TICKS,
+        SETTLE_READS,
+        StopReport,
+    )
+
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    missed_before = robot.stats().streams["wheel_encoder"].missed
+    reference: tuple[float, int, int] | None = None
+    agreeing = reads = 0
+    last: tuple[int, int] | None = None
+
+    def report(*, confirmed: bool) -> StopReport:
+        missed = robot.stats().streams["wheel_encoder"].missed - missed_before
+        elapsed = loop.time() - started
+        ticks = round(elapsed * robot.config.wheel_hz)
+        return StopReport(confirmed, ticks, reads, missed, elapsed, last)
+
     try:
-        await neck.status()  # STAT is always answered: is a HerkuleX neck there?
-    except BusTimeoutError:
-        await _worm_neck(bus)
-        return
-    await neck.torque(TorqueControl.ON)
-    try:
-        await neck.move_to(_NECK_FROM, playtime_ticks=0)
-        for _ in range(60):  # the servo needs < 1 s from any start position
-            if await neck.position_raw() == _NECK_FROM:
-                break
-            await asyncio.sleep(0.05)
-        console.print(f"neck: {_NECK_FROM} → {_NECK_TO} over 1.0 s")
-        await neck.move_to(_NECK_TO, playtime_s=1.0)
-        loop = asyncio.get_running_loop()
-        t0 = loop.time()
-        samples = []
-        while loop.time() - t0 < 1.3:
-            samples.append((loop.time() - t0, await neck.position_raw()))
-            await asyncio.sleep(0.1)
-        line = "  ".join(f"{t:.1f}s:{pos}" for t, pos in samples)
-        console.print("  " + line, highlight=False)
-    finally:
-        # Holding torque overheats the neck: free it whatever happened, Ctrl-C included.
-        await asyncio.shield(neck.torque(TorqueControl.FREE))
+        async with asyncio.timeout(_STOP_TIMEOUT_S):
+            async for sample in robot.subscribe("wheel_encoder"):
+                reads += 1
+                last = (sample.left_raw, sample.right_raw)
+                if (
+                    reference is None
+                    or abs(sample.left_ticks - reference[1]) > DEFAULT_TOLERANCE_TICKS
+                    or abs(sample.right_ticks - reference[2]) > DEFAULT_TOLERANCE_TICKS
+                ):
+                    reference = (sample.stamp_s, sample.left_ticks, sample.right_ticks)
+                    agreeing = 1
+                    continue
+                agreeing += 1
+                if agreeing >= SETTLE_READS and sample.stamp_s - reference[0] >= DEFAULT_SETTLE_S:
+                    return report(confirmed=True)
+    except TimeoutError:
+        pass
+    reason = (
+        "no wheel counts arrived"
+        if reads == 0
+        else f"the wheel counts did not hold still ({reads} wheel_encoder samples)"
+    )
+    raise StopNotConfirmedError(sid=0, report=report(confirmed=False), reason=reason)
 
 
-async def _worm_neck(bus: Bus) -> None:
-    try:
-        start = parse_feedback(await bus.query(read_feedback()))
-    except BusTimeoutError:
+async def _neck(robot: Robot) -> None:
+    from ohmni_tb.robot import ServoHandle, WormNeckHandle  # noqa: PLC0415
+
+    if robot.neck_kind == "none":
         console.print("neck: [dim]neither a HerkuleX nor a worm-gear neck answers[/dim]")
         return
-    target = _WORM_TARGET if start.position != _WORM_TARGET else 0
-    console.print(f"worm neck: {start.position} → {target}")
-    await bus.send(set_target(target))
+    neck = robot.neck
+    if isinstance(neck, ServoHandle):
+        await _herkulex_neck(robot, neck)
+    elif isinstance(neck, WormNeckHandle):
+        await _worm_neck(robot, neck)
+
+
+async def _herkulex_neck(robot: Robot, neck: ServoHandle) -> None:
     loop = asyncio.get_running_loop()
-    t0 = loop.time()
-    samples = []
-    while loop.time() - t0 < 1.5:
-        feedback = parse_feedback(await bus.query(read_feedback()))
-        samples.append(f"{loop.time() - t0:.1f}s:{feedback.position}")
-        if not feedback.moving:
+    await neck.move(_NECK_FROM, playtime_s=0.0)
+    deadline = loop.time() + 1.5  # the servo needs < 1 s from any start position
+    start = _NECK_FROM
+    async for sample in robot.subscribe("servo_neck"):
+        start = sample.position_raw
+        if start == _NECK_FROM or loop.time() > deadline:
             break
-        await asyncio.sleep(0.1)
-    console.print("  " + "  ".join(samples), highlight=False)
+    console.print(f"neck: {_NECK_FROM} → {_NECK_TO} over 1.0 s (servo_neck samples)")
+    t0 = loop.time()
+    await neck.move(_NECK_TO, playtime_s=1.0)
+    shown = [f"0.0s:{start}"]
+    next_s = 0.1
+    async for sample in robot.subscribe("servo_neck"):
+        # The stream runs at 30 Hz; one sample every 0.1 s is enough to read.
+        t = sample.stamp_s - t0
+        if t >= next_s:
+            shown.append(f"{max(t, 0.0):.1f}s:{sample.position_raw}")
+            next_s += 0.1
+        if t > 1.3:
+            break
+    console.print("  " + "  ".join(shown), highlight=False)
 
 
-def _show_stats(bus: Bus) -> None:
-    rows = stats_rows(bus.stats)
-    table = Table(title="bus statistics")
-    columns = ("sid", "device", "requests", "replies", "timeouts", "p50 ms", "p99 ms", "breaker")
+async def _worm_neck(robot: Robot, neck: WormNeckHandle) -> None:
+    from ohmni_tb.robot import WormNeckSample  # noqa: PLC0415
+
+    start = await _first(robot, "new_neck")
+    position = start.position_raw if isinstance(start, WormNeckSample) else 0
+    target = _WORM_TARGET if position != _WORM_TARGET else 0
+    console.print(f"worm neck: {position} → {target} (new_neck samples)")
+    t0 = asyncio.get_running_loop().time()
+    await neck.move(target)
+    shown: list[str] = []
+    next_s = 0.0
+    async for sample in robot.subscribe("new_neck"):
+        t = sample.stamp_s - t0
+        done = (t > 0.2 and not sample.moving) or t > 1.5
+        if t >= next_s or done:
+            shown.append(f"{max(t, 0.0):.2f}s:{sample.position_raw}")
+            next_s += 0.1
+        if done:
+            break
+    console.print("  " + "  ".join(shown), highlight=False)
+
+
+def _show_stats(stats: RobotStats) -> None:
+    table = Table(
+        title="streams (robot.stats())",
+        caption="jitter: how late a cycle's first byte went on the wire, p50/p99",
+    )
+    columns = ("stream", "Hz want", "Hz got", "jitter ms", "samples", "missed", "skipped")
     for column in columns:
-        table.add_column(column, justify="right")
-    for row in rows:
+        table.add_column(column, justify="left" if column == "stream" else "right")
+    for name, s in stats.streams.items():
+        if not s.enabled or not s.requested_hz:
+            continue
+        jitter = "-"
+        if s.jitter_p50_ms is not None and s.jitter_p99_ms is not None:
+            jitter = f"{s.jitter_p50_ms:.1f}/{s.jitter_p99_ms:.1f}"
         table.add_row(
-            str(row["sid"]),
-            device_name(row["sid"]),
-            str(row["requests"]),
-            str(row["replies"]),
-            str(row["timeouts"]),
-            "-" if row["latency_p50_ms"] is None else f"{row['latency_p50_ms']:.2f}",
-            "-" if row["latency_p99_ms"] is None else f"{row['latency_p99_ms']:.2f}",
-            str(row["breaker"]),
+            name,
+            f"{s.requested_hz:.0f}",
+            f"{s.achieved_hz:.1f}",
+            jitter,
+            str(s.samples),
+            str(s.missed),
+            str(s.skipped),
         )
     console.print(table)
-    dec = bus.stats.decoder
+    b = stats.bus
     console.print(
-        f"decoder: {dec.packets} packets, {dec.bytes_discarded} bytes discarded, "
-        f"{dec.checksum_errors} checksum errors; unmatched replies {bus.stats.unmatched}"
-    )
-    stats = bus.stats
-    console.print(
-        f"line: {stats.wire_utilisation:.0%} of the last second carried bytes "
-        f"({stats.reserved_utilisation:.0%} reserved by the cost model), "
-        f"{stats.transactions_per_s:.0f} replies/s; queue wait p99 "
-        f"{(stats.queue_wait_p99_s or 0.0) * 1e3:.1f} ms"
+        f"bus: the wire carried bytes {b.wire_utilisation:.0%} of the last second; the "
+        f"schedule reserves {b.budget_share:.0%} by the cost model (turnarounds and guards "
+        "included); "
+        f"{b.transactions_per_s:.0f} transactions/s, {b.timeouts} timeouts, "
+        f"{b.deadline_misses} deadline misses",
+        highlight=False,
     )

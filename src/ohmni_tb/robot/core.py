@@ -32,7 +32,7 @@ from typing import Any, Literal, overload
 
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
-from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, unwrap_delta
+from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
 from ohmni_tb.control.kinematics import (
     LimitedTwist,
     Twist,
@@ -97,6 +97,8 @@ CORE_PHASE_S = 0.013
 #: HerkuleX feedback block: RAM 48 (status error) … 59 (calibrated position, high byte).
 SERVO_BLOCK_ADDR = 48
 SERVO_BLOCK_LEN = 12
+#: Extra attempts for each device at open (a lossy line should not hide a board).
+DISCOVERY_RETRIES = 3
 #: Absent devices are asked again this often.
 REPROBE_S = 5.0
 #: Wheel reads rejected in a row before the count is taken as a new origin.
@@ -249,6 +251,9 @@ class Robot:
         self._write_cost_s = bus.cost_s(wheel_command(0, 0))
         self._read_cost_s = bus.cost_s(read_count(DeviceId.LEFT_DRIVE))
         self._budget_share = 0.0
+        #: Why the stop on the way out was not confirmed, if it was not (also raised
+        #: from ``async with`` when the block itself ended without an error).
+        self.exit_error: StopNotConfirmedError | None = None
         self._early_pending = False
         self._early_slot: Slot | None = None
         self._early_writes = 0
@@ -268,7 +273,10 @@ class Robot:
 
         An async context manager. Leaving it stops the wheels (confirmed by their counts,
         within ``stop_timeout_s``) and rests or frees the neck (``on_exit_neck``), even on
-        an error or a cancellation; then the port closes.
+        an error or a cancellation; then the port closes. When the block ended cleanly
+        but the counts did not confirm the stop, leaving it raises
+        :class:`~ohmni_tb.errors.StopNotConfirmedError` (the robot may be moving); after
+        an error, that error goes on and :attr:`exit_error` holds the stop's.
 
         Args:
             port: The port's URL (default ``config.port``), or an open
@@ -305,8 +313,14 @@ class Robot:
             raise
         try:
             yield robot
-        finally:
+        except BaseException:
             await robot._close_shielded()
+            raise
+        # A clean exit whose stop the wheel counts did not confirm raises: the robot may
+        # be moving and nobody else would say so.
+        await robot._close_shielded()
+        if robot.exit_error is not None:
+            raise robot.exit_error
 
     async def _start(self) -> None:
         await self._discover()
@@ -354,6 +368,7 @@ class Robot:
             try:
                 await stop_wheels(bus, timeout_s=self.config.stop_timeout_s)
             except StopNotConfirmedError as exc:
+                self.exit_error = exc
                 _log.warning("closing: %s", exc)
             except OhmniError as exc:
                 _log.warning("closing: stop not confirmed: %s", exc)
@@ -394,7 +409,7 @@ class Robot:
     async def _answers(self, packet: Packet) -> ReplyPacket | None:
         try:
             return await self._bus.request(
-                packet, expect_reply=True, retries=1, priority=PROBE_PRIORITY
+                packet, expect_reply=True, retries=DISCOVERY_RETRIES, priority=PROBE_PRIORITY
             )
         except (BusTimeoutError, MalformedReplyError):
             return None
@@ -764,10 +779,15 @@ class Robot:
         t_left = result.started_s + self._write_cost_s
         t_right = t_left + self._read_cost_s
         self._topics["wheel_encoder"].note_lateness(result.started_s - result.due_s)
-        samples = []
-        for wheel, reply, t in zip(self._wheels, replies[1:3], (t_left, t_right), strict=True):
-            samples.append(self._wheel_update(wheel, reply, t))
-        left, right = samples
+        # Both wheels or neither: an encoder that moved on alone would hand odometry an
+        # increment the other wheel's never matches (the motion of a tick with one
+        # failed read arrives whole with the next good pair).
+        raw_left = self._wheel_check(self._wheels[0], replies[1], t_left)
+        raw_right = self._wheel_check(self._wheels[1], replies[2], t_right)
+        left = right = None
+        if raw_left is not None and raw_right is not None:
+            left = self._wheel_accept(self._wheels[0], raw_left, t_left)
+            right = self._wheel_accept(self._wheels[1], raw_right, t_right)
         if left is None or right is None:
             self._topics["wheel_encoder"].missed += 1
             self._stale_ticks += 1
@@ -826,7 +846,8 @@ class Robot:
         if debug.enabled and lw.last_step is not None and rw.last_step is not None:
             debug.publish(PidDebugSample(t_left, lw.last_step, rw.last_step), t_left)
 
-    def _wheel_update(self, wheel: _Wheel, reply: ReplyPacket | None, t: float) -> Any:
+    def _wheel_check(self, wheel: _Wheel, reply: ReplyPacket | None, t: float) -> int | None:
+        """The count in ``reply`` if it is one to take, else ``None`` (counted)."""
         if reply is None:
             return None
         try:
@@ -851,6 +872,10 @@ class Robot:
                 return None
         if wheel.last_t is not None and t <= wheel.last_t:
             return None
+        return raw
+
+    @staticmethod
+    def _wheel_accept(wheel: _Wheel, raw: int, t: float) -> WheelSample | None:
         wheel.rejected_in_row = 0
         wheel.last_raw, wheel.last_t = raw, t
         return wheel.encoder.update(raw, t)
@@ -1320,20 +1345,30 @@ class Robot:
         self._commanded(changed)
 
     def _write_early(self) -> None:
-        """Send a changed command now when the next control slot is over a quarter period
-        away, so a command reaches the wheels within a quarter period (plus the slot on
-        the wire), not a whole one. At most one such write between two control slots."""
+        """Get a changed command to the wheels well within one control period.
+
+        A control slot still waiting for the line gets the new command in place of the
+        one computed when it fell due. Otherwise, when the next control slot is over a
+        quarter period away, the command goes now in a slot of its own (at most one
+        between two control slots), due before the next control slot.
+        """
         control = self._periodic.get("wheel_encoder")
-        if control is None or not control.running or self._early_pending:
+        if control is None or not control.running:
             return
         now = self._loop.time()
-        if control.next_due_s - now <= control.period_s / 4:
+        waiting = control.unstarted()
+        if waiting is not None:
+            with contextlib.suppress(OhmniError):
+                waiting.replace_unsent(0, wheel_command(*self._control_step(now)))
+                self._early_writes += 1
+                return
+        if self._early_pending or control.next_due_s - now <= control.period_s / 4:
             return
         try:
             slot = self._bus.submit(
                 [wheel_command(*self._control_step(now))],
                 priority=CONTROL_PRIORITY,
-                deadline=now + control.period_s / 2,
+                deadline=control.next_due_s,
             )
         except OhmniError:
             return

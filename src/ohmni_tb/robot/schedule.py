@@ -126,6 +126,14 @@ class Periodic:
             self.running = True
             self._arm()
 
+    def unstarted(self) -> Slot | None:
+        """The newest cycle's slot if it is still waiting for the line, else ``None``."""
+        newest: Slot | None = None
+        for slot in self._in_flight:
+            if slot.started_at is None and (newest is None or slot.seq > newest.seq):
+                newest = slot
+        return newest
+
     def withdraw_unstarted(self) -> None:
         """Withdraw the slots not yet on the wire (an emergency stop must not be followed
         by a wheel command computed before it)."""

@@ -30,6 +30,7 @@ from ohmni_tb.robot import (
     WheelEncoderSample,
     WormNeckSample,
 )
+from ohmni_tb.robot.core import DISCOVERY_RETRIES
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.transport import SimTransport
 
@@ -406,7 +407,7 @@ def test_a_worm_neck_and_no_external_servos() -> None:
                 assert not stats.streams[name].enabled, name
                 assert stats.streams[name].samples == 0, name
                 assert robot.latest(name) is None, name
-            assert requests_to(robot, 3) <= 2  # asked once at open (and retried)
+            assert requests_to(robot, 3) <= 1 + DISCOVERY_RETRIES  # asked at open only
             assert {row[0] for row in robot.schedule()} == {
                 "wheel_encoder",
                 "tbcore_status",
@@ -429,12 +430,12 @@ def test_a_silent_servo_is_not_polled_and_found_again_when_it_answers() -> None:
             with pytest.raises(StateError, match="11"):
                 robot.servo(11)
             at_open = requests_to(robot, 11)
-            assert 1 <= at_open <= 2  # the discovery (and its retry)
+            assert 1 <= at_open <= 1 + DISCOVERY_RETRIES  # the discovery (and its retries)
 
             await asyncio.sleep(4.0)  # before the first re-probe: nothing at all
             assert requests_to(robot, 11) == at_open
             await asyncio.sleep(10.0)  # two re-probes; a 30 Hz poll would be 420
-            assert requests_to(robot, 11) <= at_open + 2 * 2
+            assert requests_to(robot, 11) <= at_open + 2 * (1 + DISCOVERY_RETRIES)
             ext1 = robot.stats().streams["servo_ext1"]
             assert not ext1.enabled
             assert ext1.samples == 0
