@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import pytest
 
-from ohmni_tb.bus import Bus, BusStats, ReplyPacket
+from ohmni_tb.bus import Bus, BusStats, ReplyPacket, Slot
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
@@ -809,13 +809,39 @@ def test_a_submitted_slot_past_its_deadline_fails_its_future() -> None:
         TimedDevice(end)
         async with Bus(host) as bus:
             loop = asyncio.get_running_loop()
-            bus.submit([read_count(0)])
+            first = bus.submit([read_count(0)])
             late = bus.submit([read_count(1)], deadline=loop.time() + 0.0001)
             with contextlib.suppress(DeadlineMissedError):
                 await late.future
             exc = late.future.exception()
+            await first.future
         await end.aclose()
         return exc
 
     exc = virtual(main)
     assert isinstance(exc, DeadlineMissedError)
+
+
+def test_on_done_is_called_once_as_the_slot_completes_and_cancel_withdraws() -> None:
+    async def main() -> tuple[list[tuple[bool, int]], list[Packet], int]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            seen: list[tuple[bool, int]] = []
+
+            def done(slot: Slot) -> None:
+                # Called from inside the bus: the future is already done.
+                seen.append((slot.future.done(), value(slot.future.result()[0])))
+
+            bus.submit([read_count(0)], on_done=done)
+            waiting = bus.submit([read_request(3, 48, 2)], on_done=done)
+            bus.cancel(waiting)
+            after = await bus.transact([read_count(1)])
+            await asyncio.sleep(0.05)
+        await end.aclose()
+        return seen, device.sent(), value(after[0])
+
+    seen, sent, answer = virtual(main)
+    assert seen == [(True, 1)]  # once, for the slot that ran; never for the withdrawn one
+    assert [p.sid for p in sent] == [0, 1]
+    assert answer == 2

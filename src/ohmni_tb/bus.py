@@ -180,6 +180,7 @@ class Slot:
         "exchanges",
         "expect",
         "future",
+        "on_done",
         "packets",
         "priority",
         "refused",
@@ -222,6 +223,7 @@ class Slot:
         self.remaining = len(packets)
         self.started = False
         self.started_at: float | None = None
+        self.on_done: Callable[[Slot], None] | None = None
         self.cancelled = False
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
         self.active: set[Slot] | None = None
@@ -252,12 +254,24 @@ class Slot:
             self._leave()
             if not self.future.done():
                 self.future.set_result(self.results)
+                self._notify()
 
     def fail(self, exc: BaseException) -> None:
         self._leave()
         if not self.future.done():
             self.future.set_exception(exc)
+            self._notify()
         self.remaining = 0
+
+    def _notify(self) -> None:
+        on_done = self.on_done
+        if on_done is None:
+            return
+        self.on_done = None
+        try:
+            on_done(self)
+        except Exception:
+            _log.exception("a slot's on_done callback failed")
 
     def _leave(self) -> None:
         if self.active is not None:
@@ -697,13 +711,17 @@ class Bus:
         deadline: float | None = None,
         retries: int | None = None,
         timeout_s: float | None = None,
+        on_done: Callable[[Slot], None] | None = None,
     ) -> Slot:
         """Queue ``packets`` as one atomic slot and return at once: :meth:`transact`
         without a task.
 
         For schedulers that start many slots a second from timer callbacks: attach a
-        done-callback to ``slot.future`` instead of awaiting a coroutine per slot.
-        Cancelling the future withdraws the slot (what has gone out stays out).
+        done-callback to ``slot.future`` instead of awaiting a coroutine per slot, or pass
+        ``on_done``, called with the slot the moment it completes (its future done), from
+        inside the bus — no pass of the event loop in between, so it must not block.
+        Cancelling the future, or :meth:`cancel`, withdraws the slot (what has gone out
+        stays out).
 
         Raises:
             The same as :meth:`transact`, except that :class:`DeadlineMissedError` and a
@@ -717,8 +735,20 @@ class Bus:
             retries=retries,
             timeout_s=timeout_s,
         )
-        slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
+        if on_done is None:
+            slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
+        else:
+            slot.on_done = on_done
         return slot
+
+    def cancel(self, slot: Slot) -> None:
+        """Withdraw a slot from :meth:`submit` (what has gone out stays out)."""
+        if slot.future.done():
+            return
+        slot.on_done = None
+        slot.future.cancel()
+        if not slot.cancelled:
+            self._cancel(slot)
 
     def _withdraw_if_cancelled(
         self, slot: Slot

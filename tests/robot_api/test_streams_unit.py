@@ -223,18 +223,35 @@ class FakeBus:
         self.submitted: list[tuple[float, float | None, int]] = []  # (now, deadline, prio)
 
     def submit(
-        self, packets: Sequence[Packet], *, priority: int = 0, deadline: float | None = None
+        self,
+        packets: Sequence[Packet],
+        *,
+        priority: int = 0,
+        deadline: float | None = None,
+        on_done: Callable[[FakeSlot], None] | None = None,
     ) -> FakeSlot:
         now = self.loop.time()
         self.submitted.append((now, deadline, priority))
         future: asyncio.Future[list[ReplyPacket | None]] = self.loop.create_future()
-        if self.fail is not None:
-            self.loop.call_later(self.busy_s, future.set_exception, self.fail)
-        else:
-            replies: list[ReplyPacket | None] = [None] * len(packets)
-            self.loop.call_later(self.busy_s, future.set_result, replies)
+        slot = FakeSlot(future, now)
+
+        def complete() -> None:
+            # As the bus does: the future is done, then on_done runs at once.
+            if future.done():
+                return
+            if self.fail is not None:
+                future.set_exception(self.fail)
+            else:
+                future.set_result([None] * len(packets))
+            if on_done is not None:
+                on_done(slot)
+
+        self.loop.call_later(self.busy_s, complete)
         self.loop.advance(self.stall_s(len(self.submitted)))
-        return FakeSlot(future, now)
+        return slot
+
+    def cancel(self, slot: FakeSlot) -> None:
+        slot.future.cancel()
 
 
 class Recorder:

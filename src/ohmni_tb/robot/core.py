@@ -1407,7 +1407,7 @@ class Robot:
             control.withdraw_unstarted()
         early = self._early_slot
         if early is not None and early.started_at is None:
-            early.future.cancel()
+            self._bus.cancel(early)
         self._publish_state("emergency stop latched")
         if self._bus.connected:
             await self._bus.send_now(wheel_command(0, 0))

@@ -139,13 +139,13 @@ class Periodic:
         by a wheel command computed before it)."""
         for slot in list(self._in_flight):
             if slot.started_at is None:
-                slot.future.cancel()
+                self.bus.cancel(slot)
                 self._in_flight.discard(slot)
 
     def cancel_in_flight(self) -> None:
         """Withdraw the slots still waiting (those on the wire finish)."""
         for slot in list(self._in_flight):
-            slot.future.cancel()
+            self.bus.cancel(slot)
         self._in_flight.clear()
 
     @property
@@ -181,7 +181,12 @@ class Periodic:
             packets = self._build(due)
             if packets is None:
                 return
-            slot = self.bus.submit(packets, priority=self.priority, deadline=due + self.slack_s)
+            slot = self.bus.submit(
+                packets,
+                priority=self.priority,
+                deadline=due + self.slack_s,
+                on_done=lambda done: self._done(done, due),
+            )
         except (TransportError, StateError) as exc:
             # The link is down or the bus closed: the Robot's link watcher takes over.
             self._fail(due, exc)
@@ -193,13 +198,13 @@ class Periodic:
         finally:
             if self.running:
                 self._arm()
-        self._in_flight.add(slot)
-        slot.future.add_done_callback(lambda future: self._done(slot, due, future))
+        if not slot.future.done():
+            self._in_flight.add(slot)
 
-    def _done(
-        self, slot: Slot, due: float, future: asyncio.Future[list[ReplyPacket | None]]
-    ) -> None:
+    def _done(self, slot: Slot, due: float) -> None:
+        # Called from inside the bus as the slot completes: no loop pass in between.
         self._in_flight.discard(slot)
+        future = slot.future
         if future.cancelled():
             return
         exc = future.exception()
