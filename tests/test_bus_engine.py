@@ -845,3 +845,25 @@ def test_on_done_is_called_once_as_the_slot_completes_and_cancel_withdraws() -> 
     assert seen == [(True, 1)]  # once, for the slot that ran; never for the withdrawn one
     assert [p.sid for p in sent] == [0, 1]
     assert answer == 2
+
+
+def test_on_done_hears_of_a_slot_dropped_while_it_is_submitted() -> None:
+    async def main() -> list[BaseException | None]:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            heard: list[BaseException | None] = []
+            first = bus.submit([read_count(0)])  # holds the line for ~3 ms
+            # Hopeless from the start: dropped inside submit(), before it returns.
+            bus.submit(
+                [read_count(1)],
+                deadline=loop.time() + 0.0001,
+                on_done=lambda slot: heard.append(slot.future.exception()),
+            )
+            await first.future
+        await end.aclose()
+        return heard
+
+    [heard] = virtual(main)
+    assert isinstance(heard, DeadlineMissedError)

@@ -734,11 +734,10 @@ class Bus:
             deadline=deadline,
             retries=retries,
             timeout_s=timeout_s,
+            on_done=on_done,
         )
         if on_done is None:
             slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
-        else:
-            slot.on_done = on_done
         return slot
 
     def cancel(self, slot: Slot) -> None:
@@ -917,6 +916,7 @@ class Bus:
         retries: int | None,
         timeout_s: float | None,
         fail_fast: bool = False,
+        on_done: Callable[[Slot], None] | None = None,
     ) -> Slot:
         conn = self._conn
         packets = list(packets)
@@ -980,6 +980,8 @@ class Bus:
                     silent_s=conn.silent_for(packets[0].sid, now),
                     retry_in_s=retry_in,
                 )
+        # Before the pump below, which may already settle it (a deadline it cannot meet).
+        slot.on_done = on_done
         slot.active = self._active
         self._active.add(slot)
         self._waiting.append(_Part(slot, list(range(len(packets))), seq=slot.seq, submitted_at=now))
