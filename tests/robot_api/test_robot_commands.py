@@ -427,3 +427,22 @@ def test_commands_keep_the_control_slot_on_time() -> None:
             assert sum(robot.sim.wheel_speeds_mps()) / 2 == pytest.approx(0.3, abs=0.03)
 
     virtual(main)
+
+
+def test_a_zero_offset_moves_where_zero_radians_is() -> None:
+    async def main() -> tuple[int, float]:
+        async with Robot.open("sim://") as robot:
+            neck = robot.neck
+            assert isinstance(neck, ServoHandle)
+            with pytest.raises(OutOfRangeError, match="512"):
+                neck.zero_offset_raw = 512
+            neck.zero_offset_raw = 40  # 0 rad is now raw 552
+            await neck.move(rad=0.0, playtime_s=0.3)
+            await asyncio.sleep(0.6)
+            sample = robot.latest("servo_neck")
+            assert sample is not None
+            return sample.position_raw, sample.angle_rad
+
+    position, angle = virtual(main)
+    assert position == 552
+    assert angle == pytest.approx(0.0, abs=0.01)

@@ -16,6 +16,7 @@ from ohmni_tb.bus import Bus
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.herkulex.servo import Servo
+from ohmni_tb.herkulex.units import check_zero_offset_raw
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
 
@@ -127,8 +128,19 @@ class ServoHandle:
 
     @property
     def zero_offset_raw(self) -> int:
-        """Raw counts added to 512 to define 0 rad."""
+        """Raw counts added to 512 to define 0 rad (tb_control's ``set_servo_zero_offset``).
+
+        Setting it changes how angles are read and commanded from then on; nothing is
+        sent to the servo.
+
+        Raises:
+            OutOfRangeError: Outside −512..511 (on setting).
+        """
         return self.servo.zero_offset_raw
+
+    @zero_offset_raw.setter
+    def zero_offset_raw(self, value: int) -> None:
+        self.servo.zero_offset_raw = check_zero_offset_raw(value)
 
     def _touched(self) -> None:
         if self._on_command is not None:
