@@ -446,3 +446,14 @@ def test_a_zero_offset_moves_where_zero_radians_is() -> None:
     position, angle = virtual(main)
     assert position == 552
     assert angle == pytest.approx(0.0, abs=0.01)
+
+
+def test_a_number_too_large_for_a_float_is_refused_by_name() -> None:
+    async def main() -> None:
+        async with Robot.open("sim://") as robot:
+            with pytest.raises(OutOfRangeError, match=r"linear_mps=1000.*is out of range"):
+                robot.drive(10**400)
+            with pytest.raises(OutOfRangeError, match=r"y_m=1000"):
+                robot.reset_odometry(0.0, 10**400)
+
+    virtual(main)

@@ -30,6 +30,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, overload
 
+from ohmni_tb._checks import finite, show
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
@@ -80,12 +81,11 @@ __all__ = ["BusFigures", "Robot", "RobotStats"]
 
 _log = logging.getLogger(__name__)
 
-#: Bus priorities: the control slot, then commands (7), then every feedback read at one
-#: priority, so they go in the order they fall due: a near-full line slows them all a
-#: little instead of starving the least urgent.
+#: Bus priorities: the control slot first; commands (devices.COMMAND_PRIORITY) and every
+#: feedback read share one priority, so they go in the order they fall due: a near-full
+#: line slows them all a little instead of starving the least urgent.
 CONTROL_PRIORITY = 10
 FEEDBACK_PRIORITY = 5
-CORE_PRIORITY = FEEDBACK_PRIORITY
 PROBE_PRIORITY = 0
 #: The control slot must start this share of a period after its due time, or it is
 #: skipped (a late wheel command is worse than the next one on time).
@@ -250,7 +250,11 @@ class Robot:
         self._servos: dict[int, _ServoWatch] = {}
         self._write_cost_s = bus.cost_s(wheel_command(0, 0))
         self._read_cost_s = bus.cost_s(read_count(DeviceId.LEFT_DRIVE))
-        self._budget_share = 0.0
+        self._count_reads = (read_count(DeviceId.LEFT_DRIVE), read_count(DeviceId.RIGHT_DRIVE))
+        # Each polled stream's packets of one cycle (the control slot's with a stop).
+        self._packets: dict[str, Sequence[Packet]] = {
+            "wheel_encoder": [wheel_command(0, 0), *self._count_reads]
+        }
         #: Why the stop on the way out was not confirmed, if it was not (also raised
         #: from ``async with`` when the block itself ended without an error).
         self.exit_error: StopNotConfirmedError | None = None
@@ -550,25 +554,62 @@ class Robot:
                 name not in self._periodic
             ):
                 topic.enabled = False
-        self._budget_share = self._schedule_share()
 
     def _add_servo_stream(self, sid: int, stream: str, index: int) -> None:
         hz = self.config.servo_hz
+        self._add_feedback_stream(
+            stream,
+            hz,
+            # Three servos spread over their period, between control slots.
+            phase_s=SERVO_PHASE_S + index / hz / 3 if hz > 0 else 0.0,
+            packets=[read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)],
+            handle=lambda result: self._servo_result(sid, result),
+        )
+
+    def _add_worm_stream(self) -> None:
+        self._add_feedback_stream(
+            "new_neck",
+            self.config.new_neck_hz,
+            phase_s=SERVO_PHASE_S,
+            packets=[read_feedback()],
+            handle=self._worm_result,
+        )
+
+    def _add_core_stream(self) -> None:
+        self._add_feedback_stream(
+            "tbcore_status",
+            self.config.core_hz,
+            phase_s=CORE_PHASE_S,
+            packets=[read_status()],
+            handle=self._core_result,
+        )
+
+    def _add_feedback_stream(
+        self,
+        stream: str,
+        hz: float,
+        *,
+        phase_s: float,
+        packets: list[Packet],
+        handle: Callable[[CycleResult], None],
+    ) -> None:
+        """Poll ``packets`` at ``hz`` as ``stream`` (0 Hz: not at all); start it at once
+        if the schedule runs."""
         if hz <= 0:
             return
-        self._topics[stream].requested_hz = hz
-        self._topics[stream].enabled = True
-        packet = read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)
+        topic = self._topics[stream]
+        topic.requested_hz = hz
+        topic.enabled = True
+        self._packets[stream] = packets
         periodic = Periodic(
             self._bus,
             stream,
             hz,
-            # Three servos spread over their period, between control slots.
-            phase_s=SERVO_PHASE_S + index / hz / 3,
+            phase_s=phase_s,
             priority=FEEDBACK_PRIORITY,
             slack_s=1.0 / hz,
-            build=lambda due: [packet],
-            handle=lambda result: self._servo_result(sid, result),
+            build=lambda due: packets,  # the bus copies the list
+            handle=handle,
             fail=self._feedback_failed(stream),
             skipped=self._counter(stream, "skipped"),
         )
@@ -576,107 +617,27 @@ class Robot:
         control = self._periodic.get("wheel_encoder")
         if control is not None and control.running:
             periodic.start(control.next_due_s)
-        self._budget_share = self._schedule_share()
-
-    def _add_worm_stream(self) -> None:
-        hz = self.config.new_neck_hz
-        if hz <= 0:
-            return
-        topic = self._topics["new_neck"]
-        topic.requested_hz = hz
-        topic.enabled = True
-        periodic = Periodic(
-            self._bus,
-            "new_neck",
-            hz,
-            phase_s=SERVO_PHASE_S,
-            priority=FEEDBACK_PRIORITY,
-            slack_s=1.0 / hz,
-            build=lambda due: [read_feedback()],
-            handle=self._worm_result,
-            fail=self._feedback_failed("new_neck"),
-            skipped=self._counter("new_neck", "skipped"),
-        )
-        self._periodic["new_neck"] = periodic
-        control = self._periodic.get("wheel_encoder")
-        if control is not None and control.running:
-            periodic.start(control.next_due_s)
-        self._budget_share = self._schedule_share()
-
-    def _add_core_stream(self) -> None:
-        hz = self.config.core_hz
-        if hz <= 0:
-            return
-        topic = self._topics["tbcore_status"]
-        topic.requested_hz = hz
-        topic.enabled = True
-        periodic = Periodic(
-            self._bus,
-            "tbcore_status",
-            hz,
-            phase_s=CORE_PHASE_S,
-            priority=CORE_PRIORITY,
-            slack_s=1.0 / hz,
-            build=lambda due: [read_status()],
-            handle=self._core_result,
-            fail=self._feedback_failed("tbcore_status"),
-            skipped=self._counter("tbcore_status", "skipped"),
-        )
-        self._periodic["tbcore_status"] = periodic
-        control = self._periodic.get("wheel_encoder")
-        if control is not None and control.running:
-            periodic.start(control.next_due_s)
-        self._budget_share = self._schedule_share()
 
     def _schedule_share(self) -> float:
         """The enabled streams' share of the line by the cost model."""
-        share = 0.0
-        bus = self._bus
-        for name, periodic in self._periodic.items():
-            if name != "wheel_encoder" and not self._topics[name].enabled:
-                continue  # the control slot runs whether its samples are wanted or not
-            hz = 1.0 / periodic.period_s
-            if name == "wheel_encoder":
-                packets: Sequence[Packet] = self._control_template()
-            elif name == "tbcore_status":
-                packets = [read_status()]
-            elif name == "new_neck":
-                packets = [read_feedback()]
-            else:
-                sid = next(s for s, w in self._servos.items() if w.stream == name)
-                packets = [read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)]
-            share += hz * sum(bus.cost_s(p) for p in packets)
-        return share
-
-    @staticmethod
-    def _control_template() -> list[Packet]:
-        return [
-            wheel_command(0, 0),
-            read_count(DeviceId.LEFT_DRIVE),
-            read_count(DeviceId.RIGHT_DRIVE),
-        ]
+        return sum(hz * line_time_s for _, hz, _, line_time_s in self.schedule())
 
     def schedule(self) -> list[tuple[str, float, float, float]]:
-        """The schedule: per stream its rate (Hz), phase (s) and line time per cycle (s)."""
+        """The schedule: per stream its rate (Hz), phase (s) and line time per cycle (s).
+
+        The control slot is always in it (it runs whether its samples are wanted or not);
+        a feedback stream only while it is enabled.
+        """
         rows = []
         for name, periodic in self._periodic.items():
             if name != "wheel_encoder" and not self._topics[name].enabled:
                 continue
-            if name == "wheel_encoder":
-                packets: Sequence[Packet] = self._control_template()
-            elif name == "tbcore_status":
-                packets = [read_status()]
-            elif name == "new_neck":
-                packets = [read_feedback()]
-            else:
-                sid = next(s for s, w in self._servos.items() if w.stream == name)
-                packets = [read_request(sid, SERVO_BLOCK_ADDR, SERVO_BLOCK_LEN)]
             rows.append(
                 (
                     name,
                     1.0 / periodic.period_s,
                     periodic.phase_s,
-                    sum(self._bus.cost_s(p) for p in packets),
+                    sum(self._bus.cost_s(p) for p in self._packets[name]),
                 )
             )
         return rows
@@ -702,13 +663,8 @@ class Robot:
     # -- control ---------------------------------------------------------------------------
 
     def _control_packets(self, due: float) -> list[Packet]:
-        now = self._loop.time()
-        left, right = self._control_step(now)
-        return [
-            wheel_command(left, right),
-            read_count(DeviceId.LEFT_DRIVE),
-            read_count(DeviceId.RIGHT_DRIVE),
-        ]
+        left, right = self._control_step(self._loop.time())
+        return [wheel_command(left, right), *self._count_reads]
 
     def _control_step(self, now: float) -> tuple[int, int]:
         """The wheel PWM to send now: watchdog, estop, limits, ramps and the PIDs."""
@@ -1210,7 +1166,6 @@ class Robot:
         periodic = self._periodic.get(name)
         if name in ("wheel_encoder", "wheel_odom", "robot_state", "pid_debug"):
             topic.enabled = enabled  # the control slot and the state keep running
-            self._budget_share = self._schedule_share()
             return
         if periodic is None:
             if enabled:
@@ -1222,7 +1177,6 @@ class Robot:
             periodic.start(self._periodic["wheel_encoder"].next_due_s)
         elif not enabled:
             periodic.stop()
-        self._budget_share = self._schedule_share()
 
     def set_rate(self, name: str, hz: float) -> None:
         """Change a polled stream's rate (the control tick's too, ``wheel_encoder``).
@@ -1232,9 +1186,7 @@ class Robot:
             OutOfRangeError: ``hz`` is not 0.1..100.
         """
         self._topic(name)
-        if isinstance(hz, bool) or not isinstance(hz, int | float) or not math.isfinite(hz):
-            raise InvalidArgumentError(f"hz must be a number, not {hz!r}")
-        if not 0.1 <= hz <= 100.0:
+        if not 0.1 <= _number("hz", hz) <= 100.0:
             raise OutOfRangeError(f"{name} rate", hz, 0.1, 100.0, "Hz")
         periodic = self._periodic.get(name)
         if periodic is None:
@@ -1247,7 +1199,6 @@ class Robot:
         else:
             periodic.slack_s = 1.0 / hz
             self._topics[name].requested_hz = hz
-        self._budget_share = self._schedule_share()
 
     def stats(self) -> RobotStats:
         """Per-stream rates, jitter, missed/skipped cycles and the bus's figures."""
@@ -1257,7 +1208,7 @@ class Robot:
             streams={name: topic.stats(now) for name, topic in self._topics.items()},
             bus=BusFigures(
                 wire_utilisation=bus.wire_utilisation,
-                budget_share=self._budget_share,
+                budget_share=self._schedule_share(),
                 transactions_per_s=bus.transactions_per_s,
                 timeouts=sum(d.timeouts for d in bus.devices.values()),
                 rejected_samples=self._rejected,
@@ -1302,15 +1253,9 @@ class Robot:
             InvalidArgumentError: A value is not a finite number.
             StateError: An emergency stop is latched, or the robot is closed.
         """
-        for name, value in (("linear_mps", linear_mps), ("angular_radps", angular_radps)):
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
-            if not math.isfinite(value):
-                raise InvalidArgumentError(f"{name}={value!r} is not finite")
+        twist = Twist(_number("linear_mps", linear_mps), _number("angular_radps", angular_radps))
         self._check_can_drive()
-        limited = limit_twist(
-            Twist(float(linear_mps), float(angular_radps)), self._limits, self._drive
-        )
+        limited = limit_twist(twist, self._limits, self._drive)
         if limited.limited:
             self._clamped += 1
             _log.debug(
@@ -1335,16 +1280,10 @@ class Robot:
             InvalidArgumentError: A value is not a finite number.
             StateError: An emergency stop is latched, or the robot is closed.
         """
-        for name, value in (("left_mps", left_mps), ("right_mps", right_mps)):
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
-            if not math.isfinite(value):
-                raise InvalidArgumentError(f"{name}={value!r} is not finite")
+        asked = WheelSpeeds(_number("left_mps", left_mps), _number("right_mps", right_mps))
         self._check_can_drive()
-        wheels = saturate_wheel_speeds(
-            WheelSpeeds(float(left_mps), float(right_mps)), self._limits.max_wheel_mps
-        )
-        if wheels != WheelSpeeds(float(left_mps), float(right_mps)):
+        wheels = saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
+        if wheels != asked:
             self._clamped += 1
         changed = self._mode != "wheels" or self._target_wheels != wheels
         self._mode = "wheels"
@@ -1476,12 +1415,7 @@ class Robot:
         Raises:
             InvalidArgumentError: A value is not finite.
         """
-        for name, value in (("x_m", x_m), ("y_m", y_m), ("yaw_rad", yaw_rad)):
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
-            if not math.isfinite(value):
-                raise InvalidArgumentError(f"{name}={value!r} is not finite")
-        self._odometry.reset(float(x_m), float(y_m), float(yaw_rad))
+        self._odometry.reset(_number("x_m", x_m), _number("y_m", y_m), _number("yaw_rad", yaw_rad))
 
     # -- devices (public) --------------------------------------------------------------------
 
@@ -1563,6 +1497,14 @@ class Robot:
             }
             for port in list_ports.comports()
         ]
+
+
+def _number(name: str, value: float) -> float:
+    """``value`` as a float; a wrong type is named with its value, the rest as
+    :func:`~ohmni_tb._checks.finite` does (NaN, infinity, an int too large for a float)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"{name} must be a number, not {show(value)}")
+    return finite(name, value)
 
 
 def sample_ok(sample: ServoSample | None) -> bool:
