@@ -43,37 +43,23 @@ from ohmni_tb.protocol.drive import decode_wheel_command
 from ohmni_tb.robot import Robot
 from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import Transport, open_transport
-from ohmni_tb.transport.base import LostHandler, Receiver
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _pty import simulator_on_pty
-from schedule import PHASES_S, Stream, machine, new_bodies, periodic
+from schedule import PHASES_S, PassThrough, Stream, machine, new_bodies, periodic
 
 POLLED = ("wheel_encoder", "servo_neck", "servo_ext1", "servo_ext2", "tbcore_status")
 WHEEL_PERIOD_S = 0.020
 
 
-class WheelTap(Transport):
+class WheelTap(PassThrough):
     """Passes everything through; notes the time and PWM of every wheel packet written."""
 
     def __init__(self, inner: Transport) -> None:
-        self.inner = inner
-        self.baudrate = inner.baudrate
+        super().__init__(inner)
         self.robot = getattr(inner, "robot", None)
-        self.line = getattr(inner, "line", None)
         self._decoder = PacketDecoder()
         self.writes: list[tuple[float, tuple[int, int]]] = []
-
-    @property
-    def closed(self) -> bool:
-        return self.inner.closed
-
-    @property
-    def backlog(self) -> int:
-        return self.inner.backlog
-
-    async def drain(self) -> None:
-        await self.inner.drain()
 
     def write_nowait(self, data: bytes) -> None:
         self.inner.write_nowait(data)
@@ -82,15 +68,6 @@ class WheelTap(Transport):
                 pwm = decode_wheel_command(packet)
                 # The right board counts mirrored: un-mirror to the commanded value.
                 self.writes.append((asyncio.get_running_loop().time(), (pwm[0], -pwm[1])))
-
-    async def read(self) -> bytes:
-        return await self.inner.read()
-
-    def start_receiving(self, on_data: Receiver, on_lost: LostHandler) -> None:
-        self.inner.start_receiving(on_data, on_lost)
-
-    async def aclose(self) -> None:
-        await self.inner.aclose()
 
 
 @dataclass

@@ -86,14 +86,12 @@ def model_share() -> float:
     return wheel + servos + core
 
 
-class Tap(Transport):
-    """Passes everything through; notes when each left-count request is written."""
+class PassThrough(Transport):
+    """A transport that hands everything to ``inner``: the base of the benchmarks' taps."""
 
-    def __init__(self, inner: Transport, frame: bytes) -> None:
+    def __init__(self, inner: Transport) -> None:
         self.inner = inner
         self.baudrate = inner.baudrate
-        self.frame = frame
-        self.starts: list[float] = []
 
     @property
     def closed(self) -> bool:
@@ -107,8 +105,6 @@ class Tap(Transport):
         await self.inner.drain()
 
     def write_nowait(self, data: bytes) -> None:
-        if data == self.frame:
-            self.starts.append(asyncio.get_running_loop().time())
         self.inner.write_nowait(data)
 
     async def read(self) -> bytes:
@@ -119,6 +115,20 @@ class Tap(Transport):
 
     async def aclose(self) -> None:
         await self.inner.aclose()
+
+
+class Tap(PassThrough):
+    """Passes everything through; notes when each left-count request is written."""
+
+    def __init__(self, inner: Transport, frame: bytes) -> None:
+        super().__init__(inner)
+        self.frame = frame
+        self.starts: list[float] = []
+
+    def write_nowait(self, data: bytes) -> None:
+        if data == self.frame:
+            self.starts.append(asyncio.get_running_loop().time())
+        self.inner.write_nowait(data)
 
 
 @dataclass
