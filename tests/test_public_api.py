@@ -65,7 +65,8 @@ PUBLIC = {
     "ohmni_tb.herkulex.servo": ["Requester", "Servo", "ServoStatus", "move_group"],
     "ohmni_tb.safety": [
         "DEFAULT_REPEAT_S", "DEFAULT_SETTLE_S", "DEFAULT_STOP_TIMEOUT_S",
-        "DEFAULT_TOLERANCE_TICKS", "SETTLE_READS", "StopReport", "stop_wheels",
+        "DEFAULT_TOLERANCE_TICKS", "SETTLE_READS", "SettleWindow", "StopReport",
+        "stop_wheels",
     ],
     "ohmni_tb.monitor": ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"],
     "ohmni_tb.sim.line": [

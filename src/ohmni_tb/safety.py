@@ -62,6 +62,7 @@ __all__ = [
     "DEFAULT_STOP_TIMEOUT_S",
     "DEFAULT_TOLERANCE_TICKS",
     "SETTLE_READS",
+    "SettleWindow",
     "StopReport",
     "stop_wheels",
 ]
@@ -247,8 +248,13 @@ async def _repeat(
         progress.stops_sent += 1
 
 
-class _Window:
-    """One board's readings: the reference a settle window starts from, and what came since."""
+class SettleWindow:
+    """One wheel's count readings against the rule for "stopped" (the module docstring).
+
+    :func:`stop_wheels` keeps one per wheel; anything else that watches counts come in
+    (the demo reading the Robot's ``wheel_encoder`` stream) uses the same rule through it:
+    :meth:`add` each reading, and the wheel stands still once :meth:`settled`.
+    """
 
     __slots__ = (
         "agreeing",
@@ -274,6 +280,8 @@ class _Window:
         self.change_gap_s = 0.0  # the time between the readings that showed it
 
     def add(self, count: int, at: float, tolerance_ticks: int) -> None:
+        """One raw int32 count read at ``at``; a change beyond ``tolerance_ticks`` from
+        the reference starts the window again from it."""
         self.answered += 1
         if self.count is not None and self.agreeing:
             moved = unwrap_delta(self.reference, count, COUNT_BITS)
@@ -310,7 +318,7 @@ async def _watch(
     other's; a wheel that moves restarts its own window.
     """
     loop = asyncio.get_running_loop()
-    windows = (_Window(), _Window())
+    windows = (SettleWindow(), SettleWindow())
     while True:
         if progress.error is not None:
             return _SIDES[0], f"the link failed ({progress.error})"
@@ -346,7 +354,9 @@ async def _watch(
         await asyncio.sleep(max(0.0, min(round_at + _READ_PERIOD_S, deadline) - now))
 
 
-def _verdict(bus: Bus, windows: tuple[_Window, _Window], settle_s: float) -> tuple[int, str]:
+def _verdict(
+    bus: Bus, windows: tuple[SettleWindow, SettleWindow], settle_s: float
+) -> tuple[int, str]:
     """Why the counts did not confirm the stop, naming the board it concerns first."""
     devices = bus.stats.devices
     unsettled: list[int] = []

@@ -248,9 +248,8 @@ async def _drive(robot: Robot) -> None:
 async def _confirm_stop(robot: Robot) -> StopReport:
     """Wait until the ``wheel_encoder`` stream shows both wheels standing still.
 
-    Standing still: :data:`SETTLE_READS` samples in a row, over at least ``settle_s``,
-    whose counts stay within :data:`DEFAULT_TOLERANCE_TICKS` of the first — the rule of
-    :func:`ohmni_tb.safety.stop_wheels`, read from the Robot's own 50 Hz counts (every
+    Standing still is the rule of :func:`ohmni_tb.safety.stop_wheels`, applied by its
+    :class:`~ohmni_tb.safety.SettleWindow` to the Robot's own 50 Hz counts (every
     control tick carries the zero wheel command meanwhile).
 
     Raises:
@@ -260,15 +259,15 @@ async def _confirm_stop(robot: Robot) -> StopReport:
     from ohmni_tb.safety import (  # noqa: PLC0415
         DEFAULT_SETTLE_S,
         DEFAULT_TOLERANCE_TICKS,
-        SETTLE_READS,
+        SettleWindow,
         StopReport,
     )
 
     loop = asyncio.get_running_loop()
     started = loop.time()
     missed_before = robot.stats().streams["wheel_encoder"].missed
-    reference: tuple[float, int, int] | None = None
-    agreeing = reads = 0
+    windows = (SettleWindow(), SettleWindow())
+    reads = 0
     last: tuple[int, int] | None = None
 
     def report(*, confirmed: bool) -> StopReport:
@@ -282,16 +281,9 @@ async def _confirm_stop(robot: Robot) -> StopReport:
             async for sample in robot.subscribe("wheel_encoder"):
                 reads += 1
                 last = (sample.left_raw, sample.right_raw)
-                if (
-                    reference is None
-                    or abs(sample.left_ticks - reference[1]) > DEFAULT_TOLERANCE_TICKS
-                    or abs(sample.right_ticks - reference[2]) > DEFAULT_TOLERANCE_TICKS
-                ):
-                    reference = (sample.stamp_s, sample.left_ticks, sample.right_ticks)
-                    agreeing = 1
-                    continue
-                agreeing += 1
-                if agreeing >= SETTLE_READS and sample.stamp_s - reference[0] >= DEFAULT_SETTLE_S:
+                for window, count in zip(windows, last, strict=True):
+                    window.add(count, sample.stamp_s, DEFAULT_TOLERANCE_TICKS)
+                if all(window.settled(DEFAULT_SETTLE_S) for window in windows):
                     return report(confirmed=True)
     except TimeoutError:
         pass
