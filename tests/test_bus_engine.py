@@ -847,6 +847,37 @@ def test_on_done_is_called_once_as_the_slot_completes_and_cancel_withdraws() -> 
     assert answer == 2
 
 
+def test_a_dropped_slots_on_done_may_submit_and_cancel_while_the_bus_drops_it() -> None:
+    """A scheduler reacts to a missed deadline from inside the bus: it queues the next
+    cycle and withdraws another slot. Both changes hold; nothing is lost or revived."""
+
+    async def main() -> tuple[list[Packet], list[int], bool]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            queued: list[Slot] = []
+            first = bus.submit([read_count(0)])  # holds the line for ~3 ms
+            doomed = bus.submit([read_request(11, 48, 2)])
+
+            def missed(slot: Slot) -> None:
+                assert isinstance(slot.future.exception(), DeadlineMissedError)
+                bus.cancel(doomed)
+                queued.append(bus.submit([read_request(3, 48, 2)], priority=1))
+
+            bus.submit([read_count(1)], deadline=loop.time() + 0.001, on_done=missed)
+            await first.future
+            [reply] = await queued[0].future
+            await asyncio.sleep(0.05)
+        await end.aclose()
+        return device.sent(), [value(reply)], doomed.future.cancelled()
+
+    sent, values, withdrawn = virtual(main)
+    assert [p.sid for p in sent] == [0, 3]  # the late read never went, nor the withdrawn one
+    assert values == [2]
+    assert withdrawn
+
+
 def test_on_done_hears_of_a_slot_dropped_while_it_is_submitted() -> None:
     async def main() -> list[BaseException | None]:
         host, end = pair()

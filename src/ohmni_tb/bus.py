@@ -1151,68 +1151,86 @@ class Bus:
                 continue
             if self._closing:
                 break
-            self._drop_hopeless(now)
             if now + _EPS < conn.free_at:
                 # Choose only when the line is free: a slot that arrives meanwhile with a
                 # higher priority must still be able to go first. With nothing waiting
                 # there is nothing to wake for; a new slot pumps by itself.
-                if self._current is not None or self._waiting:
-                    wake = min(wake, conn.free_at, self._next_wake(now))
+                if self._waiting:
+                    wake = min(wake, conn.free_at, self._scan(now, choose=False)[1])
+                elif self._current is not None:
+                    wake = min(wake, conn.free_at)
                 break
-            part = self._current or self._pick(now)
+            part = self._current
             if part is None:
-                wake = min(wake, self._next_wake(now))
-                break
+                part, next_at = self._scan(now, choose=True)
+                if part is None:
+                    wake = min(wake, next_at)
+                    break
             self._send_next(part, now)
         deadline = conn.next_deadline()
         if deadline is not None:
             wake = min(wake, deadline)
         self._arm(wake)
 
-    def _drop_hopeless(self, now: float) -> None:
-        """Drop waiting parts that can no longer start before their deadlines."""
-        free_at = self._conn.free_at
+    def _scan(self, now: float, *, choose: bool) -> tuple[_Part | None, float]:
+        """One pass over the waiting parts.
+
+        Drops the parts that can no longer start before their deadlines; with ``choose``
+        (the line is free), starts and returns the best part that may go now (holds
+        respected; promoted after ``max_wait_s``, then priority, then first come); and
+        says when the timer must next look (a hold ends, a deadline passes, a part is
+        promoted) for when none may go.
+        """
+        conn = self._conn
+        free_at = conn.free_at
         if free_at == math.inf:
             # Request at a time (caution): the line frees when the reply in flight comes
             # or goes missing, which is not known yet; judge then.
             free_at = now
         start_at = max(now, free_at)
-        if not any(
-            part.slot.future.done()
-            or (part.slot.deadline is not None and start_at > part.slot.deadline + _EPS)
-            for part in self._waiting
-        ):
-            return
-        kept: list[_Part] = []
+        soon = now + _EPS
+        max_wait = self.max_wait_s
+        best: _Part | None = None
+        best_key: tuple[bool, int, int] | None = None
+        wake = math.inf
+        gone: list[_Part] = []
         for part in self._waiting:
             slot = part.slot
             if slot.future.done():
+                gone.append(part)
                 continue
-            if slot.deadline is not None and start_at > slot.deadline + _EPS:
-                self._miss_deadline(part, start_at)
-                continue
-            kept.append(part)
-        self._waiting = kept
-
-    def _pick(self, now: float) -> _Part | None:
-        """Start the best waiting part that may go now (holds respected), if any."""
-        conn = self._conn
-        best: _Part | None = None
-        best_key: tuple[int, int, int] | None = None
-        for part in self._waiting:
-            slot = part.slot
-            if any(
-                conn.blocked_until(slot.packets[i], now) > now + _EPS
-                for i in part.indices
-                if slot.expect[i]
-            ):
-                continue
-            promoted = now - part.submitted_at >= self.max_wait_s
-            key = (1 if promoted else 0, slot.priority, -part.seq)
-            if best_key is None or key > best_key:
-                best, best_key = part, key
-        if best is None or best_key is None:
-            return None
+            deadline = slot.deadline
+            if deadline is not None:
+                if start_at > deadline + _EPS:
+                    gone.append(part)
+                    self._miss_deadline(part, start_at)
+                    continue
+                wake = min(wake, deadline + 2 * _EPS)
+            blocked = -math.inf
+            expect, packets = slot.expect, slot.packets
+            for i in part.indices:
+                if expect[i]:
+                    until = conn.blocked_until(packets[i], now)
+                    blocked = max(blocked, until)
+            promote_at = part.submitted_at + max_wait
+            if blocked > soon:
+                if blocked < math.inf:
+                    # A hold ends then (an outstanding twin resolves by an event).
+                    wake = min(wake, blocked)
+            elif choose:
+                key = (promote_at <= now, slot.priority, -part.seq)
+                if best_key is None or key > best_key:
+                    best, best_key = part, key
+            if promote_at > now:
+                wake = min(wake, promote_at)
+        if gone:
+            # A settled slot's callback may have changed the list meanwhile: filter the
+            # list as it is now, and look again.
+            dropped = {id(part) for part in gone}
+            self._waiting = [part for part in self._waiting if id(part) not in dropped]
+            self._again = True
+        if best is None or best_key is None or best.slot.future.done():
+            return None, max(wake, now)
         self._waiting.remove(best)
         if best_key[0] and any(p.slot.priority > best.slot.priority for p in self._waiting):
             self._promoted += 1
@@ -1223,25 +1241,7 @@ class Bus:
             self._slots += 1
             self._waits.append(now - best.submitted_at)
         self._current = best
-        return best
-
-    def _next_wake(self, now: float) -> float:
-        """When a waiting part next may go or must be dropped (nothing may go now)."""
-        wake = math.inf
-        for part in self._waiting:
-            slot = part.slot
-            if slot.deadline is not None:
-                wake = min(wake, slot.deadline + 2 * _EPS)
-            for i in part.indices:
-                if slot.expect[i]:
-                    until = self._conn.blocked_until(slot.packets[i], now)
-                    if now < until < math.inf:
-                        # A hold ends then (an outstanding twin resolves by an event).
-                        wake = min(wake, until)
-            promote_at = part.submitted_at + self.max_wait_s
-            if promote_at > now:
-                wake = min(wake, promote_at)
-        return max(wake, now)
+        return best, now
 
     def _miss_deadline(self, part: _Part, start_at: float) -> None:
         slot = part.slot

@@ -80,7 +80,7 @@ from ohmni_tb.protocol.framing import (
     PacketDecoder,
     encode_packet,
 )
-from ohmni_tb.protocol.messages import AckPolicy, reply_expected, reply_matches
+from ohmni_tb.protocol.messages import AckPolicy, _reply_expected, reply_matches
 from ohmni_tb.protocol.timing import (
     BITS_PER_BYTE,
     DEFAULT_GUARD_S,
@@ -653,9 +653,10 @@ class BusConnection:
 
     def expects_reply(self, packet: Packet) -> bool:
         """Whether ``packet`` gets a reply under the ACK policy known for its device."""
-        if packet.sid == BROADCAST_ID:
+        sid = packet.sid
+        if sid == BROADCAST_ID:
             return False
-        return reply_expected(packet.cmd, packet.sid, self.ack_policy(packet.sid))
+        return _reply_expected(packet.cmd, sid, self._ack_policy.get(sid, AckPolicy.READS))
 
     # -- the line ---------------------------------------------------------------------
 

@@ -267,13 +267,17 @@ def reply_expected(cmd: int, sid: int, ack_policy: int = AckPolicy.READS) -> boo
     for name, value in (("cmd", cmd), ("sid", sid), ("ack_policy", ack_policy)):
         if isinstance(value, bool) or not isinstance(value, int):
             raise InvalidArgumentError(f"{name} must be an int, not {type(value).__name__}")
+    return _reply_expected(cmd, sid, ack_policy)
+
+
+def _reply_expected(cmd: int, sid: int, ack_policy: int) -> bool:
+    """:func:`reply_expected` without the argument checks, for callers whose arguments
+    come from a :class:`Packet` (the bus asks it for every request it sends)."""
     if cmd == Command.STAT:
         return True
     if sid == BROADCAST_ID:
         return False
-    if cmd in _READS:
-        return ack_policy >= AckPolicy.READS
-    return ack_policy >= AckPolicy.ALL
+    return ack_policy >= (AckPolicy.READS if cmd in _READS else AckPolicy.ALL)
 
 
 def reply_matches(request: Packet, reply: Packet) -> bool:

@@ -160,8 +160,9 @@ class Topic(Generic[T]):
         self.latest = sample
         self.samples += 1
         self._stamps.append(stamp_s)
-        for subscription in self._subscriptions:
-            subscription._put(sample)
+        if self._subscriptions:  # iterating even an empty WeakSet costs a guard object
+            for subscription in self._subscriptions:
+                subscription._put(sample)
 
     def note_lateness(self, late_s: float) -> None:
         """Record how late a cycle started after its due time."""
