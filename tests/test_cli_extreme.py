@@ -64,10 +64,11 @@ TOO_SLOW: dict[tuple[tuple[str, ...], str], float] = {(("bus", "monitor"), "dura
 
 
 def _commands(command: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:
-    subcommands = getattr(command, "commands", None)
-    if subcommands:
-        for name, sub in sorted(subcommands.items()):
-            yield from _commands(sub, (*path, name))
+    # Through list_commands/get_command: the top group imports its commands lazily.
+    names = command.list_commands(None) if hasattr(command, "list_commands") else []
+    if names:
+        for name in sorted(names):
+            yield from _commands(command.get_command(None, name), (*path, name))
     else:
         yield path, command
 

@@ -81,7 +81,7 @@ def test_the_fields_are_pinned() -> None:
 
 def test_defaults_are_design_section_4_and_the_control_constants() -> None:
     config = RobotConfig()
-    assert config.port == "/dev/ttyUSB0"
+    assert config.port == "auto"
     assert config.baudrate == 115200
     assert config.wheel_radius_m == DEFAULT_WHEEL_RADIUS_M == 0.0760
     assert config.wheel_separation_m == DEFAULT_WHEEL_SEPARATION_M == 0.330
@@ -133,7 +133,7 @@ def test_plain_construction_reads_arguments_and_environment(
 
 def test_plain_construction_never_reads_a_file(hermetic: Path) -> None:
     write(hermetic / "ohmni.toml", 'port = "from-file"\n')
-    assert RobotConfig().port == "/dev/ttyUSB0"
+    assert RobotConfig().port == "auto"
     assert RobotConfig.load().port == "from-file"
 
 
@@ -149,7 +149,7 @@ def test_each_source_beats_the_ones_below(monkeypatch: pytest.MonkeyPatch, herme
     assert config.watchdog_s == 0.2  # argument over environment
     assert config.baudrate == 9600  # environment over file
     assert config.neck_id == 5  # file over default
-    assert config.port == "/dev/ttyUSB0"  # default
+    assert config.port == "auto"  # default
 
 
 def test_environment_names_are_case_insensitive(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -417,13 +417,13 @@ def test_a_config_cannot_be_changed() -> None:
         config.port = "sim://"
     with pytest.raises(ConfigError, match="frozen"):
         del config.port
-    assert config.port == "/dev/ttyUSB0"
+    assert config.port == "auto"
 
 
 def test_replace_makes_a_validated_copy() -> None:
     config = RobotConfig(neck_id=5)
     copy = config.replace(port="sim://")
-    assert (copy.port, copy.neck_id, config.port) == ("sim://", 5, "/dev/ttyUSB0")
+    assert (copy.port, copy.neck_id, config.port) == ("sim://", 5, "auto")
     with pytest.raises(ConfigError, match=r"^watchdog_s=0\.01 is out of range"):
         config.replace(watchdog_s=0.01)
 

@@ -162,10 +162,11 @@ class RobotConfig(BaseSettings):
 
     # Connection.
     port: str = Field(
-        default="/dev/ttyUSB0",
+        default="auto",
         min_length=1,
-        description="Serial port of the robot's bus: a device path, or a transport URL "
-        "(serial:///dev/ttyUSB0, sim://). On the robot also /dev/usb/tty1-2.1.",
+        description="Serial port of the robot's bus: a device path, a transport URL "
+        "(serial:///dev/ttyUSB0, sim://), or auto: the FTDI adapter with USB id 0403:6015, "
+        "else /dev/usb/tty1-2.1 (on the robot).",
         json_schema_extra={"allowed": "a device path or transport URL"},
     )
     baudrate: int = _setting(115200, 1200, 4_000_000, "baud", "Bus speed, baud.")

@@ -1,28 +1,116 @@
-"""The ``ohmni`` command line (typer)."""
+"""The ``ohmni`` command line (typer).
+
+Each command lives in its own module, imported only when that command runs: ``ohmni
+--help`` lists them from the table below without importing any, so neither the Robot,
+numpy nor the simulator loads for a command that does not use them.
+"""
 
 from __future__ import annotations
 
+import importlib
+from typing import Annotated, Any, Final
+
 import typer
+from typer.core import TyperCommand, TyperGroup
 
 from ohmni_tb import __version__
-from ohmni_tb.cli import bus as bus_cli
-from ohmni_tb.cli import servo as servo_cli
-from ohmni_tb.cli.demo import demo
-from ohmni_tb.cli.sim import sim
 
-__all__ = ["app", "main"]
+__all__ = ["COMMANDS", "app", "main"]
+
+#: name → (module, attribute, one line for ``ohmni --help``). The attribute is a Typer
+#: app (a command with subcommands) or a command function.
+COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
+    "status": (
+        "ohmni_tb.cli.status",
+        "status",
+        "One screen of the robot: battery, wheels, odometry, neck, servos, bus (--watch, --json).",
+    ),
+    "drive": (
+        "ohmni_tb.cli.drive",
+        "drive",
+        "Drive for a time, a distance or a turn and print the odometry; --teleop: keyboard.",
+    ),
+    "neck": (
+        "ohmni_tb.cli.neck",
+        "neck",
+        "Move the neck (HerkuleX or worm gear): up, down, center, rest, free, --raw, --deg.",
+    ),
+    "odom": ("ohmni_tb.cli.odom", "app", "Stream odometry lines; `ohmni odom reset`."),
+    "pid": ("ohmni_tb.cli.robot_cmds", "pid_app", "Read or set the wheel PID gains."),
+    "light": ("ohmni_tb.cli.robot_cmds", "light", "Set the light ring's colour: H S V."),
+    "info": ("ohmni_tb.cli.robot_cmds", "info", "Firmware tags, servo models, neck kind."),
+    "ports": (
+        "ohmni_tb.cli.robot_cmds",
+        "ports",
+        "List serial ports with USB ids; mark the likely bus adapter.",
+    ),
+    "demo": ("ohmni_tb.cli.demo", "demo", "A tour of the Robot on the simulator (or a robot)."),
+    "sim": ("ohmni_tb.cli.sim", "sim", "Serve the simulated robot on a pseudo-terminal."),
+    "bus": ("ohmni_tb.cli.bus", "app", "Raw bus requests and a traffic monitor."),
+    "servo": ("ohmni_tb.cli.servo", "app", "HerkuleX servos: scan, info, read, write, move."),
+}
+
+
+class _LazyGroup(TyperGroup):
+    """A group whose commands are imported when one is run (or asked for its help)."""
+
+    _listing = False
+
+    # typer keeps its click private: the contexts and commands are typed loosely here.
+    def list_commands(self, ctx: Any) -> list[str]:
+        return [*COMMANDS, *super().list_commands(ctx)]
+
+    def get_command(self, ctx: Any, cmd_name: str) -> Any:
+        command = super().get_command(ctx, cmd_name)
+        if command is not None or cmd_name not in COMMANDS:
+            return command
+        module, attribute, short = COMMANDS[cmd_name]
+        if self._listing:
+            # The group's help lists names and one line each: import nothing for it.
+            return TyperCommand(cmd_name, short_help=short, help=short)
+        return _load(cmd_name, module, attribute)
+
+    def format_help(self, ctx: Any, formatter: Any) -> None:
+        self._listing = True
+        try:
+            super().format_help(ctx, formatter)
+        finally:
+            self._listing = False
+
+
+def _load(name: str, module: str, attribute: str) -> Any:
+    target: Any = getattr(importlib.import_module(module), attribute)
+    if not isinstance(target, typer.Typer):
+        single = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+        single.command(name=name)(target)
+        target = single
+    command = typer.main.get_command(target)
+    command.name = name
+    return command
+
 
 app = typer.Typer(
     name="ohmni",
-    help="Drive the OhmniLabs Ohmni robot over its serial bus (or the built-in simulator).",
+    cls=_LazyGroup,
+    help="Drive the OhmniLabs Ohmni robot over its serial bus (or the built-in simulator).\n\n"
+    "Port: --port URL, else $OHMNI_PORT, else the config file's `port`, else the bus "
+    "adapter found by its USB id. Try anything on the simulator with --port sim://.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-app.add_typer(bus_cli.app, name="bus")
-app.add_typer(servo_cli.app, name="servo")
-app.command()(sim)
-app.command()(demo)
+
+
+@app.callback()
+def _root(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the traceback of an error, and debug logs.")
+    ] = False,
+) -> None:
+    if debug:
+        from ohmni_tb.cli import common  # noqa: PLC0415  # only the command that runs loads it
+
+        common.set_debug(True)
 
 
 @app.command()

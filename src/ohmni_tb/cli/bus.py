@@ -12,7 +12,6 @@ import typer
 from rich.table import Table
 
 from ohmni_tb.cli.common import (
-    DEFAULT_PORT,
     JsonOption,
     PortOption,
     TimeoutOption,
@@ -20,6 +19,7 @@ from ohmni_tb.cli.common import (
     emit_json,
     open_bus,
     parse_int,
+    resolve_port,
     run,
 )
 from ohmni_tb.errors import MalformedReplyError
@@ -62,7 +62,7 @@ def send(
     sid: Annotated[str, typer.Argument(help="Device id, e.g. 0, 20, 0x14.")],
     cmd: Annotated[str, typer.Argument(help="Command name (RAM_READ, STAT...) or code.")],
     data: Annotated[list[str] | None, typer.Argument(help="Data bytes in hex, e.g. 3B 04.")] = None,
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     timeout: TimeoutOption = 0.05,
     no_reply: Annotated[bool, typer.Option("--no-reply", help="Do not wait for a reply.")] = False,
     as_json: JsonOption = False,
@@ -173,7 +173,7 @@ def monitor(
         assert port is not None
 
         async def listen() -> None:
-            transport = await open_transport(port)
+            transport = await open_transport(resolve_port(port))
             loop = asyncio.get_running_loop()
             t0 = loop.time()
             try:

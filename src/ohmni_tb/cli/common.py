@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import sys
-from collections.abc import Callable, Coroutine
-from typing import Annotated, Any, TypeVar
+import traceback
+from collections.abc import AsyncIterator, Callable, Coroutine
+from contextlib import asynccontextmanager
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
@@ -17,32 +20,43 @@ from ohmni_tb.bus import DEFAULT_TIMEOUT_S, Bus, BusStats
 from ohmni_tb.errors import OhmniError
 from ohmni_tb.transport import open_transport
 
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
+
 __all__ = [
-    "DEFAULT_PORT",
     "JsonOption",
     "PortOption",
     "TimeoutOption",
+    "YesOption",
+    "confirm_motion",
     "console",
     "emit_json",
+    "is_simulated",
     "open_bus",
+    "open_robot",
     "parse_int",
+    "resolve_port",
     "run",
+    "set_debug",
     "stats_rows",
 ]
 
 T = TypeVar("T")
 
-#: The robot's serial adapter; OHMNI_PORT overrides it (``sim://`` for the simulator).
-DEFAULT_PORT = os.environ.get("OHMNI_PORT", "/dev/ttyUSB0")
-
 PortOption = Annotated[
-    str,
+    str | None,
     typer.Option(
         "--port",
         "-p",
         help="Serial device or URL: /dev/ttyUSB0, serial:///dev/ttyUSB0?baudrate=115200, "
-        "sim:// (built-in simulator). Default: $OHMNI_PORT or /dev/ttyUSB0.",
+        "sim:// (built-in simulator), auto (the bus adapter by its USB id). Default: "
+        "$OHMNI_PORT, else the config file's port, else auto.",
+        show_default=False,
     ),
+]
+YesOption = Annotated[
+    bool,
+    typer.Option("--yes", "-y", help="Move a real robot without asking first."),
 ]
 JsonOption = Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")]
 TimeoutOption = Annotated[
@@ -52,6 +66,67 @@ TimeoutOption = Annotated[
 
 console = Console()
 _err = Console(stderr=True)
+_options = {"debug": False}
+
+
+def set_debug(on: bool) -> None:
+    """``ohmni --debug``: errors print their traceback; the library logs at DEBUG."""
+    _options["debug"] = on
+    if on:
+        logging.basicConfig(level=logging.DEBUG, format="%(asctime)s %(name)s %(message)s")
+
+
+def resolve_port(port: str | None) -> str:
+    """The port a command opens: ``--port``, else ``$OHMNI_PORT``, else the config file's
+    ``port``, else ``auto`` (the bus adapter, found when the port opens).
+
+    Raises:
+        ConfigError: The config file is invalid.
+    """
+    if port:
+        return port
+    from_env = os.environ.get("OHMNI_PORT")
+    if from_env:
+        return from_env
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when needed
+
+    return RobotConfig.load().port
+
+
+def is_simulated(port: str) -> bool:
+    """Whether ``port`` is the built-in simulator (motion needs no consent there)."""
+    return port.lower().startswith("sim:")
+
+
+def confirm_motion(port: str, what: str, *, yes: bool) -> None:
+    """Ask once before a command moves a real robot; ``--yes`` or ``sim://`` skip it.
+
+    Raises:
+        typer.Exit: Code 1 when the answer is no, or when nobody can answer (stdin is
+            not a terminal and ``--yes`` was not given).
+    """
+    if yes or is_simulated(port):
+        return
+    if not sys.stdin.isatty():
+        _err.print(
+            f"[red]error:[/red] {escape(what)} on {escape(port)} moves the robot: "
+            "pass --yes to allow it (stdin is not a terminal to ask)",
+            soft_wrap=True,
+        )
+        raise typer.Exit(1)
+    if not typer.confirm(f"{what} on {port} moves the robot. Is the way clear?", default=False):
+        _err.print("nothing moved")
+        raise typer.Exit(1)
+
+
+@asynccontextmanager
+async def open_robot(port: str, **overrides: Any) -> AsyncIterator[Robot]:
+    """``Robot.open`` with the settings from the environment and config file."""
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # the Robot only when used
+    from ohmni_tb.robot import Robot  # noqa: PLC0415
+
+    async with Robot.open(port, config=RobotConfig.load(), **overrides) as robot:
+        yield robot
 
 
 def run(
@@ -66,6 +141,8 @@ def run(
     try:
         return asyncio.run(main())
     except OhmniError as exc:
+        if _options["debug"]:
+            traceback.print_exc()
         # One line whatever the terminal's width; the text is ours, not markup.
         _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(1) from exc
@@ -75,9 +152,10 @@ def run(
         raise typer.Exit(130) from None
 
 
-async def open_bus(port: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> Bus:
-    """Open the port and start a bus on it; the caller closes it (``async with``)."""
-    transport = await open_transport(port)
+async def open_bus(port: str | None, timeout_s: float = DEFAULT_TIMEOUT_S) -> Bus:
+    """Open the port (:func:`resolve_port`) and start a bus on it; the caller closes it
+    (``async with``)."""
+    transport = await open_transport(resolve_port(port))
     bus = Bus(transport, timeout_s=timeout_s)
     bus.start()
     return bus

@@ -12,7 +12,6 @@ from rich.table import Table
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.cli.common import (
-    DEFAULT_PORT,
     JsonOption,
     PortOption,
     TimeoutOption,
@@ -165,7 +164,7 @@ def _print_kv(title: str, values: dict[str, Any]) -> None:
 
 @app.command()
 def scan(
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     first: Annotated[str, typer.Option(help="First id to try, 0..253 (0x.. accepted).")] = "0",
     last: Annotated[str, typer.Option(help="Last id to try, 0..253 (0x.. accepted).")] = "0xFD",
     as_json: JsonOption = False,
@@ -235,7 +234,7 @@ async def _quick(bus: Bus, servo: Servo) -> ServoStatus:
 
 @app.command()
 def info(
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
@@ -253,7 +252,7 @@ def info(
 @app.command()
 def read(
     register: Annotated[str, typer.Argument(help="Register name, e.g. temperature.")],
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     eep: Annotated[bool, typer.Option("--eep", help="Read the EEP copy.")] = False,
     timeout: TimeoutOption = 0.05,
@@ -274,7 +273,7 @@ def read(
 def write(
     register: Annotated[str, typer.Argument(help="RAM register name, e.g. led_control.")],
     value: Annotated[str, typer.Argument(help="Value (decimal or 0x..).")],
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     persist: Annotated[
         bool, typer.Option("--persist", help="Also write the EEP copy (survives reboot).")
@@ -307,7 +306,7 @@ def move(
     position: Annotated[
         str, typer.Argument(help="Goal position, raw counts 0..1023 (0x.. accepted).")
     ],
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     playtime: Annotated[
         float,
@@ -358,7 +357,7 @@ def move(
 @app.command()
 def torque(
     mode: Annotated[str, typer.Argument(help="free | brake | on")],
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
 ) -> None:
@@ -374,7 +373,7 @@ def torque(
 
 @app.command("stat")
 def stat_cmd(
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
@@ -390,7 +389,7 @@ def stat_cmd(
 
 @app.command()
 def clear(
-    port: PortOption = DEFAULT_PORT,
+    port: PortOption = None,
     sid: SidOption = _NECK,
     torque_on: Annotated[
         bool, typer.Option("--torque-on", help="Turn the torque on again after clearing.")

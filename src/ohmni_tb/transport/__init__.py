@@ -10,6 +10,8 @@ URLs understood:
                                                     second open of NAME gets the other end
                                                     (a third starts a new pair)
 ``sim://``                                          the simulated robot (:mod:`ohmni_tb.sim`)
+``auto``                                            the robot's bus adapter, found by its USB id
+                                                    (:mod:`ohmni_tb.transport.ports`)
 ==================================================  =============================================
 
 More schemes can be added with :func:`register_transport`.
@@ -84,7 +86,12 @@ async def open_transport(url: str) -> Transport:
     Raises:
         ConfigError: The URL or one of its options is invalid; the message says which.
         TransportError: The transport exists but cannot be opened.
+        NoBusPortError: ``auto`` found no bus adapter (a :class:`TransportError`).
     """
+    if url == "auto":
+        from ohmni_tb.transport.ports import resolve_port  # noqa: PLC0415  # lists the ports
+
+        url = resolve_port(url)
     if url.startswith("/"):
         url = "serial://" + url
     try:
