@@ -13,8 +13,10 @@ parameter can take (NaN, infinity, 1e308, a huge integer, non-ASCII digits) is r
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -37,7 +39,7 @@ runner = CliRunner()
 WIDE = {"COLUMNS": "4000"}
 
 #: Parameters whose values are text, not numbers: names, URLs, paths, hex bytes.
-TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture"})
+TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture", "file"})
 
 #: A valid invocation of each command that has numeric parameters (``--port sim://`` is
 #: added): parameter name -> value, True for a flag.
@@ -52,6 +54,16 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("servo", "torque"): {"mode": "on", "timeout": "0.01"},
     ("servo", "stat"): {"timeout": "0.01"},
     ("servo", "clear"): {"timeout": "0.01"},
+    ("drive",): {"linear": "0.1", "duration": "0.1"},
+    ("light",): {"hue": "0", "saturation": "0", "value": "0"},
+    ("neck",): {"raw": "400", "playtime": "0.2"},
+    ("odom",): {"rate": "20", "duration": "0.2", "count": "2"},
+    ("odom", "reset"): {"x": "0.5", "y": "-0.5", "yaw": "1"},
+    # Never the developer's own config file: the fuzz writes where --file points.
+    ("pid", "set"): {
+        "kp": "600",
+        "file": str(Path(tempfile.gettempdir(), "ohmni-extreme-pid.toml")),
+    },
 }
 #: Changes to the baseline while one parameter is fuzzed, to keep each run short: a scan
 #: whose other bound is fuzzed covers at most a dozen ids.
@@ -60,17 +72,24 @@ CONTEXT: dict[tuple[tuple[str, ...], str], dict[str, str | bool]] = {
     (("servo", "scan"), "last"): {"first": "0xF0"},
 }
 #: Values a parameter accepts but that would keep the test waiting: a long live monitor.
-TOO_SLOW: dict[tuple[tuple[str, ...], str], float] = {(("bus", "monitor"), "duration"): 0.05}
+TOO_SLOW: dict[tuple[tuple[str, ...], str], float] = {
+    (("bus", "monitor"), "duration"): 0.05,
+    (("drive",), "duration"): 0.5,
+    (("neck",), "playtime"): 0.5,
+    (("odom",), "duration"): 0.5,
+}
 
 
 def _commands(command: Any, path: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], Any]]:
     # Through list_commands/get_command: the top group imports its commands lazily.
     names = command.list_commands(None) if hasattr(command, "list_commands") else []
-    if names:
-        for name in sorted(names):
-            yield from _commands(command.get_command(None, name), (*path, name))
-    else:
+    if not names:
         yield path, command
+        return
+    if path and any(p.name != "help" for p in command.params):
+        yield path, command  # a group that runs by itself (`ohmni odom --rate 5`)
+    for name in sorted(names):
+        yield from _commands(command.get_command(None, name), (*path, name))
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import pytest
 
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
-from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read
+from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read, ram_write
 from ohmni_tb.protocol import BROADCAST_ID, Command, Packet, PacketDecoder
 from ohmni_tb.protocol.connection import DEFAULT_PROBE_INTERVAL_S
 from ohmni_tb.protocol.devices import DeviceId
@@ -36,6 +36,7 @@ from ohmni_tb.sim.servo import (
     SimServo,
 )
 from ohmni_tb.sim.transport import SimTransport
+from ohmni_tb.sim.url import build_line
 
 T = TypeVar("T")
 
@@ -657,6 +658,30 @@ def test_the_hold_guard_leaves_a_neck_that_keeps_being_commanded() -> None:
     states, neck_torque = virtual(main)
     assert not events(states, "hold guard")
     assert neck_torque is TorqueControl.ON
+
+
+def test_the_hold_guard_counts_a_neck_found_holding_from_the_open() -> None:
+    # Left holding by an earlier process (`ohmni neck up`): a Robot that opens is not the
+    # one to move it at once (a read-only command would), but rests it neck_hold_s later.
+    async def main() -> dict[str, Any]:
+        line, sim = build_line({})
+        neck = sim.neck
+        assert isinstance(neck, SimServo)
+        transport = SimTransport(line, robot=sim)
+        neck.handle(ram_write(3, "torque_control", TorqueControl.ON), sim.sync())
+        loop = asyncio.get_running_loop()
+        out: dict[str, Any] = {"opening_s": loop.time()}
+        async with Robot.open(transport, neck_hold_s=2) as robot:
+            states = robot.subscribe("robot_state")
+            await asyncio.sleep(1.5)
+            out["holding"] = (torque(robot, neck), position(robot, neck))
+            out["guard"] = await next_event(states, "hold guard")
+            return out
+
+    out = virtual(main)
+    assert out["holding"] == (TorqueControl.ON, 512)
+    opening_s: float = out["opening_s"]
+    assert opening_s + 2.0 < out["guard"].stamp_s <= opening_s + 2.0 + 0.2
 
 
 # -- 8. the emergency stop -----------------------------------------------------------------

@@ -16,12 +16,13 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from ohmni_tb.bus import DEFAULT_TIMEOUT_S, Bus, BusStats
 from ohmni_tb.errors import OhmniError
-from ohmni_tb.transport import open_transport
 
 if TYPE_CHECKING:
+    from ohmni_tb.bus import Bus, BusStats
     from ohmni_tb.robot import Robot
+    from ohmni_tb.safety import StopReport
+    from ohmni_tb.transport import Transport
 
 __all__ = [
     "JsonOption",
@@ -29,6 +30,7 @@ __all__ = [
     "TimeoutOption",
     "YesOption",
     "confirm_motion",
+    "confirm_stop",
     "console",
     "emit_json",
     "is_simulated",
@@ -152,11 +154,21 @@ def run(
         raise typer.Exit(130) from None
 
 
-async def open_bus(port: str | None, timeout_s: float = DEFAULT_TIMEOUT_S) -> Bus:
+async def open_transport(url: str) -> Transport:
+    """:func:`ohmni_tb.transport.open_transport`, imported when a command opens a port."""
+    from ohmni_tb.transport import open_transport as open_url  # noqa: PLC0415
+
+    return await open_url(url)
+
+
+async def open_bus(port: str | None, timeout_s: float | None = None) -> Bus:
     """Open the port (:func:`resolve_port`) and start a bus on it; the caller closes it
     (``async with``)."""
+    # Imported here: `ohmni CMD --help` starts without the bus and asyncio's machinery.
+    from ohmni_tb.bus import DEFAULT_TIMEOUT_S, Bus  # noqa: PLC0415
+
     transport = await open_transport(resolve_port(port))
-    bus = Bus(transport, timeout_s=timeout_s)
+    bus = Bus(transport, timeout_s=DEFAULT_TIMEOUT_S if timeout_s is None else timeout_s)
     bus.start()
     return bus
 
@@ -218,3 +230,53 @@ def stats_rows(stats: BusStats) -> list[dict[str, Any]]:
         }
         for dev in stats.devices.values()
     ]
+
+
+async def confirm_stop(robot: Robot, timeout_s: float) -> StopReport:
+    """Wait until the ``wheel_encoder`` stream shows both wheels standing still: the rule
+    of :func:`ohmni_tb.safety.stop_wheels`, applied by its
+    :class:`~ohmni_tb.safety.SettleWindow` to the Robot's own 50 Hz counts (every control
+    tick carries the zero wheel command meanwhile).
+
+    Raises:
+        StopNotConfirmedError: Not within ``timeout_s``: the robot may still be moving.
+    """
+    from ohmni_tb.errors import StopNotConfirmedError  # noqa: PLC0415
+    from ohmni_tb.safety import (  # noqa: PLC0415
+        DEFAULT_SETTLE_S,
+        DEFAULT_TOLERANCE_TICKS,
+        SettleWindow,
+        StopReport,
+    )
+
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    missed_before = robot.stats().streams["wheel_encoder"].missed
+    windows = (SettleWindow(), SettleWindow())
+    reads = 0
+    last: tuple[int, int] | None = None
+
+    def report(*, confirmed: bool) -> StopReport:
+        missed = robot.stats().streams["wheel_encoder"].missed - missed_before
+        elapsed = loop.time() - started
+        return StopReport(
+            confirmed, round(elapsed * robot.config.wheel_hz), reads, missed, elapsed, last
+        )
+
+    try:
+        async with asyncio.timeout(timeout_s), robot.subscribe("wheel_encoder") as sub:
+            async for sample in sub:
+                reads += 1
+                last = (sample.left_raw, sample.right_raw)
+                for window, count in zip(windows, last, strict=True):
+                    window.add(count, sample.stamp_s, DEFAULT_TOLERANCE_TICKS)
+                if all(window.settled(DEFAULT_SETTLE_S) for window in windows):
+                    return report(confirmed=True)
+    except TimeoutError:
+        pass
+    reason = (
+        "no wheel counts arrived"
+        if reads == 0
+        else f"the wheel counts did not hold still ({reads} wheel_encoder samples)"
+    )
+    raise StopNotConfirmedError(sid=0, report=report(confirmed=False), reason=reason)

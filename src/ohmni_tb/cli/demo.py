@@ -12,14 +12,13 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from ohmni_tb.cli.common import PortOption, console, run
+from ohmni_tb.cli.common import PortOption, confirm_stop, console, run
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
 
 if TYPE_CHECKING:
     from ohmni_tb.robot import Robot, RobotStats, ServoHandle, WormNeckHandle
-    from ohmni_tb.safety import StopReport
 
 __all__ = ["demo"]
 
@@ -54,8 +53,9 @@ def demo(
     On the built-in simulator (the default, sim://) everything runs. On a real robot the
     wheels stay still unless --allow-motion is given: the robot would drive ~30 cm.
     """
-    motion = allow_motion or port.startswith("sim:")
-    run(lambda: _demo(port, motion))
+    url = port or "sim://"
+    motion = allow_motion or url.startswith("sim:")
+    run(lambda: _demo(url, motion))
 
 
 async def _demo(port: str, motion: bool) -> None:
@@ -219,7 +219,7 @@ async def _drive(robot: Robot) -> None:
         # Whatever happened above, Ctrl-C included: the target goes to zero, the ramp
         # brings the wheels down, and leaving the Robot would stop them anyway.
         robot.stop()
-    report = await _confirm_stop(robot)
+    report = await confirm_stop(robot, _STOP_TIMEOUT_S)
     console.print(
         f"  stop confirmed {report.elapsed_s:.3f} s after the stop by both wheel counts "
         f"holding still ({report.reads} wheel_encoder samples, {report.missed_reads} control "
@@ -243,56 +243,6 @@ async def _drive(robot: Robot) -> None:
         if odom is not None:
             error_mm = math.hypot(odom.x_m - pose.x, odom.y_m - pose.y) * 1000
             console.print(f"  odometry is {error_mm:.1f} mm from the truth", highlight=False)
-
-
-async def _confirm_stop(robot: Robot) -> StopReport:
-    """Wait until the ``wheel_encoder`` stream shows both wheels standing still.
-
-    Standing still is the rule of :func:`ohmni_tb.safety.stop_wheels`, applied by its
-    :class:`~ohmni_tb.safety.SettleWindow` to the Robot's own 50 Hz counts (every
-    control tick carries the zero wheel command meanwhile).
-
-    Raises:
-        StopNotConfirmedError: Not within :data:`_STOP_TIMEOUT_S`: the robot may still be
-            moving.
-    """
-    from ohmni_tb.safety import (  # noqa: PLC0415
-        DEFAULT_SETTLE_S,
-        DEFAULT_TOLERANCE_TICKS,
-        SettleWindow,
-        StopReport,
-    )
-
-    loop = asyncio.get_running_loop()
-    started = loop.time()
-    missed_before = robot.stats().streams["wheel_encoder"].missed
-    windows = (SettleWindow(), SettleWindow())
-    reads = 0
-    last: tuple[int, int] | None = None
-
-    def report(*, confirmed: bool) -> StopReport:
-        missed = robot.stats().streams["wheel_encoder"].missed - missed_before
-        elapsed = loop.time() - started
-        ticks = round(elapsed * robot.config.wheel_hz)
-        return StopReport(confirmed, ticks, reads, missed, elapsed, last)
-
-    try:
-        async with asyncio.timeout(_STOP_TIMEOUT_S):
-            async for sample in robot.subscribe("wheel_encoder"):
-                reads += 1
-                last = (sample.left_raw, sample.right_raw)
-                for window, count in zip(windows, last, strict=True):
-                    window.add(count, sample.stamp_s, DEFAULT_TOLERANCE_TICKS)
-                if all(window.settled(DEFAULT_SETTLE_S) for window in windows):
-                    return report(confirmed=True)
-    except TimeoutError:
-        pass
-    reason = (
-        "no wheel counts arrived"
-        if reads == 0
-        else f"the wheel counts did not hold still ({reads} wheel_encoder samples)"
-    )
-    raise StopNotConfirmedError(sid=0, report=report(confirmed=False), reason=reason)
 
 
 async def _neck(robot: Robot) -> None:

@@ -19,6 +19,7 @@ from ohmni_tb.cli.common import (
     emit_json,
     open_bus,
     parse_int,
+    resolve_port,
     run,
 )
 from ohmni_tb.errors import BusTimeoutError, InvalidArgumentError
@@ -63,7 +64,7 @@ def _sid(text: str) -> int:
 
 
 def _with_servo(
-    port: str,
+    port: str | None,
     sid: int,
     timeout_s: float,
     action: Callable[[Servo], Awaitable[T]],
@@ -206,7 +207,7 @@ def scan(
     if as_json:
         emit_json(found)
         return
-    table = Table(title=f"HerkuleX servos on {escape(port)}")
+    table = Table(title=f"HerkuleX servos on {escape(port or resolve_port(None))}")
     for column in ("sid", "name", "model", "position", "angle °", "torque", "errors"):
         table.add_column(column)
     for row in found:

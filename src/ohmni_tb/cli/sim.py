@@ -9,17 +9,17 @@ import stat
 import sys
 import threading
 from collections import deque
-from typing import Annotated, Final
+from typing import TYPE_CHECKING, Annotated, Final
 from urllib.parse import parse_qsl, urlsplit
 
 import typer
 
 from ohmni_tb.cli.common import run
 from ohmni_tb.errors import ConfigError, OhmniError
-from ohmni_tb.sim.line import SimLine
-from ohmni_tb.sim.pty import open_pty_pair
-from ohmni_tb.sim.robot import SimRobot
-from ohmni_tb.sim.url import build_line
+
+if TYPE_CHECKING:
+    from ohmni_tb.sim.line import SimLine
+    from ohmni_tb.sim.robot import SimRobot
 
 __all__ = ["MAX_CONSOLE_LINE", "sim"]
 
@@ -79,6 +79,10 @@ class _Stop:
 
 
 async def _serve(options: dict[str, str]) -> None:
+    # The simulator (numpy) loads when it serves: `ohmni sim --help` starts without it.
+    from ohmni_tb.sim.pty import open_pty_pair  # noqa: PLC0415
+    from ohmni_tb.sim.url import build_line  # noqa: PLC0415
+
     line, robot = build_line(options)
     if options:
         raise ConfigError(f"unknown simulator option(s): {sorted(options)}")

@@ -467,7 +467,10 @@ class Robot:
             zero_offset_raw=config.neck_zero_offset_raw if neck else 0,
             on_command=self._servo_commanded,
         )
-        self._servos[sid] = _ServoWatch(handle, stream)
+        # The hold time counts from when this Robot found the servo: a neck some earlier
+        # process left holding is rested neck_hold_s from now, not at the first sample
+        # (which would move it the moment any Robot opens, a read-only one included).
+        self._servos[sid] = _ServoWatch(handle, stream, last_command_s=self._loop.time())
         return handle
 
     def _servo_commanded(self, sid: int) -> None:
@@ -1484,19 +1487,11 @@ class Robot:
 
     @staticmethod
     def ports() -> list[dict[str, Any]]:
-        """Serial ports on this machine with their USB ids (pyserial's list)."""
-        from serial.tools import list_ports  # noqa: PLC0415  # only when asked: slow import
+        """Serial ports on this machine with their USB ids, the likely bus adapter first
+        (``likely_bus``; :func:`ohmni_tb.transport.ports.list_ports`)."""
+        from ohmni_tb.transport.ports import list_ports  # noqa: PLC0415  # slow: when asked
 
-        return [
-            {
-                "device": port.device,
-                "description": port.description,
-                "vid": port.vid,
-                "pid": port.pid,
-                "serial_number": port.serial_number,
-            }
-            for port in list_ports.comports()
-        ]
+        return [port.as_dict() for port in list_ports()]
 
 
 def _number(name: str, value: float) -> float:

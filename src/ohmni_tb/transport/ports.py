@@ -1,6 +1,6 @@
 """Which serial port is the robot's bus: the ``auto`` port.
 
-The Ohmni's bus hangs off an FTDI USB-serial adapter (USB id ``0403:6015``, an FT231X);
+The Ohmni's bus hangs off an FTDI USB-serial adapter (USB id ``0403:6015``, an FT230X);
 on the robot's own Android system the adapter also appears as ``/dev/usb/tty1-2.1``.
 ``open_transport("auto")`` (and so ``Robot.open()`` with the default config, and every
 ``ohmni`` command without ``--port``) opens the one this module finds::
@@ -33,7 +33,7 @@ __all__ = [
 
 #: The port name that means "find the bus adapter".
 AUTO_PORT: Final = "auto"
-#: USB vendor and product id of the bus adapter (FTDI FT231X).
+#: USB vendor and product id of the bus adapter (FTDI FT230X, the FT-X series id).
 BUS_USB_ID: Final = (0x0403, 0x6015)
 #: The adapter's device node on the robot's Android system.
 ROBOT_BUS_LINK: Final = "/dev/usb/tty1-2.1"
@@ -83,18 +83,17 @@ def list_ports() -> list[PortInfo]:
     """
     from serial.tools import list_ports as serial_ports  # noqa: PLC0415  # slow: when asked
 
-    found: list[PortInfo] = []
-    for port in serial_ports.comports():
-        found.append(
-            PortInfo(
-                device=port.device,
-                description=port.description or "",
-                vid=port.vid,
-                pid=port.pid,
-                serial_number=port.serial_number,
-                likely_bus=(port.vid, port.pid) == BUS_USB_ID,
-            )
+    found = [
+        PortInfo(
+            device=port.device,
+            description=port.description or "",
+            vid=port.vid,
+            pid=port.pid,
+            serial_number=port.serial_number,
+            likely_bus=(port.vid, port.pid) == BUS_USB_ID,
         )
+        for port in serial_ports.comports()
+    ]
     if os.path.exists(ROBOT_BUS_LINK) and all(p.device != ROBOT_BUS_LINK for p in found):
         found.append(
             PortInfo(

@@ -1,0 +1,1033 @@
+"""``ohmni drive``: drive for a time, a distance or a turn and print the odometry; --teleop.
+
+Three ways to move, one at a time:
+
+- ``--linear/--angular [--duration S]``: the velocity command for a time (1 s by
+  default), held by re-sending ``robot.drive()`` faster than the motion watchdog.
+- ``--distance M`` or ``--turn DEG``: by odometry to the goal, slowing down near it so
+  it does not overshoot; bounded by a timeout from the speed.
+- ``--teleop``: the keyboard in the terminal; each key press sends one ``drive()``, and
+  the watchdog stops the robot when no key repeats.
+
+Every timed or goal drive ends with the stop confirmed by the wheel counts standing still
+(the rule of :mod:`ohmni_tb.safety`), then prints what the odometry measured. Every
+argument is checked against the Robot's limits before the port is opened.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import sys
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from ohmni_tb.cli import common
+from ohmni_tb.cli.common import (
+    JsonOption,
+    PortOption,
+    YesOption,
+    confirm_motion,
+    console,
+    emit_json,
+    resolve_port,
+    run,
+)
+from ohmni_tb.errors import OhmniError, StateError, StopNotConfirmedError
+
+if TYPE_CHECKING:
+    from ohmni_tb.config import RobotConfig
+    from ohmni_tb.robot import Robot, WheelEncoderSample, WheelOdomSample
+
+__all__ = ["GoalNotReachedError", "drive"]
+
+T = TypeVar("T")
+
+#: --duration when none is given, s.
+DEFAULT_DURATION_S = 1.0
+#: The longest --duration, s: a longer drive is a job for --teleop or a program.
+MAX_DURATION_S = 600.0
+#: The farthest --distance either way, m.
+MAX_DISTANCE_M = 100.0
+#: The largest --turn either way, degrees (ten turns).
+MAX_TURN_DEG = 3600.0
+#: Speeds of --distance and --turn (and of a --teleop key) when --linear/--angular are
+#: not given; the Robot's limits cap them.
+DEFAULT_LINEAR_MPS = 0.3
+DEFAULT_ANGULAR_RADPS = 1.0
+#: The slowest speed a goal drive creeps at near its goal (and the least it accepts).
+MIN_GOAL_LINEAR_MPS = 0.03
+MIN_GOAL_ANGULAR_RADPS = 0.2
+#: drive() is re-sent at least this often while a command is held (and at least three
+#: times per watchdog period).
+COMMAND_PERIOD_S = 0.1
+#: A goal drive plans its slow-down with this share of the braking limit: the wheel
+#: PIDs trail the ramp, so the plan leaves them room.
+_PLAN_DECEL_SHARE = 0.5
+#: The wheels trail the command (the PIDs, the 0.1 s speed estimate): a goal drive
+#: plans its slow-down from where they will be this much later, and stops when they would
+#: reach the goal this much later. Tuned on the simulator: goals land within ~1 mm, 0.2°.
+_PROFILE_LEAD_S = 0.02
+_STOP_LEAD_S = 0.08
+#: Goals this close count as reached (the stop's own run-out adds about as much).
+_GOAL_TOLERANCE_M = 0.001
+_GOAL_TOLERANCE_RAD = math.radians(0.1)
+#: Time allowed to confirm the stop by the wheel counts, the ramp down included.
+STOP_CONFIRM_TIMEOUT_S = 2.0
+#: Time allowed for the first wheel counts after the Robot opens.
+_FIRST_SAMPLE_S = 1.0
+#: --teleop: the display is redrawn this often, s.
+_REDRAW_S = 0.1
+#: --teleop: how much + and - change the key speeds.
+_SCALE_STEP = 1.25
+#: --teleop: the longest a key press drives (the watchdog, when it is shorter or on).
+_KEY_HOLD_S = 0.5
+
+_err = Console(stderr=True)
+_LOGGER = "ohmni_tb"
+
+
+class GoalNotReachedError(OhmniError):
+    """A ``--distance`` or ``--turn`` drive ran out of time before its goal."""
+
+
+# -- arguments ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class _Plan:
+    """What to do, checked: one of the modes with its numbers."""
+
+    mode: str  # "duration", "distance", "turn" or "teleop"
+    linear_mps: float = 0.0
+    angular_radps: float = 0.0
+    duration_s: float = 0.0
+    goal: float = 0.0  # metres for "distance", degrees for "turn"
+
+
+def _fmt(value: float) -> str:
+    return f"{value:g}"
+
+
+def _finite(name: str, value: float | None) -> None:
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter(f"{name}={_fmt(value)} is not a finite number")
+
+
+def _within(name: str, value: float, low: float, high: float, unit: str, why: str = "") -> None:
+    if not low <= value <= high:
+        raise typer.BadParameter(
+            f"{name}={_fmt(value)} is out of range: allowed {_fmt(low)}..{_fmt(high)} {unit}{why}"
+        )
+
+
+def _check_speed(config: RobotConfig, linear: float | None, angular: float | None) -> None:
+    """Refuse a speed past the Robot's limits (the Robot would scale it down quietly)."""
+    if linear is not None:
+        top = config.max_linear_mps
+        _within("--linear", linear, -top, top, "m/s", " (max_linear_mps)")
+    if angular is not None:
+        top = config.max_angular_radps
+        _within("--angular", angular, -top, top, "rad/s", " (max_angular_radps)")
+    wheel = abs(linear or 0.0) + abs(angular or 0.0) * config.wheel_separation_m / 2
+    if wheel > config.max_wheel_mps:
+        asked = " with ".join(
+            f"{name}={_fmt(value)}"
+            for name, value in (("--linear", linear), ("--angular", angular))
+            if value is not None
+        )
+        raise typer.BadParameter(
+            f"{asked} asks a wheel for {wheel:.3g} m/s: allowed up to "
+            f"{_fmt(config.max_wheel_mps)} m/s (max_wheel_mps)"
+        )
+
+
+def _plan(
+    config: RobotConfig,
+    *,
+    linear: float | None,
+    angular: float | None,
+    duration: float | None,
+    distance: float | None,
+    turn: float | None,
+    teleop: bool,
+    as_json: bool,
+) -> _Plan:
+    """Check the arguments together and against the limits; nothing is opened yet.
+
+    Raises:
+        typer.BadParameter: Names the option, its value and what is allowed.
+    """
+    for name, value in (
+        ("--linear", linear),
+        ("--angular", angular),
+        ("--duration", duration),
+        ("--distance", distance),
+        ("--turn", turn),
+    ):
+        _finite(name, value)
+    given = [
+        name
+        for name, value in (
+            ("--duration", duration),
+            ("--distance", distance),
+            ("--turn", turn),
+            ("--teleop", teleop or None),
+        )
+        if value is not None
+    ]
+    if len(given) > 1:
+        raise typer.BadParameter(f"{given[0]} and {given[1]} do not combine: give one of them")
+    _check_speed(config, linear, angular)
+    if teleop:
+        if as_json:
+            raise typer.BadParameter("--json does not combine with --teleop (a live screen)")
+        for name, value in (("--linear", linear), ("--angular", angular)):
+            if value == 0:
+                raise typer.BadParameter(f"{name}=0 gives a --teleop key no speed: give > 0")
+        lin = abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
+        ang = (
+            abs(angular)
+            if angular is not None
+            else min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
+        )
+        return _Plan("teleop", lin, ang)
+    if distance is not None:
+        if angular is not None:
+            raise typer.BadParameter(
+                "--angular does not combine with --distance (a straight drive): for an arc, "
+                "give --linear, --angular and --duration"
+            )
+        if distance == 0:
+            raise typer.BadParameter("--distance=0 goes nowhere: give a non-zero distance")
+        _within("--distance", distance, -MAX_DISTANCE_M, MAX_DISTANCE_M, "m")
+        speed = abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
+        if speed < MIN_GOAL_LINEAR_MPS:
+            top = _fmt(_top_linear(config))
+            raise typer.BadParameter(
+                f"--linear={_fmt(linear or 0.0)} is too slow for --distance: allowed "
+                f"{MIN_GOAL_LINEAR_MPS:g}..{top} m/s either way (the sign comes from the distance)"
+            )
+        return _Plan("distance", linear_mps=speed, goal=distance)
+    if turn is not None:
+        if linear is not None:
+            raise typer.BadParameter(
+                "--linear does not combine with --turn (a turn on the spot): for an arc, "
+                "give --linear, --angular and --duration"
+            )
+        if turn == 0:
+            raise typer.BadParameter("--turn=0 turns nothing: give a non-zero angle in degrees")
+        _within("--turn", turn, -MAX_TURN_DEG, MAX_TURN_DEG, "degrees")
+        speed = (
+            abs(angular)
+            if angular is not None
+            else min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
+        )
+        if speed < MIN_GOAL_ANGULAR_RADPS:
+            top = _fmt(_top_angular(config))
+            raise typer.BadParameter(
+                f"--angular={_fmt(angular or 0.0)} is too slow for --turn: allowed "
+                f"{MIN_GOAL_ANGULAR_RADPS:g}..{top} rad/s either way (the sign comes from the turn)"
+            )
+        return _Plan("turn", angular_radps=speed, goal=turn)
+    if linear is None and angular is None:
+        raise typer.BadParameter(
+            "nothing to drive: give --linear and/or --angular (with --duration), or "
+            "--distance, --turn or --teleop"
+        )
+    if not linear and not angular:
+        raise typer.BadParameter("--linear=0 with --angular=0 drives nowhere: give a speed")
+    seconds = DEFAULT_DURATION_S if duration is None else duration
+    if not 0 < seconds <= MAX_DURATION_S:
+        raise typer.BadParameter(
+            f"--duration={_fmt(seconds)} is out of range: allowed >0..{MAX_DURATION_S:g} s"
+        )
+    return _Plan("duration", linear or 0.0, angular or 0.0, duration_s=seconds)
+
+
+def _top_linear(config: RobotConfig) -> float:
+    return min(config.max_linear_mps, config.max_wheel_mps)
+
+
+def _top_angular(config: RobotConfig) -> float:
+    return min(config.max_angular_radps, 2 * config.max_wheel_mps / config.wheel_separation_m)
+
+
+# -- the command ----------------------------------------------------------------------------
+
+
+def drive(
+    linear: Annotated[
+        float | None,
+        typer.Option(
+            "--linear",
+            help="Forward speed, m/s (negative: backward). With --distance or --teleop: "
+            f"the speed, its sign ignored (default {DEFAULT_LINEAR_MPS:g}).",
+            show_default=False,
+        ),
+    ] = None,
+    angular: Annotated[
+        float | None,
+        typer.Option(
+            "--angular",
+            help="Yaw rate, rad/s counter-clockwise (negative: clockwise). With --turn or "
+            f"--teleop: the rate, its sign ignored (default {DEFAULT_ANGULAR_RADPS:g}).",
+            show_default=False,
+        ),
+    ] = None,
+    duration: Annotated[
+        float | None,
+        typer.Option(
+            "--duration",
+            help=f"How long to hold --linear/--angular, s (default {DEFAULT_DURATION_S:g}, "
+            f"at most {MAX_DURATION_S:g}).",
+            show_default=False,
+        ),
+    ] = None,
+    distance: Annotated[
+        float | None,
+        typer.Option(
+            "--distance",
+            help="Drive this far straight by odometry, m (negative: backward), and stop there.",
+            show_default=False,
+        ),
+    ] = None,
+    turn: Annotated[
+        float | None,
+        typer.Option(
+            "--turn",
+            help="Turn on the spot this far by odometry, degrees (positive: "
+            "counter-clockwise), and stop there.",
+            show_default=False,
+        ),
+    ] = None,
+    teleop: Annotated[
+        bool,
+        typer.Option(
+            "--teleop",
+            help="Drive with the keyboard: arrows or WASD, space stops, + and - change the "
+            "speed, q quits.",
+        ),
+    ] = False,
+    port: PortOption = None,
+    yes: YesOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Drive for a time, a distance or a turn, stop, and print what the odometry measured.
+
+    --linear/--angular are held for --duration (re-sent faster than the motion watchdog),
+    then the robot stops and the stop is confirmed by the wheel counts. --distance and
+    --turn drive by odometry, slow down near the goal and fail (exit 1) if it is not
+    reached in time. --teleop drives from the keyboard: each key press drives for the
+    watchdog time, so releasing the key stops the robot. Speeds past the Robot's limits
+    are refused. On a real robot it asks first (--yes skips that); on sim:// it does not.
+
+    Examples:
+
+    ohmni drive --linear 0.3 --duration 2 --port sim://
+
+    ohmni drive --distance 0.5 --json --port sim://
+
+    ohmni drive --turn -90 --angular 0.5 --port /dev/ttyUSB0 --yes
+
+    ohmni drive --teleop --port sim://
+    """
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
+
+    try:
+        config = RobotConfig.load()
+    except OhmniError as exc:
+        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(1) from exc
+    plan = _plan(
+        config,
+        linear=linear,
+        angular=angular,
+        duration=duration,
+        distance=distance,
+        turn=turn,
+        teleop=teleop,
+        as_json=as_json,
+    )
+    stdin_fd: int | None = None
+    if plan.mode == "teleop":
+        stdin_fd = _terminal_fd()
+    try:
+        url = resolve_port(port)
+    except OhmniError as exc:
+        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+        raise typer.Exit(1) from exc
+    what = {
+        "duration": "ohmni drive",
+        "distance": "ohmni drive --distance",
+        "turn": "ohmni drive --turn",
+        "teleop": "ohmni drive --teleop",
+    }[plan.mode]
+    confirm_motion(url, what, yes=yes)
+    watch = _Warnings()
+
+    def interrupted() -> None:
+        if watch.stop is None and not watch.unconfirmed:
+            _err.print("interrupted: the wheel stop was confirmed on the way out")
+
+    if stdin_fd is not None:
+        fd = stdin_fd
+        with _raw_terminal(fd):
+            summary = run(
+                lambda: _with_robot(
+                    url, watch, lambda robot, watch: _teleop(robot, watch, plan, fd, url)
+                ),
+                on_interrupt=interrupted,
+            )
+        _print_result(summary, teleop=True)
+        return
+    result = run(
+        lambda: _with_robot(url, watch, lambda robot, _watch: _timed_or_goal(robot, plan, as_json)),
+        on_interrupt=interrupted,
+    )
+    if as_json:
+        emit_json({"port": url, **result})
+    else:
+        _print_result(result, teleop=False)
+
+
+def _terminal_fd() -> int:
+    """stdin's descriptor for --teleop.
+
+    Raises:
+        typer.BadParameter: stdin is not a terminal, or there are no POSIX terminals.
+    """
+    try:
+        import termios  # noqa: F401, PLC0415  # POSIX only
+    except ImportError:
+        raise typer.BadParameter("--teleop needs a POSIX terminal (termios)") from None
+    try:
+        fd = sys.stdin.fileno()
+        tty = os.isatty(fd)
+    except (AttributeError, OSError, ValueError):
+        tty = False
+    if not tty:
+        raise typer.BadParameter(
+            "--teleop reads keys from a terminal, and stdin is not one: run it in a terminal"
+        )
+    return fd
+
+
+@contextmanager
+def _raw_terminal(fd: int) -> Iterator[None]:
+    """Keys one at a time, unechoed, Ctrl-C as a key; the output processing stays on (so
+    a newline still returns the carriage). Restored on any exit."""
+    import termios  # noqa: PLC0415  # POSIX only, checked by _terminal_fd
+
+    saved = termios.tcgetattr(fd)
+    mode = termios.tcgetattr(fd)
+    mode[0] &= ~(termios.BRKINT | termios.ICRNL | termios.INPCK | termios.ISTRIP | termios.IXON)
+    mode[3] &= ~(termios.ECHO | termios.ICANON | termios.IEXTEN | termios.ISIG)
+    mode[6][termios.VMIN] = 1
+    mode[6][termios.VTIME] = 0
+    termios.tcsetattr(fd, termios.TCSAFLUSH, mode)
+    try:
+        yield
+    finally:
+        # TCSAFLUSH: the key repeats still queued do not spill into the shell.
+        termios.tcsetattr(fd, termios.TCSAFLUSH, saved)
+
+
+# -- the Robot ------------------------------------------------------------------------------
+
+
+class _Warnings(logging.Handler):
+    """The Robot's warnings while the command runs: a stop it could not confirm on
+    closing is kept (it is raised or reported once, not also logged), the rest shown."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.stop: StopNotConfirmedError | None = None
+        self.unconfirmed = False  # the stop on closing failed another way (a link error)
+        self.show: Callable[[str], None] = self._print
+
+    @staticmethod
+    def _print(text: str) -> None:
+        _err.print(f"[yellow]robot: {escape(text)}[/yellow]", soft_wrap=True)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        args = record.args if isinstance(record.args, tuple) else ()
+        for arg in args:
+            if isinstance(arg, StopNotConfirmedError):
+                self.stop = arg
+                return
+        message = record.getMessage()
+        if message.startswith("closing: stop not confirmed"):
+            self.unconfirmed = True
+        self.show(message)
+
+
+async def _with_robot(
+    port: str, watch: _Warnings, body: Callable[[Robot, _Warnings], Awaitable[T]]
+) -> T:
+    """Open the Robot, check it can drive, run ``body``; the Robot stops on the way out.
+
+    Raises:
+        OhmniError: What went wrong; a stop not confirmed on the way out after another
+            error is printed first (the robot may be moving).
+    """
+    logger = logging.getLogger(_LOGGER)
+    logger.addHandler(watch)
+    try:
+        async with common.open_robot(port) as robot:
+            await _ready(robot)
+            return await body(robot, watch)
+    except OhmniError as exc:
+        if watch.stop is not None and watch.stop is not exc:
+            _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+            raise watch.stop from exc
+        raise
+    except BaseException:
+        # Ctrl-C or a cancellation: still say it if the stop could not be confirmed.
+        if watch.stop is not None:
+            _err.print(f"[bold red]{escape(str(watch.stop))}[/bold red]", soft_wrap=True)
+        raise
+    finally:
+        logger.removeHandler(watch)
+
+
+async def _ready(robot: Robot) -> None:
+    """Both drive boards answer and their counts come in.
+
+    Raises:
+        StateError: A drive board is silent, or no wheel counts arrive.
+    """
+    from ohmni_tb.protocol.devices import DeviceId  # noqa: PLC0415
+
+    present = robot.state.present
+    silent = [int(sid) for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE) if sid not in present]
+    if silent:
+        boards = " and ".join(map(str, silent))
+        raise StateError(f"drive board {boards} does not answer: the robot cannot drive")
+    if robot.latest("wheel_odom") is not None:
+        return
+    try:
+        async with asyncio.timeout(_FIRST_SAMPLE_S), robot.subscribe("wheel_odom") as odom:
+            async for _ in odom:
+                return
+    except TimeoutError:
+        pass
+    raise StateError(f"no wheel counts within {_FIRST_SAMPLE_S:g} s: the robot cannot drive")
+
+
+def _command_period(robot: Robot) -> float:
+    watchdog = robot.config.watchdog_s
+    return COMMAND_PERIOD_S if watchdog <= 0 else min(COMMAND_PERIOD_S, watchdog / 3)
+
+
+@dataclass(frozen=True, slots=True)
+class _Snapshot:
+    """Odometry and wheel travel at one control tick, and the truth on sim://."""
+
+    stamp_s: float
+    x_m: float
+    y_m: float
+    heading_rad: float
+    travel_m: float  # the mean of both wheels' travel since open, forward positive
+    truth: tuple[float, float, float] | None
+
+    @staticmethod
+    def take(robot: Robot) -> _Snapshot:
+        odom = robot.latest("wheel_odom")
+        enc = robot.latest("wheel_encoder")
+        if odom is None or enc is None:
+            raise StateError("no odometry yet")
+        return _Snapshot.of(robot, odom, enc)
+
+    @staticmethod
+    def of(robot: Robot, odom: WheelOdomSample, enc: WheelEncoderSample) -> _Snapshot:
+        truth = None
+        if robot.sim is not None:
+            pose = robot.sim.pose
+            truth = (float(pose.x), float(pose.y), float(pose.yaw))
+        return _Snapshot(
+            odom.stamp_s,
+            odom.x_m,
+            odom.y_m,
+            odom.heading_rad,
+            (enc.left_m + enc.right_m) / 2,
+            truth,
+        )
+
+
+def _relative(
+    start: tuple[float, float, float], end: tuple[float, float, float]
+) -> dict[str, float]:
+    """``end`` in the frame of ``start``: x forward, y left, yaw the heading change wrapped."""
+    x0, y0, h0 = start
+    dx, dy = end[0] - x0, end[1] - y0
+    turned = end[2] - h0
+    return {
+        "x_m": round(math.cos(h0) * dx + math.sin(h0) * dy, 4),
+        "y_m": round(-math.sin(h0) * dx + math.cos(h0) * dy, 4),
+        "yaw_deg": round(math.degrees(math.atan2(math.sin(turned), math.cos(turned))), 2),
+    }
+
+
+def _measured(start: _Snapshot, end: _Snapshot, first_command_s: float) -> dict[str, Any]:
+    """What the odometry measured between two snapshots, for the report."""
+    turned = end.heading_rad - start.heading_rad
+    travelled = end.travel_m - start.travel_m
+    elapsed = max(end.stamp_s - first_command_s, 1e-9)
+    truth = None
+    if start.truth is not None and end.truth is not None:
+        truth = _relative(start.truth, end.truth)
+        truth["heading_change_deg"] = round(math.degrees(end.truth[2] - start.truth[2]), 2)
+    return {
+        "distance_m": round(travelled, 4),
+        "heading_change_deg": round(math.degrees(turned), 2),
+        "heading_change_rad": round(turned, 5),
+        "pose": _relative(
+            (start.x_m, start.y_m, start.heading_rad), (end.x_m, end.y_m, end.heading_rad)
+        ),
+        "elapsed_s": round(elapsed, 3),
+        "average_linear_mps": round(travelled / elapsed, 4),
+        "average_angular_radps": round(turned / elapsed, 4),
+        "truth": truth,
+    }
+
+
+async def _stopped(robot: Robot) -> dict[str, Any]:
+    """Stop, confirm it, and say how long it took."""
+    robot.stop()
+    report = await common.confirm_stop(robot, STOP_CONFIRM_TIMEOUT_S)
+    return {"confirmed": True, "after_s": round(report.elapsed_s, 3), "samples": report.reads}
+
+
+# -- timed and goal drives ------------------------------------------------------------------
+
+
+async def _timed_or_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
+    if plan.mode == "duration":
+        return await _timed(robot, plan, quiet)
+    return await _to_goal(robot, plan, quiet)
+
+
+async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
+    loop = asyncio.get_running_loop()
+    period = _command_period(robot)
+    if not quiet:
+        console.print(
+            f"drive: {plan.linear_mps:+.2f} m/s, {plan.angular_radps:+.2f} rad/s for "
+            f"{plan.duration_s:g} s (drive() re-sent every {period:g} s), then stop",
+            highlight=False,
+            soft_wrap=True,
+        )
+    start = _Snapshot.take(robot)
+    first = loop.time()
+    try:
+        end = first + plan.duration_s
+        while True:
+            robot.drive(plan.linear_mps, plan.angular_radps)
+            left = end - loop.time()
+            if left <= 0:
+                break
+            await asyncio.sleep(min(period, left))
+    finally:
+        # Whatever happened above, Ctrl-C included: the target goes to zero now.
+        robot.stop()
+    stop = await _stopped(robot)
+    return {
+        "mode": "duration",
+        "command": {
+            "linear_mps": plan.linear_mps,
+            "angular_radps": plan.angular_radps,
+            "duration_s": plan.duration_s,
+        },
+        "goal": None,
+        **_measured(start, _Snapshot.take(robot), first),
+        "stop": stop,
+    }
+
+
+def _goal_timeout(goal: float, speed: float, accel: float, plan_decel: float) -> float:
+    """Time a goal drive may take: twice the plan's (cruise, ramp up, slow down), + 2 s."""
+    expected = abs(goal) / speed + speed / accel + 2 * speed / plan_decel
+    return 2 * expected + 2.0
+
+
+async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
+    """Drive to ``plan.goal`` by odometry, slowing down on the braking curve near it.
+
+    Raises:
+        GoalNotReachedError: Not there within the timeout (the robot is stopped first).
+    """
+    config = robot.config
+    loop = asyncio.get_running_loop()
+    linear = plan.mode == "distance"
+    sign = 1.0 if plan.goal > 0 else -1.0
+    target = abs(plan.goal) if linear else math.radians(abs(plan.goal))
+    if linear:
+        top, floor = plan.linear_mps, MIN_GOAL_LINEAR_MPS
+        accel, decel = config.linear_accel_mps2, config.linear_decel_mps2
+        tolerance = _GOAL_TOLERANCE_M
+        goal_text = f"{plan.goal:+.3f} m at up to {top:.3g} m/s"
+    else:
+        top, floor = plan.angular_radps, MIN_GOAL_ANGULAR_RADPS
+        accel, decel = config.angular_accel_radps2, config.angular_decel_radps2
+        tolerance = _GOAL_TOLERANCE_RAD
+        goal_text = f"{plan.goal:+.1f}° at up to {top:.3g} rad/s"
+    plan_decel = decel * _PLAN_DECEL_SHARE
+    timeout_s = _goal_timeout(target, top, accel, plan_decel)
+    if not quiet:
+        console.print(
+            f"drive: {'straight' if linear else 'turn on the spot'} {goal_text} by odometry, "
+            f"slowing down near the goal (timeout {timeout_s:.1f} s)",
+            highlight=False,
+            soft_wrap=True,
+        )
+    start = _Snapshot.take(robot)
+    first = loop.time()
+    done = 0.0
+    reached = False
+    try:
+        async with asyncio.timeout(timeout_s), robot.subscribe("wheel_encoder", maxlen=1) as sub:
+            async for enc in sub:
+                odom = robot.latest("wheel_odom")
+                if odom is None:  # published with every wheel_encoder sample
+                    continue
+                if linear:
+                    done = sign * ((enc.left_m + enc.right_m) / 2 - start.travel_m)
+                    speed = sign * (enc.left_mps + enc.right_mps) / 2
+                else:
+                    done = sign * (odom.heading_rad - start.heading_rad)
+                    speed = sign * odom.angular_radps
+                # The wheels trail the command: they run on a little at the speed they have.
+                ahead = max(speed, 0.0)
+                if target - done - ahead * _STOP_LEAD_S <= tolerance:
+                    reached = True
+                    break
+                remaining = max(target - done - ahead * _PROFILE_LEAD_S, 0.0)
+                command = sign * max(floor, min(top, math.sqrt(2 * plan_decel * remaining)))
+                if linear:
+                    robot.drive(command, 0.0)
+                else:
+                    robot.drive(0.0, command)
+    except TimeoutError:
+        pass
+    finally:
+        robot.stop()
+    stop = await _stopped(robot)
+    end = _Snapshot.take(robot)
+    measured = _measured(start, end, first)
+    if not reached:
+        went = (
+            f"{measured['distance_m']:+.3f} m of {plan.goal:+.3f} m"
+            if linear
+            else f"{measured['heading_change_deg']:+.1f}° of {plan.goal:+.1f}°"
+        )
+        raise GoalNotReachedError(
+            f"the goal was not reached within {timeout_s:.1f} s: went {went} by odometry; "
+            "the robot is stopped"
+        )
+    if linear:
+        goal: dict[str, float] = {"distance_m": plan.goal}
+        error = {"error_m": round(measured["distance_m"] - plan.goal, 4)}
+    else:
+        goal = {"turn_deg": plan.goal}
+        error = {"error_deg": round(measured["heading_change_deg"] - plan.goal, 2)}
+    return {
+        "mode": plan.mode,
+        "command": {
+            "linear_mps": sign * top if linear else 0.0,
+            "angular_radps": 0.0 if linear else sign * top,
+            "timeout_s": round(timeout_s, 2),
+        },
+        "goal": {**goal, **error},
+        **measured,
+        "stop": stop,
+    }
+
+
+def _print_result(result: dict[str, Any], *, teleop: bool) -> None:
+    stop = result["stop"]
+    pose = result["pose"]
+    lines = [f"teleop: {result['keys']} key presses"] if teleop else []
+    lines += [
+        f"stop confirmed {stop['after_s']:.3f} s after the stop (both wheel counts held still, "
+        f"{stop['samples']} wheel_encoder samples)",
+    ]
+    goal = result.get("goal")
+    if goal is not None and "distance_m" in goal:
+        lines.append(
+            f"goal      {goal['distance_m']:+.3f} m, went {result['distance_m']:+.3f} m "
+            f"({goal['error_m'] * 1000:+.1f} mm)"
+        )
+    elif goal is not None:
+        lines.append(
+            f"goal      {goal['turn_deg']:+.1f}°, turned {result['heading_change_deg']:+.1f}° "
+            f"({goal['error_deg']:+.2f}°)"
+        )
+    lines += [
+        f"distance  {result['distance_m']:+.3f} m (mean wheel travel, forward positive)",
+        f"heading   {result['heading_change_deg']:+.1f}° ({result['heading_change_rad']:+.4f} rad)",
+        f"pose      x={pose['x_m']:+.3f} m  y={pose['y_m']:+.3f} m  yaw={pose['yaw_deg']:+.1f}° "
+        "(from the start)",
+        f"average   {result['average_linear_mps']:+.3f} m/s, "
+        f"{result['average_angular_radps']:+.3f} rad/s over {result['elapsed_s']:.2f} s "
+        f"({'from the first key' if teleop else 'from the first command'} to the stop)",
+    ]
+    truth = result.get("truth")
+    if truth is not None:
+        off_mm = math.hypot(truth["x_m"] - pose["x_m"], truth["y_m"] - pose["y_m"]) * 1000
+        lines.append(
+            f"truth     x={truth['x_m']:+.3f} m  y={truth['y_m']:+.3f} m  "
+            f"yaw={truth['yaw_deg']:+.1f}° (the simulator's; odometry {off_mm:.1f} mm off)"
+        )
+    for line in lines:
+        console.print(line, highlight=False, soft_wrap=True)
+
+
+# -- teleop ---------------------------------------------------------------------------------
+
+#: Key bytes → action. Arrows come as ESC [ A..D (or ESC O A..D in application mode).
+_KEYS: dict[str, str] = {
+    "w": "forward",
+    "W": "forward",
+    "s": "back",
+    "S": "back",
+    "a": "left",
+    "A": "left",
+    "d": "right",
+    "D": "right",
+    " ": "stop",
+    "+": "faster",
+    "=": "faster",
+    "-": "slower",
+    "_": "slower",
+    "q": "quit",
+    "Q": "quit",
+    "\x03": "quit",  # Ctrl-C
+    "\x04": "quit",  # Ctrl-D
+}
+_ARROWS = {"A": "forward", "B": "back", "C": "right", "D": "left"}
+
+
+class _KeyParser:
+    """Bytes from the terminal → actions; an escape sequence may come split.
+
+    Arrows are ``ESC [ A..D`` (``ESC [ 1;5 A`` with a modifier) or ``ESC O A..D``; any
+    other escape sequence is skipped whole, so its letters are not taken for keys.
+    """
+
+    def __init__(self) -> None:
+        self._pending = ""
+
+    def feed(self, data: bytes) -> list[str]:
+        text = self._pending + data.decode("latin-1")
+        self._pending = ""
+        actions: list[str] = []
+        i = 0
+        while i < len(text):
+            char = text[i]
+            if char != "\x1b":
+                if char in _KEYS:
+                    actions.append(_KEYS[char])
+                i += 1
+                continue
+            end = _sequence_end(text, i)
+            if end is None:
+                self._pending = text[i:]  # the rest of the sequence is still coming
+                break
+            final = text[end - 1]
+            if end - i >= 3 and final in _ARROWS:
+                actions.append(_ARROWS[final])
+            i = end
+        return actions
+
+    def flush(self) -> None:
+        """A lone Esc left pending: drop it."""
+        self._pending = ""
+
+
+def _sequence_end(text: str, start: int) -> int | None:
+    """Where the escape sequence at ``start`` ends (exclusive), ``None`` if cut short.
+
+    A lone Esc followed by another key is one character long.
+    """
+    if start + 1 >= len(text):
+        return None
+    kind = text[start + 1]
+    if kind == "O":  # SS3: one more character
+        return start + 3 if start + 2 < len(text) else None
+    if kind != "[":
+        return start + 1
+    for end in range(start + 2, len(text)):
+        if "@" <= text[end] <= "~":  # CSI: parameters, then a final byte
+            return end + 1
+    return None
+
+
+@dataclass
+class _Teleop:
+    """The keyboard's state: the key speeds and the command of the last key."""
+
+    linear_mps: float
+    angular_radps: float
+    top_linear_mps: float
+    top_angular_radps: float
+    hold_s: float
+    command: tuple[float, float] = (0.0, 0.0)
+    action: str = "stopped"
+    last_key_s: float = -math.inf
+    first_key_s: float | None = None
+    keys: int = 0
+    quit: bool = False
+    note: str = ""
+
+    def press(self, action: str, now: float, robot: Robot) -> None:
+        if action == "quit":
+            self.quit = True
+            return
+        if action in ("faster", "slower"):
+            factor = _SCALE_STEP if action == "faster" else 1 / _SCALE_STEP
+            self.linear_mps = min(self.top_linear_mps, max(0.01, self.linear_mps * factor))
+            self.angular_radps = min(self.top_angular_radps, max(0.05, self.angular_radps * factor))
+            return
+        if action == "stop":
+            robot.stop()
+            self.command, self.action, self.last_key_s = (0.0, 0.0), "stopped (space)", -math.inf
+            return
+        linear, angular = {
+            "forward": (self.linear_mps, 0.0),
+            "back": (-self.linear_mps, 0.0),
+            "left": (0.0, self.angular_radps),
+            "right": (0.0, -self.angular_radps),
+        }[action]
+        robot.drive(linear, angular)
+        self.command, self.action, self.last_key_s = (linear, angular), action, now
+        self.keys += 1
+        if self.first_key_s is None:
+            self.first_key_s = now
+
+    def decay(self, now: float, robot: Robot) -> None:
+        """No key within the hold time: the command is over (the watchdog stops it)."""
+        if self.command != (0.0, 0.0) and now - self.last_key_s > self.hold_s:
+            robot.stop()
+            self.command = (0.0, 0.0)
+            self.action = f"stopped (no key for {self.hold_s:g} s)"
+
+
+def _teleop_screen(robot: Robot, state: _Teleop, start: _Snapshot, port: str) -> Any:
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table.grid(padding=(0, 2))
+    table.add_column(style="bold")
+    table.add_column()
+    table.add_row("drive", "w/↑ forward  s/↓ back  a/← left  d/→ right  (hold the key)")
+    table.add_row("keys", "space stop  + faster  - slower  q or Ctrl-C quit")
+    table.add_row(
+        "speed", f"{state.linear_mps:.2f} m/s, {state.angular_radps:.2f} rad/s a key press"
+    )
+    linear, angular = state.command
+    table.add_row("command", f"{state.action}: {linear:+.2f} m/s, {angular:+.2f} rad/s")
+    odom = robot.latest("wheel_odom")
+    if odom is not None:
+        pose = _relative(
+            (start.x_m, start.y_m, start.heading_rad), (odom.x_m, odom.y_m, odom.heading_rad)
+        )
+        table.add_row(
+            "odometry",
+            f"x={pose['x_m']:+.3f} m  y={pose['y_m']:+.3f} m  yaw={pose['yaw_deg']:+.1f}°  "
+            f"{odom.linear_mps:+.2f} m/s  {odom.angular_radps:+.2f} rad/s",
+        )
+    state_sample = robot.state
+    flags = [
+        *state_sample.faults,
+        *(["watchdog tripped"] if state_sample.watchdog_tripped else []),
+    ]
+    robot_line = f"{port}, link {state_sample.link}" + (f", {', '.join(flags)}" if flags else "")
+    table.add_row("robot", escape(robot_line))
+    if state.note:
+        table.add_row("note", escape(state.note))
+    return table
+
+
+async def _teleop(
+    robot: Robot, watch: _Warnings, plan: _Plan, fd: int, port: str
+) -> dict[str, Any]:
+    from rich.live import Live  # noqa: PLC0415
+
+    config = robot.config
+    loop = asyncio.get_running_loop()
+    watchdog = config.watchdog_s
+    state = _Teleop(
+        linear_mps=min(plan.linear_mps, _top_linear(config)),
+        angular_radps=min(plan.angular_radps, _top_angular(config)),
+        top_linear_mps=_top_linear(config),
+        top_angular_radps=_top_angular(config),
+        hold_s=min(watchdog, _KEY_HOLD_S) if watchdog > 0 else _KEY_HOLD_S,
+    )
+    parser = _KeyParser()
+    failure: list[BaseException] = []
+    wake = asyncio.Event()
+
+    def readable() -> None:
+        try:
+            data = os.read(fd, 256)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:  # the terminal went away
+            state.quit = True
+        try:
+            for action in parser.feed(data):
+                state.press(action, loop.time(), robot)
+        except OhmniError as exc:  # an emergency stop latched, the robot closed
+            failure.append(exc)
+            state.quit = True
+        if state.quit:
+            wake.set()
+
+    def note(text: str) -> None:
+        state.note = text
+
+    shown = watch.show
+    watch.show = note
+    start = _Snapshot.take(robot)
+    loop.add_reader(fd, readable)
+    try:
+        with Live(
+            _teleop_screen(robot, state, start, port),
+            console=console,
+            auto_refresh=False,
+            redirect_stdout=False,
+            redirect_stderr=False,
+        ) as live:
+            while not state.quit:
+                try:
+                    async with asyncio.timeout(_REDRAW_S):
+                        await wake.wait()
+                except TimeoutError:
+                    parser.flush()
+                state.decay(loop.time(), robot)
+                live.update(_teleop_screen(robot, state, start, port), refresh=True)
+    finally:
+        loop.remove_reader(fd)
+        robot.stop()
+        watch.show = shown
+    if failure:
+        raise failure[0]
+    stop = await _stopped(robot)
+    first = state.first_key_s if state.first_key_s is not None else start.stamp_s
+    return {
+        "mode": "teleop",
+        "keys": state.keys,
+        "goal": None,
+        **_measured(start, _Snapshot.take(robot), first),
+        "stop": stop,
+    }

@@ -1,0 +1,282 @@
+"""``ohmni odom``: stream the wheel odometry; ``ohmni odom reset``.
+
+The odometry is integrated by the Robot in the process that opened the port, from the
+wheel counts it reads at 50 Hz. Without a daemon (planned) every ``ohmni`` command opens
+the port itself, so each one starts at the origin: ``odom reset`` sets the pose of its own
+Robot only, and shows it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import sys
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+
+from ohmni_tb.cli.common import JsonOption, PortOption, open_robot, parse_int, resolve_port, run
+from ohmni_tb.errors import OhmniError
+
+if TYPE_CHECKING:
+    from ohmni_tb.config import RobotConfig
+    from ohmni_tb.robot import WheelOdomSample
+
+__all__ = ["app"]
+
+#: Lines per second when --rate is not given.
+DEFAULT_RATE_HZ = 10.0
+MIN_RATE_HZ = 0.1
+#: The longest --duration: a week.
+MAX_DURATION_S = 7 * 24 * 3600.0
+MAX_COUNT = 10**9
+#: The first sample must come within this (the drive boards answer, or they do not).
+FIRST_SAMPLE_S = 2.0
+#: Largest --x / --y of a reset, metres.
+MAX_POSITION_M = 10_000.0
+
+_SCOPE = (
+    "odometry is integrated in the process that opened the port: without a daemon (one is "
+    "planned) this pose was this command's own, and the next ohmni command starts at the origin"
+)
+
+app = typer.Typer(
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+class OdomError(OhmniError):
+    """No odometry to show (exit code 1)."""
+
+
+@app.callback(invoke_without_command=True)
+def stream(
+    ctx: typer.Context,
+    rate: Annotated[
+        float,
+        typer.Option(
+            "--rate",
+            metavar="HZ",
+            help="Lines per second, 0.1 up to the wheel_odom stream's rate (wheel_hz, 50).",
+        ),
+    ] = DEFAULT_RATE_HZ,
+    duration: Annotated[
+        float | None,
+        typer.Option(
+            "--duration",
+            metavar="S",
+            help="Stop after this many seconds (at most a week).",
+            show_default=False,
+        ),
+    ] = None,
+    count: Annotated[
+        str | None,
+        typer.Option(
+            "--count",
+            metavar="N",
+            help="Stop after N lines (1..10^9). With --duration too: whichever comes first.",
+            show_default=False,
+        ),
+    ] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="JSON lines: one object per sample.")
+    ] = False,
+    port: PortOption = None,
+) -> None:
+    """Stream odometry lines: time, x, y, yaw, linear and angular speed.
+
+    Runs until Ctrl-C (exit 0), --duration or --count. One wheel_odom sample a line, at
+    --rate; --json prints one object a line with t_s (since the first line), x_m, y_m,
+    yaw_rad, linear_mps, angular_radps.
+
+    Odometry is integrated in the process that opened the port: without a daemon (one is
+    planned) every ohmni command starts at the origin, and `ohmni odom reset` resets the
+    pose of its own process only.
+
+    Examples: ohmni odom --port sim:// --count 5 ; ohmni odom --rate 50 --json --duration 10 ;
+    ohmni odom reset --x 1 --yaw 1.57 --port sim://
+    """
+    ctx.obj = {"port": port}
+    if ctx.invoked_subcommand is not None:
+        return
+    lines = None if count is None else parse_int(count, "--count", 1, MAX_COUNT)
+    if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_DURATION_S):
+        raise typer.BadParameter(
+            f"--duration={duration!r} is out of range: allowed >0..{MAX_DURATION_S:g} s"
+        )
+    if not math.isfinite(rate) or rate < MIN_RATE_HZ:
+        raise typer.BadParameter(f"--rate={rate!r} is out of range: allowed {MIN_RATE_HZ:g}..")
+    config = _load_config()
+    if rate > config.wheel_hz:
+        raise typer.BadParameter(
+            f"--rate={rate!r} is out of range: allowed {MIN_RATE_HZ:g}..{config.wheel_hz:g} Hz "
+            "(the wheel_odom stream's rate, wheel_hz)"
+        )
+    where = resolve_port(port)
+    try:
+        run(lambda: _stream(where, rate, duration, lines, as_json))
+    except typer.Exit as exc:
+        if exc.exit_code != 130:  # Ctrl-C: the lines so far were the point, exit 0
+            raise
+    except BrokenPipeError:  # `ohmni odom | head -3`: the reader is done
+        _quiet_stdout()
+
+
+def _load_config() -> RobotConfig:
+    """The settings (environment, config file); an invalid one is exit 1, one line."""
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
+
+    async def load() -> RobotConfig:
+        return RobotConfig.load()
+
+    return run(load)
+
+
+async def _stream(
+    port: str, rate_hz: float, duration_s: float | None, count: int | None, as_json: bool
+) -> int:
+    """Print samples at ``rate_hz`` until the duration or count; the lines printed."""
+    loop = asyncio.get_running_loop()
+    period_s = 1.0 / rate_hz
+    printed = 0
+    # A read-only command: the neck stays as it is on exit (no rest, no free).
+    async with open_robot(port, on_exit_neck="keep") as robot:
+        # A sample a little early still counts for its slot: stamps jitter by a few ms.
+        slack_s = 0.5 / robot.config.wheel_hz
+        start = loop.time()
+        end = None if duration_s is None else start + duration_s
+        first_t: float | None = None
+        next_due = -math.inf
+        async with robot.subscribe("wheel_odom", maxlen=64) as samples:
+            while count is None or printed < count:
+                until = end
+                if first_t is None:
+                    until = min(end or math.inf, start + FIRST_SAMPLE_S)
+                try:
+                    async with asyncio.timeout_at(until):
+                        sample = await anext(samples)
+                except TimeoutError:
+                    if first_t is None and (end is None or loop.time() < end):
+                        raise OdomError(
+                            f"no wheel_odom sample within {FIRST_SAMPLE_S:g} s: do the drive "
+                            "boards (ids 0 and 1) answer? (`ohmni info`)"
+                        ) from None
+                    break
+                except StopAsyncIteration:
+                    break
+                if sample.stamp_s < next_due - slack_s:
+                    continue
+                if first_t is None:
+                    first_t = sample.stamp_s
+                if sample.stamp_s - next_due > period_s:  # the first, or fell behind
+                    next_due = sample.stamp_s
+                next_due += period_s
+                _write(_line(sample, sample.stamp_s - first_t, as_json))
+                printed += 1
+    return printed
+
+
+def _row(sample: WheelOdomSample, t_s: float) -> dict[str, float]:
+    return {
+        "t_s": round(t_s, 4),
+        "x_m": round(sample.x_m, 5),
+        "y_m": round(sample.y_m, 5),
+        "yaw_rad": round(sample.yaw_rad, 5),
+        "linear_mps": round(sample.linear_mps, 4),
+        "angular_radps": round(sample.angular_radps, 4),
+    }
+
+
+def _line(sample: WheelOdomSample, t_s: float, as_json: bool) -> str:
+    row = _row(sample, t_s)
+    if as_json:
+        return json.dumps(row)
+    return (
+        f"t {row['t_s']:8.3f} s  x {row['x_m']:+8.3f} m  y {row['y_m']:+8.3f} m  "
+        f"yaw {row['yaw_rad']:+7.4f} rad ({math.degrees(sample.yaw_rad):+7.2f}°)  "
+        f"linear {row['linear_mps']:+6.3f} m/s  angular {row['angular_radps']:+7.4f} rad/s"
+    )
+
+
+def _write(line: str) -> None:
+    # A line at a time, flushed: a pipe's reader sees each sample as it comes.
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
+def _quiet_stdout() -> None:
+    """After a broken pipe, point stdout at /dev/null so the exit flush says nothing."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # not a real file (a test's runner)
+        pass
+
+
+@app.command()
+def reset(
+    ctx: typer.Context,
+    x: Annotated[float, typer.Option("--x", metavar="M", help="x of the new pose, metres.")] = 0.0,
+    y: Annotated[float, typer.Option("--y", metavar="M", help="y of the new pose, metres.")] = 0.0,
+    yaw: Annotated[
+        float,
+        typer.Option("--yaw", metavar="RAD", help="Heading of the new pose, radians (±2π)."),
+    ] = 0.0,
+    as_json: JsonOption = False,
+    port: PortOption = None,
+) -> None:
+    """Reset the odometry pose (default: the origin) and print it.
+
+    Odometry is integrated in the process that opened the port: without a daemon (one is
+    planned) this resets the pose of this command's own Robot only, and the next ohmni
+    command starts at the origin again. Useful to check the pose a reset gives.
+
+    Example: ohmni odom reset --x 1.5 --y -0.5 --yaw 1.5708 --port sim://
+    """
+    for name, value in (("--x", x), ("--y", y)):
+        if not (math.isfinite(value) and abs(value) <= MAX_POSITION_M):
+            raise typer.BadParameter(
+                f"{name}={value!r} is out of range: allowed "
+                f"-{MAX_POSITION_M:g}..{MAX_POSITION_M:g} m"
+            )
+    if not (math.isfinite(yaw) and abs(yaw) <= 2 * math.pi):
+        raise typer.BadParameter(
+            f"--yaw={yaw!r} is out of range: allowed -6.2832..6.2832 rad (±2π)"
+        )
+    parent = ctx.obj if isinstance(ctx.obj, dict) else {}
+    where = resolve_port(port or parent.get("port"))
+    pose = run(lambda: _reset(where, x, y, yaw))
+    if as_json:
+        sys.stdout.write(json.dumps(pose, indent=2) + "\n")
+        return
+    sys.stdout.write(
+        f"odometry reset: x {pose['x_m']:+.3f} m  y {pose['y_m']:+.3f} m  "
+        f"yaw {pose['yaw_rad']:+.4f} rad ({math.degrees(pose['yaw_rad']):+.2f}°)\n"
+        f"note: {_SCOPE}\n"
+    )
+
+
+async def _reset(port: str, x: float, y: float, yaw: float) -> dict[str, Any]:
+    loop = asyncio.get_running_loop()
+    async with (
+        open_robot(port, on_exit_neck="keep") as robot,
+        robot.subscribe("wheel_odom", maxlen=8) as samples,
+    ):
+        robot.reset_odometry(x, y, yaw)
+        after = loop.time()
+        try:
+            async with asyncio.timeout(FIRST_SAMPLE_S):
+                async for sample in samples:
+                    if sample.stamp_s >= after:
+                        row: dict[str, Any] = _row(sample, 0.0)
+                        del row["t_s"]
+                        return row
+        except TimeoutError:
+            pass
+    raise OdomError(
+        f"no wheel_odom sample within {FIRST_SAMPLE_S:g} s of the reset: do the drive "
+        "boards (ids 0 and 1) answer? (`ohmni info`)"
+    )

@@ -1,0 +1,679 @@
+"""``ohmni info``, ``ohmni ports``, ``ohmni light`` and ``ohmni pid``: small robot commands.
+
+``info`` and ``light`` open the :class:`~ohmni_tb.robot.Robot`; ``ports`` and ``pid``
+open no port at all: ``ports`` lists the machine's serial ports, and ``pid`` reads or
+writes the wheel PID gains in the config file, because the PID runs inside whichever
+process opens the port (``robot.get_pid()`` is the config's gains).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn
+
+import typer
+from rich.markup import escape
+
+from ohmni_tb.cli.common import (
+    JsonOption,
+    PortOption,
+    console,
+    emit_json,
+    open_robot,
+    parse_int,
+    resolve_port,
+    run,
+)
+
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
+
+__all__ = [
+    "PID_FIELDS",
+    "device_info",
+    "info",
+    "light",
+    "pid_app",
+    "ports",
+    "write_settings",
+]
+
+#: Read-only commands leave the neck as they found it (the default frees it on exit).
+READ_ONLY: Final[dict[str, Any]] = {"on_exit_neck": "keep"}
+#: The light ring's components: bytes, as :func:`ohmni_tb.protocol.core.set_light_ring`
+#: (and so ``Robot.light_ring``) checks them.
+LIGHT_MIN, LIGHT_MAX = 0, 0xFF
+#: ``ohmni pid set`` option → the RobotConfig field it writes.
+PID_FIELDS: Final[dict[str, str]] = {
+    "--kp": "pid_kp",
+    "--ki": "pid_ki",
+    "--kd": "pid_kd",
+    "--kff": "pid_kff",
+    "--ff-offset": "pid_ff_offset",
+}
+#: The firmware tag of a board: EEP 0xF1, length 0 (as ``Robot.info`` reads it).
+_TAG_ADDR = 0xF1
+
+
+# -- info -------------------------------------------------------------------------------
+
+
+async def device_info(robot: Robot) -> dict[str, Any]:
+    """``robot.info()`` for JSON: firmware tags (the worm neck's too), servos by role.
+
+    Returns:
+        ``firmware`` (``left_drive``, ``right_drive``, ``core``, ``worm_neck``: the tag or
+        ``None``), ``neck_kind``, ``servos`` (``sid``, ``role``, ``model``), ``present``,
+        ``absent``.
+    """
+    from ohmni_tb.errors import OhmniError  # noqa: PLC0415
+    from ohmni_tb.protocol import Memory  # noqa: PLC0415
+    from ohmni_tb.protocol.devices import DeviceId  # noqa: PLC0415
+
+    found = await robot.info()
+    firmware: dict[str, str | None] = {**found["firmware"], "worm_neck": None}
+    if robot.neck_kind == "worm":
+        # Robot.info() tags the drive and core boards; the worm neck's board has one too.
+        try:
+            reply = await robot.bus.read(DeviceId.WORM_NECK, _TAG_ADDR, 0, Memory.EEP)
+            firmware["worm_neck"] = reply.data.decode("ascii", errors="replace")
+        except OhmniError:
+            pass
+    roles = servo_roles(robot)
+    models: dict[int, str | None] = found["servos"]
+    return {
+        "firmware": firmware,
+        "neck_kind": found["neck"],
+        "servos": [
+            {"sid": sid, "role": roles.get(sid, f"sid{sid}"), "model": models[sid]}
+            for sid in sorted(models)
+        ],
+        "present": list(found["present"]),
+        "absent": list(found["absent"]),
+    }
+
+
+def servo_roles(robot: Robot) -> dict[int, str]:
+    """HerkuleX servo id → ``neck``, ``ext1`` or ``ext2`` (from the Robot's config)."""
+    roles = {sid: f"ext{n}" for n, sid in enumerate(robot.config.ext_servo_ids, 1)}
+    if robot.neck_kind == "herkulex":
+        roles[robot.config.neck_id] = "neck"
+    return roles
+
+
+def info(port: PortOption = None, as_json: JsonOption = False) -> None:
+    """Firmware tags of the boards, the HerkuleX servos' models and the neck kind.
+
+    Every expected device is asked; the ones that do not answer are listed too.
+
+    Example: ohmni info --port sim://?neck=worm
+    """
+
+    async def main() -> dict[str, Any]:
+        url = resolve_port(port)
+        async with open_robot(url, **READ_ONLY) as robot:
+            return {"port": url, **(await device_info(robot))}
+
+    found = run(main)
+    if as_json:
+        emit_json(found)
+        return
+    _print_info(found)
+
+
+def _print_info(found: Mapping[str, Any]) -> None:
+    from rich.table import Table  # noqa: PLC0415
+
+    from ohmni_tb.protocol.devices import DEVICE_MAP, device_name  # noqa: PLC0415
+
+    firmware: dict[str, str | None] = found["firmware"]
+    tag_of = {0: "left_drive", 1: "right_drive", 4: "worm_neck", 20: "core"}
+    servos = {row["sid"]: row for row in found["servos"]}
+    table = Table(title=f"devices on {escape(found['port'])}")
+    for column in ("sid", "name", "device", "answer"):
+        table.add_column(column)
+    for sid in sorted({*found["present"], *found["absent"]}):
+        entry = DEVICE_MAP.get(sid)
+        name = servos[sid]["role"] if sid in servos else device_name(sid)
+        if sid not in found["present"]:
+            answer = "[red]no answer[/red]"
+        elif sid in servos:
+            answer = escape(servos[sid]["model"] or "HerkuleX, model unread")
+        else:
+            tag = firmware.get(tag_of.get(sid, ""))
+            answer = "[dim]no firmware tag[/dim]" if tag is None else f"firmware {escape(tag)}"
+        table.add_row(str(sid), name, "" if entry is None else escape(entry.description), answer)
+    console.print(table)
+    console.print(f"neck: {found['neck_kind']}", highlight=False)
+
+
+# -- ports ------------------------------------------------------------------------------
+
+
+def ports(as_json: JsonOption = False) -> None:
+    """List the serial ports of this machine with their USB ids; mark the bus adapter.
+
+    The bus adapter is USB 0403:6015 (or the robot's /dev/usb/tty1-2.1): --port auto opens it.
+
+    No port is opened.
+
+    Example: ohmni ports --json
+    """
+    from ohmni_tb.transport import ports as port_list  # noqa: PLC0415  # pyserial: slow
+
+    found = port_list.list_ports()
+    if as_json:
+        emit_json([port.as_dict() for port in found])
+        return
+    vid, pid = port_list.BUS_USB_ID
+    adapter = f"USB {vid:04x}:{pid:04x}"
+    if not found:
+        console.print(
+            f"no serial ports found (the bus adapter is {adapter}): is it plugged in? "
+            "Try --port sim:// for the simulator",
+            highlight=False,
+        )
+        return
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title="serial ports")
+    for column in ("device", "usb id", "description", "serial number", ""):
+        table.add_column(column)
+    for port in found:
+        table.add_row(
+            escape(port.device),
+            port.usb_id or "-",
+            escape(port.description) or "-",
+            escape(port.serial_number or "-"),
+            "[bold green]← likely the bus[/bold green]" if port.likely_bus else "",
+        )
+    console.print(table)
+    if not any(port.likely_bus for port in found):
+        console.print(
+            f"none looks like the Ohmni bus adapter ({adapter}); pass --port PATH",
+            highlight=False,
+        )
+
+
+# -- light ------------------------------------------------------------------------------
+
+
+def light(
+    hue: Annotated[str, typer.Argument(help="Hue, 0..255.", show_default=False)],
+    saturation: Annotated[str, typer.Argument(help="Saturation, 0..255.", show_default=False)],
+    value: Annotated[str, typer.Argument(help="Value (brightness), 0..255.", show_default=False)],
+    port: PortOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Set the light ring's colour: hue, saturation and value, 0..255 each.
+
+    0 0 0 turns it off. The values are checked before the port is opened.
+
+    Example: ohmni light 120 255 128 --port sim://
+    """
+    h, s, v = (
+        parse_int(text, name, LIGHT_MIN, LIGHT_MAX)
+        for text, name in ((hue, "HUE"), (saturation, "SATURATION"), (value, "VALUE"))
+    )
+
+    async def main() -> str:
+        from ohmni_tb.errors import StateError  # noqa: PLC0415
+        from ohmni_tb.protocol.devices import DeviceId  # noqa: PLC0415
+
+        url = resolve_port(port)
+        async with open_robot(url, **READ_ONLY) as robot:
+            if DeviceId.CORE not in robot.state.present:
+                raise StateError(
+                    f"the core board (sid {int(DeviceId.CORE)}) does not answer: "
+                    "the light ring was not set"
+                )
+            await robot.light_ring(h, s, v)
+        return url
+
+    url = run(main)
+    if as_json:
+        emit_json({"port": url, "hue": h, "saturation": s, "value": v})
+        return
+    console.print(f"light ring ← hue {h}, saturation {s}, value {v}", highlight=False)
+
+
+# -- pid --------------------------------------------------------------------------------
+
+pid_app = typer.Typer(
+    help="The wheel PID gains: they live in the config file, read by every command that "
+    "opens the port (the PID runs in that process).",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+FileOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--file",
+        "-f",
+        help="The TOML config file. Default: the file the commands read ($OHMNI_CONFIG, "
+        "./ohmni.toml, $XDG_CONFIG_HOME/ohmni/ohmni.toml, the first that exists), else "
+        "the user's $XDG_CONFIG_HOME/ohmni/ohmni.toml.",
+        show_default=False,
+        dir_okay=False,
+    ),
+]
+
+
+#: What each gain is and allows, for --help and errors (a test checks them against
+#: RobotConfig's: importing the config here would load pydantic for every --help).
+GAINS: Final[dict[str, tuple[str, str]]] = {
+    "--kp": ("Proportional gain, PWM per m/s of error", "0..1000000 PWM/(m/s)"),
+    "--ki": ("Integral gain, PWM per m/s of error and second", "0..1000000 PWM/m"),
+    "--kd": ("Derivative gain on the measured speed, PWM per m/s²", "0..1000000 PWM/(m/s²)"),
+    "--kff": ("Velocity feed-forward, PWM per m/s of setpoint", "0..1000000 PWM/(m/s)"),
+    "--ff-offset": (
+        "PWM added toward a non-zero setpoint (the motors' dead band)",
+        "0..1000000 PWM",
+    ),
+}
+
+
+def _gain_option(flag: str) -> Any:
+    what, allowed = GAINS[flag]
+    return typer.Option(flag, help=f"{what}; allowed {allowed}.", show_default=False)
+
+
+def _default_file() -> Path:
+    """The config file ``RobotConfig.load()`` reads ($OHMNI_CONFIG even before it
+    exists), else the user's config file."""
+    from ohmni_tb.config import CONFIG_ENV, config_paths  # noqa: PLC0415
+
+    paths = config_paths()
+    if os.environ.get(CONFIG_ENV):
+        return paths[0]
+    return _loaded_file() or paths[-1]
+
+
+def _env_overrides(fields: list[str]) -> dict[str, str]:
+    """Settings among ``fields`` that an ``OHMNI_*`` variable sets: field → variable."""
+    from ohmni_tb.config import ENV_PREFIX  # noqa: PLC0415
+
+    found = {}
+    for key in os.environ:
+        name = key.lower().removeprefix(ENV_PREFIX.lower())
+        if key.lower().startswith(ENV_PREFIX.lower()) and name in fields:
+            found[name] = key
+    return found
+
+
+@pid_app.command("get")
+def pid_get(file: FileOption = None, as_json: JsonOption = False) -> None:
+    """Print the wheel PID gains in force: what a Robot opened now runs (robot.get_pid()).
+
+    From $OHMNI_PID_*, else the config file, else the defaults; each one's source is shown.
+
+    No port is opened.
+
+    Example: ohmni pid get --json
+    """
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    if file is not None and not file.is_file():
+        raise typer.BadParameter(f"--file={str(file)!r}: no such file")
+    path = file if file is not None else _loaded_file()
+    try:
+        config = RobotConfig.load(file)
+        in_file = _settings_in(path) if path is not None else {}
+    except ConfigError as exc:
+        _fail(str(exc))
+    gains = config.pid_gains()
+    env = _env_overrides(list(PID_FIELDS.values()))
+    rows = []
+    for flag, field in PID_FIELDS.items():
+        name = field.removeprefix("pid_")
+        if field in env:
+            source = f"${env[field]}"
+        elif field in in_file:
+            source = str(path)
+        else:
+            source = "default"
+        rows.append((flag, name, float(getattr(gains, name)), source))
+    if as_json:
+        emit_json(
+            {
+                "file": None if path is None else str(path),
+                "gains": {name: value for _, name, value, _ in rows},
+                "sources": {name: source for _, name, _, source in rows},
+            }
+        )
+        return
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title="wheel PID gains in force")
+    table.add_column("option")
+    table.add_column("gain")
+    table.add_column("value", justify="right")
+    table.add_column("from")
+    for flag, name, value, source in rows:
+        table.add_row(flag, name, f"{value:g}", escape(source))
+    console.print(table)
+    console.print(
+        f"config file: {escape(str(path)) if path else 'none (defaults and environment)'}",
+        highlight=False,
+    )
+
+
+def _loaded_file() -> Path | None:
+    """The file ``RobotConfig.load()`` reads, or ``None`` when there is none (or when
+    $OHMNI_CONFIG names a missing one, which it refuses)."""
+    from ohmni_tb.config import CONFIG_ENV, config_paths  # noqa: PLC0415
+
+    paths = config_paths()
+    if os.environ.get(CONFIG_ENV):
+        paths = paths[:1]
+    return next((path for path in paths if path.is_file()), None)
+
+
+@pid_app.command("set")
+def pid_set(
+    kp: Annotated[str | None, _gain_option("--kp")] = None,
+    ki: Annotated[str | None, _gain_option("--ki")] = None,
+    kd: Annotated[str | None, _gain_option("--kd")] = None,
+    kff: Annotated[str | None, _gain_option("--kff")] = None,
+    ff_offset: Annotated[str | None, _gain_option("--ff-offset")] = None,
+    file: FileOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Write wheel PID gains to the config file, for every later command to use.
+
+    Only the gains given change; the rest of the file stays as it is, comments too.
+
+    Every value is range-checked first. No port is opened: a Robot reads its gains when it opens.
+
+    Example: ohmni pid set --kp 650 --ki 300 --kd 0
+    """
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    given = {
+        flag: text
+        for flag, text in zip(PID_FIELDS, (kp, ki, kd, kff, ff_offset), strict=True)
+        if text is not None
+    }
+    if not given:
+        raise typer.BadParameter(
+            f"give at least one gain: {', '.join(PID_FIELDS)}", param_hint="'pid set'"
+        )
+    values: dict[str, float] = {}
+    for flag, text in given.items():
+        field = PID_FIELDS[flag]
+        number = _parse_number(text, flag)
+        try:
+            setting: dict[str, Any] = {field: number}
+            RobotConfig(**setting)
+        except ConfigError as exc:
+            lines = [line for line in str(exc).splitlines() if line.startswith(f"{field}=")]
+            if not lines:
+                _fail(str(exc))  # another setting (from the environment) is invalid
+            raise typer.BadParameter(f"{flag}: {lines[0].removesuffix(' (argument)')}") from None
+        values[field] = number
+    path = file if file is not None else _default_file()
+    try:
+        outcome = write_settings(path, values)
+    except ConfigError as exc:
+        _fail(str(exc))
+    read_by_default = _loaded_file()
+    env = _env_overrides(list(values))
+    if as_json:
+        emit_json(
+            {
+                "file": str(path),
+                "created": outcome.created,
+                "written": values,
+                "previous": outcome.previous,
+                "read_by_commands": read_by_default is not None
+                and read_by_default.resolve() == path.resolve(),
+                "overridden_by": env,
+            }
+        )
+        return
+    verb = "created" if outcome.created else "updated"
+    console.print(f"{verb} {escape(str(path))}:", highlight=False)
+    for field, number in values.items():
+        before = outcome.previous.get(field)
+        was = "not set before" if before is None else f"was {before!r}"
+        console.print(f"  {field} = {number!r}   ({was})", highlight=False)
+    if read_by_default is None or read_by_default.resolve() != path.resolve():
+        shown = "no file" if read_by_default is None else str(read_by_default)
+        console.print(
+            f"[yellow]note:[/yellow] the commands read {escape(shown)}, not this file: "
+            f"set OHMNI_CONFIG={escape(str(path))} to use it",
+            highlight=False,
+        )
+    for field, variable in env.items():
+        console.print(
+            f"[yellow]note:[/yellow] ${escape(variable)} is set and overrides {field} "
+            "from the file",
+            highlight=False,
+        )
+
+
+def _fail(message: str) -> NoReturn:
+    """Print ``message`` as an error line and exit with code 1."""
+    from rich.console import Console  # noqa: PLC0415
+
+    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
+    raise typer.Exit(1)
+
+
+def _parse_number(text: str, flag: str) -> float:
+    """A gain as typed: a finite number in ASCII digits (``0x..`` integers accepted).
+
+    Raises:
+        typer.BadParameter: Names the option, the text and what is allowed.
+    """
+    number: float | None = None
+    if text.isascii():
+        try:
+            number = float(text)
+        except ValueError:
+            try:
+                number = float(int(text, 0))
+            except (ValueError, OverflowError):
+                number = None
+    if number is None or not math.isfinite(number):
+        shown = repr(text) if len(text) <= 40 else f"{text[:20]!r}… ({len(text)} characters)"
+        raise typer.BadParameter(
+            f"{flag} must be a finite number, not {shown}: allowed {GAINS[flag][1]}"
+        )
+    return number + 0.0  # -0.0 is written as 0.0
+
+
+# -- the config file, edited line by line -------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class WriteOutcome:
+    """What :func:`write_settings` did.
+
+    Attributes:
+        created: The file did not exist before.
+        previous: Each written setting's value in the file before (``None``: not set).
+    """
+
+    created: bool
+    previous: dict[str, Any]
+
+
+_HEADER = re.compile(r"^\s*\[")
+
+
+def _key_line(key: str) -> re.Pattern[str]:
+    """A ``key = value`` line (bare or quoted key), with its trailing comment."""
+    names = "|".join((re.escape(key), f'"{re.escape(key)}"', f"'{re.escape(key)}'"))
+    return re.compile(
+        rf"^(?P<indent>[ \t]*)(?P<key>{names})(?P<eq>[ \t]*=[ \t]*)(?P<value>[^#\r\n]*?)"
+        rf"(?P<comment>[ \t]*#[^\r\n]*)?(?P<eol>\r?\n)?$"
+    )
+
+
+def _settings_in(path: Path) -> dict[str, Any]:
+    """The settings of a config file as :meth:`RobotConfig.load` merges them.
+
+    Raises:
+        ConfigError: It cannot be read or is not TOML, or ``[robot]`` is not a table.
+    """
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    try:
+        return _merged(tomllib.loads(_read(path)), path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def _read(path: Path) -> str:
+    """The file's text, line ends as they are."""
+    return path.read_bytes().decode("utf-8")
+
+
+def _merged(data: dict[str, Any], path: Path) -> dict[str, Any]:
+    """Top-level settings and the ``[robot]`` table's, merged (as the loader does)."""
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    merged = dict(data)
+    table = merged.pop("robot", None)
+    if table is None:
+        return merged
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: robot must be a [robot] table, not {table!r}")
+    for key, value in table.items():
+        if key in merged:
+            raise ConfigError(f"{path}: {key} is set both at top level and in [robot]")
+        merged[key] = value
+    return merged
+
+
+def write_settings(path: Path, values: Mapping[str, float]) -> WriteOutcome:
+    """Set top-level settings (numbers) in a TOML config file, keeping everything else.
+
+    A ``key = value`` line already there (at top level, or in the ``[robot]`` table) is
+    rewritten in place, keeping its comment; a new key goes after the last setting before
+    the first table (or at the end of ``[robot]`` when the file uses one). The result is
+    parsed again before it replaces the file: every other setting must read back the
+    same, and these the new values; otherwise nothing is written. A missing file (and its
+    directory) is created. The file is replaced atomically.
+
+    Raises:
+        ConfigError: The file cannot be read or written, is not valid TOML, or holds a
+            setting in a form this line editor does not change safely (the message says
+            which: set it by hand).
+    """
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    created = not path.exists()
+    if created:
+        text = "# ohmni settings (ohmni pid set wrote the pid_* gains)\n"
+        before: dict[str, Any] = {}
+    else:
+        if not path.is_file():
+            raise ConfigError(f"config file is not a file: {path}")
+        before = _settings_in(path)
+        text = _read(path)
+    lower = {key.lower(): key for key in before}
+    for key in values:
+        other = lower.get(key.lower())
+        if other is not None and other != key:
+            raise ConfigError(f"{path}: {other} is written in another case than {key}: fix it")
+    newline = "\r\n" if "\r\n" in text else "\n"
+    lines = text.splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines[-1] += newline
+    robot_table = _table_span(lines, "robot")
+    for key, number in values.items():
+        lines = _set_line(lines, key, repr(number), newline, robot_table)
+        robot_table = _table_span(lines, "robot")
+    result = "".join(lines)
+    _check_result(path, result, before, values)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        temporary.write_text(result, encoding="utf-8", newline="")
+        if not created:
+            os.chmod(temporary, path.stat().st_mode & 0o7777)
+        temporary.replace(path)
+    except OSError as exc:
+        temporary.unlink(missing_ok=True)
+        raise ConfigError(f"cannot write config file {path}: {exc}") from exc
+    return WriteOutcome(created, {key: before.get(key) for key in values})
+
+
+def _table_span(lines: list[str], name: str) -> tuple[int, int] | None:
+    """Lines ``[start, end)`` of the body of table ``[name]``, or ``None``."""
+    header = re.compile(rf"^\s*\[\s*{re.escape(name)}\s*\]\s*(#.*)?$")
+    for i, line in enumerate(lines):
+        if header.match(line.rstrip("\r\n")):
+            end = next((j for j in range(i + 1, len(lines)) if _HEADER.match(lines[j])), len(lines))
+            return i + 1, end
+    return None
+
+
+def _set_line(
+    lines: list[str],
+    key: str,
+    value: str,
+    newline: str,
+    robot_table: tuple[int, int] | None,
+) -> list[str]:
+    """``lines`` with ``key = value`` set at top level or in ``[robot]``."""
+    pattern = _key_line(key)
+    first_table = next((i for i, line in enumerate(lines) if _HEADER.match(line)), len(lines))
+    spans = [(0, first_table)]
+    if robot_table is not None:
+        spans.append(robot_table)
+    for start, end in spans:
+        for i in range(start, end):
+            match = pattern.match(lines[i])
+            if match is not None:
+                comment = match["comment"] or ""
+                eol = match["eol"] or ""
+                lines = list(lines)
+                lines[i] = f"{match['indent']}{match['key']}{match['eq']}{value}{comment}{eol}"
+                return lines
+    # A new key: after the last setting of [robot] if the file has one, else of the top.
+    start, end = robot_table if robot_table is not None else (0, first_table)
+    at = end
+    while at > start and not lines[at - 1].strip():
+        at -= 1
+    return [*lines[:at], f"{key} = {value}{newline}", *lines[at:]]
+
+
+def _check_result(
+    path: Path, text: str, before: Mapping[str, Any], values: Mapping[str, float]
+) -> None:
+    """Refuse an edit that would not read back as intended."""
+    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    try:
+        after = _merged(tomllib.loads(text), path)
+    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        keys = ", ".join(values)
+        raise ConfigError(
+            f"{path}: cannot set {keys} safely by editing lines ({exc}); nothing was "
+            "written: set them by hand"
+        ) from exc
+    expected = {**before, **values}
+    if after != expected:
+        changed = sorted(
+            key
+            for key in {*after, *expected}
+            if key not in after or key not in expected or after[key] != expected[key]
+        )
+        raise ConfigError(
+            f"{path}: cannot set {', '.join(values)} safely by editing lines (it would "
+            f"change {', '.join(changed)}); nothing was written: set them by hand"
+        )

@@ -1,0 +1,60 @@
+"""A user's shell session on one simulated robot: separate ``ohmni`` processes, one after
+another, against ``ohmni sim --pty``, which keeps the robot between them."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+from cli._helpers import can_open_pty, sim_on_pty
+
+pytestmark = pytest.mark.skipif(not can_open_pty(), reason="no pseudo-terminals here")
+
+
+def ohmni(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "COLUMNS": "200"}
+    env.pop("OHMNI_PORT", None)
+    return subprocess.run(
+        [sys.executable, "-m", "ohmni_tb", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+        check=False,
+    )
+
+
+def status(port: str) -> dict[str, Any]:
+    done = ohmni("status", "--port", port, "--json")
+    assert done.returncode == 0, done.stderr
+    doc: dict[str, Any] = json.loads(done.stdout)
+    return doc
+
+
+def test_drive_then_status_shows_the_counts_moved_then_the_neck_stays() -> None:
+    with sim_on_pty() as (port, _proc):
+        before = status(port)["wheels"]
+        drove = ohmni("drive", "--port", port, "--yes", "--distance", "0.3", "--json")
+        assert drove.returncode == 0, drove.stderr
+        went = json.loads(drove.stdout)
+        after = status(port)["wheels"]
+        # The boards kept their counts between processes: forward on both wheels (the
+        # right board counts mirrored), by about the distance the drive measured.
+        left = after["left_raw"] - before["left_raw"]
+        right = after["right_raw"] - before["right_raw"]
+        assert left > 0
+        assert right < 0
+        assert went["distance_m"] == pytest.approx(0.3, abs=0.02)
+
+        moved = ohmni("neck", "up", "--port", port, "--yes", "--json")
+        assert moved.returncode == 0, moved.stderr
+        target = json.loads(moved.stdout)
+        neck = status(port)["neck"]
+        assert neck is not None
+        # The neck stays where it was sent after the command exits.
+        assert abs(neck["position_raw"] - target["target_raw"]) <= 5
