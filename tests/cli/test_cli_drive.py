@@ -28,6 +28,7 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
+from cli._helpers import needs_pty, sim_on_pty
 from ohmni_tb.cli import app, common
 from ohmni_tb.cli import drive as drive_cli
 
@@ -508,34 +509,9 @@ def test_teleop_turns_with_the_arrows_and_ctrl_c_quits() -> None:
 # -- against `ohmni sim --pty` ----------------------------------------------------------------
 
 
-@contextmanager
-def simulator_on_pty() -> Iterator[str]:
-    """``ohmni sim --pty`` in its own process; yields the device path it prints."""
-    server = subprocess.Popen(
-        [sys.executable, "-m", "ohmni_tb", "sim", "--pty"],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        assert server.stdout is not None
-        ready, _, _ = select.select([server.stdout], [], [], 30)
-        assert ready, "ohmni sim --pty printed no path in 30 s"
-        yield server.stdout.readline().decode().strip()
-    finally:
-        server.send_signal(signal.SIGINT)
-        try:
-            server.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
-        for pipe in (server.stdin, server.stdout):
-            if pipe is not None:
-                pipe.close()
-
-
+@needs_pty
 def test_drive_over_a_pty_to_the_simulator_process() -> None:
-    with simulator_on_pty() as path:
+    with sim_on_pty() as (path, _):
         assert path.startswith("/dev/")
         # Not sim://: a real port to the command, so it needs --yes.
         code, out = invoke("--linear", "0.2", "--duration", "0.5", "--port", path, "--json")

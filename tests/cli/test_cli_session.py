@@ -58,3 +58,17 @@ def test_drive_then_status_shows_the_counts_moved_then_the_neck_stays() -> None:
         assert neck is not None
         # The neck stays where it was sent after the command exits.
         assert abs(neck["position_raw"] - target["target_raw"]) <= 5
+
+
+def test_info_light_and_odom_on_the_same_simulated_robot() -> None:
+    with sim_on_pty() as (port, _proc):
+        info = ohmni("info", "--port", port, "--json")
+        assert info.returncode == 0, info.stderr
+        assert json.loads(info.stdout)["neck_kind"] == "herkulex"
+        lit = ohmni("light", "20", "200", "100", "--port", port)
+        assert lit.returncode == 0, lit.stderr
+        lines = ohmni("odom", "--port", port, "--json", "--count", "3", "--rate", "20")
+        assert lines.returncode == 0, lines.stderr
+        rows = [json.loads(line) for line in lines.stdout.splitlines()]
+        assert len(rows) == 3
+        assert all(row["x_m"] == 0.0 for row in rows)  # standing: each process starts at 0
