@@ -115,7 +115,10 @@ def _root(
 
 @app.command()
 def version() -> None:
-    """Print the ohmni_tb version."""
+    """Print the ohmni_tb version.
+
+    Example: ohmni version
+    """
     typer.echo(__version__)
 
 

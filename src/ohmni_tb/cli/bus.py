@@ -38,7 +38,10 @@ from ohmni_tb.protocol.framing import HEADER_SIZE
 from ohmni_tb.protocol.timing import reply_size_range
 from ohmni_tb.transport import open_transport
 
-app = typer.Typer(help="Raw packets on the bus: send one request, see the decoded reply.")
+app = typer.Typer(
+    help="Raw packets on the bus: send one request, see the decoded reply; decode traffic."
+    "\n\nExample: ohmni bus send 20 EEP_READ F1 00 --port sim://"
+)
 
 #: The longest --duration: a week. Without one, a live monitor runs until Ctrl-C.
 _MAX_DURATION_S = 7 * 24 * 3600.0
@@ -147,6 +150,8 @@ def monitor(
 
     Use --capture for bytes logged from the real robot (see docs/hardware.md), or --port
     on an adapter that listens to the line. Ctrl-C ends a live session.
+
+    Example: ohmni bus monitor --capture robot.bin --json > decoded.ndjson
     """
     if (port is None) == (capture is None):
         raise typer.BadParameter("give exactly one of --port or --capture")

@@ -52,6 +52,8 @@ def demo(
 
     On the built-in simulator (the default, sim://) everything runs. On a real robot the
     wheels stay still unless --allow-motion is given: the robot would drive ~30 cm.
+
+    Example: ohmni demo
     """
     url = port or "sim://"
     motion = allow_motion or url.startswith("sim:")

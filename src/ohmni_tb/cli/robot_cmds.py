@@ -247,7 +247,7 @@ def light(
 
 pid_app = typer.Typer(
     help="The wheel PID gains: they live in the config file, read by every command that "
-    "opens the port (the PID runs in that process).",
+    "opens the port (the PID runs in that process).\n\nExample: ohmni pid set --kp 600 --ki 300",
     no_args_is_help=True,
     add_completion=False,
 )

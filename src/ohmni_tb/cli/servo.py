@@ -41,7 +41,10 @@ __all__ = ["app"]
 
 T = TypeVar("T")
 
-app = typer.Typer(help="HerkuleX servos: the neck (sid 3) and the external servos.")
+app = typer.Typer(
+    help="HerkuleX servos: the neck (sid 3) and the external servos."
+    "\n\nExample: ohmni servo scan --port sim://"
+)
 
 SidOption = Annotated[
     str, typer.Option("--sid", "-s", help="Servo id 0..253 (the neck is 3; 0x.. accepted).")
@@ -170,7 +173,10 @@ def scan(
     last: Annotated[str, typer.Option(help="Last id to try, 0..253 (0x.. accepted).")] = "0xFD",
     as_json: JsonOption = False,
 ) -> None:
-    """Find every HerkuleX servo on the bus (STAT to each id; boards are skipped)."""
+    """Find every HerkuleX servo on the bus (STAT to each id; boards are skipped).
+
+    Example: ohmni servo scan --first 3 --last 12 --port sim://
+    """
     low = parse_int(first, "--first", 0, _MAX_SID)
     high = parse_int(last, "--last", 0, _MAX_SID)
     if low > high:
@@ -240,7 +246,10 @@ def info(
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
 ) -> None:
-    """Every EEP and RAM register of a servo."""
+    """Every EEP and RAM register of a servo.
+
+    Example: ohmni servo info --sid 3 --port sim://
+    """
     sid_value = _sid(sid)
     values = _with_servo(port, sid_value, timeout, lambda s: s.info())
     if as_json:
@@ -259,7 +268,10 @@ def read(
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
 ) -> None:
-    """Read one register by name."""
+    """Read one register by name.
+
+    Example: ohmni servo read temperature --sid 3 --port sim://
+    """
     memory = Memory.EEP if eep else Memory.RAM
     reg = _register(register, EEP if eep else RAM)
     sid_value = _sid(sid)
@@ -281,7 +293,10 @@ def write(
     ] = False,
     timeout: TimeoutOption = 0.05,
 ) -> None:
-    """Write one RAM register (and its EEP copy with --persist). Range-checked first."""
+    """Write one RAM register (and its EEP copy with --persist). Range-checked first.
+
+    Example: ohmni servo write led_control 1 --sid 3 --port sim://
+    """
     reg = _register(register, RAM)
     if reg.read_only:
         raise typer.BadParameter(f"REGISTER: {reg.name} is read-only")
@@ -332,6 +347,8 @@ def move(
     """Move a servo to a position over a playtime (the neck's safe range is 280..650).
 
     Every argument is checked before the first byte goes out, --torque-on included.
+
+    Example: ohmni servo move 600 --sid 3 --playtime 0.5 --torque-on --port sim://
     """
     sid_value = _sid(sid)
     low, high = _position_range(sid_value, min_raw, max_raw)
@@ -362,7 +379,10 @@ def torque(
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
 ) -> None:
-    """Set the torque: free (limp), brake (holds, ignores moves) or on."""
+    """Set the torque: free (limp), brake (holds, ignores moves) or on.
+
+    Example: ohmni servo torque free --sid 3 --port sim://
+    """
     try:
         value = TorqueControl[mode.upper()]
     except KeyError:
@@ -379,7 +399,10 @@ def stat_cmd(
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
 ) -> None:
-    """The servo's status bytes, decoded."""
+    """The servo's status bytes, decoded.
+
+    Example: ohmni servo stat --sid 3 --port sim:// --json
+    """
     sid_value = _sid(sid)
     status = _with_servo(port, sid_value, timeout, lambda s: s.status())
     if as_json:
@@ -401,6 +424,8 @@ def clear(
     """Clear latched errors (RAM 48/49) and show the status after.
 
     A fault that released the torque leaves it off; --torque-on turns it on again.
+
+    Example: ohmni servo clear --sid 3 --torque-on --port sim://
     """
     sid_value = _sid(sid)
 

@@ -52,9 +52,11 @@ def sim(
     """Serve the simulated robot on a pseudo-terminal.
 
     Prints the device path alone on the first line of stdout; open it at 115200 8N1 from
-    any serial program (or `ohmni --port PATH ...`). Reads simple commands on stdin to
-    dock, cut the cable or silence a device. Ctrl-C, SIGTERM, SIGHUP, `quit` or the end of
-    stdin (Ctrl-D) stop it.
+    any serial program (or `ohmni status --port PATH`). Reads simple commands on stdin
+    to dock, cut the cable or silence a device. Ctrl-C, SIGTERM, SIGHUP, `quit` or the end
+    of stdin (Ctrl-D) stop it.
+
+    Example: ohmni sim --pty --url 'sim://?neck=worm&docked=1'
     """
     if not pty:
         raise typer.BadParameter("the simulator serves on a pseudo-terminal: run `ohmni sim --pty`")
