@@ -144,6 +144,8 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
         "average_angular_radps",
         "truth",
         "stop",
+        "link_losses",
+        "missed_counts",
     }
     assert result["port"] == "sim://"
     assert result["mode"] == "duration"
@@ -270,6 +272,88 @@ def test_ctrl_c_stops_the_drive_and_exits_130() -> None:
             proc.communicate()
     assert proc.returncode == 130
     assert out.decode().strip() == "interrupted: the wheel stop was confirmed on the way out"
+
+
+@pytest.mark.parametrize(
+    ("silent", "message"),
+    [
+        ("0", "error: drive board 0 does not answer: the robot cannot drive"),
+        ("0,1", "error: drive boards 0 and 1 do not answer: the robot cannot drive"),
+    ],
+)
+def test_silent_drive_boards_are_refused(truth: Truth, silent: str, message: str) -> None:
+    code, out = invoke("--linear", "0.1", "--port", f"sim://?silent={silent}")
+    assert code == 1, out
+    assert out.splitlines()[0] == message
+    assert truth.pose == (0.0, 0.0, 0.0)
+
+
+def test_ctrl_c_while_the_robot_opens_does_not_claim_a_confirmed_stop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    @asynccontextmanager
+    async def interrupted(port: str, **overrides: Any) -> AsyncIterator[Any]:
+        if port:  # Ctrl-C while the port opens
+            raise KeyboardInterrupt
+        yield None
+
+    monkeypatch.setattr(common, "open_robot", interrupted)
+    code, out = invoke("--linear", "0.1", *SIM)
+    assert code == 130
+    assert out.strip() == "interrupted while the robot was opening: nothing was driven"
+
+
+DRIVE_CMD = (sys.executable, "-m", "ohmni_tb", "drive")
+
+
+@needs_pty
+@pytest.mark.parametrize(
+    "signals",
+    [(signal.SIGINT, signal.SIGINT), (signal.SIGTERM,), (signal.SIGHUP,)],
+    ids=["ctrl-c-twice", "sigterm", "sighup"],
+)
+def test_signals_mid_drive_leave_the_robot_stopped(signals: tuple[int, ...]) -> None:
+    # The drive boards keep their last command (the simulator's too), and the Robot's
+    # watchdog dies with the process: a signal must end the drive through its stop.
+    with sim_on_pty() as (port, _sim):
+        proc = subprocess.Popen(
+            [*DRIVE_CMD, "--linear", "0.3", "--duration", "5", "--port", port, "--yes"],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env={**os.environ, **WIDE},
+        )
+        try:
+            assert proc.stdout is not None
+            ready, _, _ = select.select([proc.stdout], [], [], 30)
+            assert ready
+            assert proc.stdout.readline().startswith(b"drive: +0.30 m/s")
+            time.sleep(0.8)  # on its way
+            for signum in signals:
+                proc.send_signal(signum)
+                time.sleep(0.002)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        assert proc.returncode == 128 + signals[0], err
+        assert b"Traceback" not in err
+        assert b"the wheel stop was confirmed on the way out" in err
+        wheels = [
+            json.loads(
+                subprocess.run(
+                    [sys.executable, "-m", "ohmni_tb", "status", "--json", "--port", port],
+                    capture_output=True,
+                    check=True,
+                    timeout=60,
+                ).stdout
+            )["wheels"]
+            for _ in range(2)
+        ]
+        # Standing still, and the counts did not move between the two looks.
+        assert wheels[1]["left_mps"] == wheels[1]["right_mps"] == 0.0
+        assert wheels[0]["left_raw"] == wheels[1]["left_raw"]
 
 
 # -- arguments --------------------------------------------------------------------------------
@@ -530,3 +614,23 @@ def test_drive_over_a_pty_to_the_simulator_process() -> None:
         code, out = invoke("--turn", "30", "--port", path, "--yes", "--json")
         assert code == 0, out
         assert json.loads(out)["heading_change_deg"] == pytest.approx(30, abs=3)
+
+
+def test_the_teleop_summary_counts_one_key_press_in_the_singular(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    result = {
+        "keys": 1,
+        "goal": None,
+        "stop": {"confirmed": True, "after_s": 0.1, "samples": 5},
+        "distance_m": 0.0,
+        "heading_change_deg": 0.0,
+        "heading_change_rad": 0.0,
+        "pose": {"x_m": 0.0, "y_m": 0.0, "yaw_deg": 0.0},
+        "elapsed_s": 0.1,
+        "average_linear_mps": 0.0,
+        "average_angular_radps": 0.0,
+        "truth": None,
+    }
+    drive_cli._print_result(result, teleop=True)
+    assert capsys.readouterr().out.splitlines()[0] == "teleop: 1 key press"

@@ -3,12 +3,15 @@ refusals, the JSON schema, and a neck that stays where it was sent between comma
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Any
 
 import pytest
 
+from ohmni_tb.cli import neck as neck_cli
 from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read, ram_write
+from ohmni_tb.robot.devices import ServoHandle, WormNeckHandle
 from ohmni_tb.sim.robot import SimRobot
 from ohmni_tb.sim.servo import SimServo
 from ohmni_tb.sim.worm_neck import SimWormNeck
@@ -290,3 +293,44 @@ def test_the_neck_stays_where_it_was_sent_between_commands() -> None:
         rest = invoke("neck", "rest", *port, "--yes", "--json")
         assert rest.code == 0, rest.out
         assert json.loads(rest.stdout)["torque"] == "free"
+
+
+def _silence_neck_after_the_move(
+    monkeypatch: pytest.MonkeyPatch, opened: Opened, handle: Any, sid: int, after_s: float
+) -> None:
+    """The neck stops answering ``after_s`` after the command sends its move."""
+    real = handle.move
+
+    async def move(self: Any, *args: Any, **kwargs: Any) -> Any:
+        result = await real(self, *args, **kwargs)
+        faults = opened.transports[-1].line.faults  # type: ignore[attr-defined]
+        asyncio.get_running_loop().call_later(after_s, faults.silent.add, sid)
+        return result
+
+    monkeypatch.setattr(handle, "move", move)
+
+
+def test_a_herkulex_neck_silent_after_the_move_says_how_long_it_waited(
+    monkeypatch: pytest.MonkeyPatch, opened: Opened
+) -> None:
+    _silence_neck_after_the_move(monkeypatch, opened, ServoHandle, 3, 0.0)
+    result = invoke("neck", "--raw", "300", "--playtime", "0.2", *SIM)
+    assert result.code == 1, result.out
+    # It waited the playtime + 1.5 s (not the 1 s a single sample may take).
+    assert result.out.strip() == (
+        "error: no servo_neck sample came within 1.7 s: is the neck still answering?"
+    )
+
+
+def test_a_worm_neck_silent_mid_move_is_not_reported_as_still_moving_now(
+    monkeypatch: pytest.MonkeyPatch, opened: Opened
+) -> None:
+    monkeypatch.setattr(neck_cli, "WORM_TIMEOUT_S", 2.5)
+    _silence_neck_after_the_move(monkeypatch, opened, WormNeckHandle, 4, 0.3)
+    result = invoke("neck", "up", *WORM)
+    assert result.code == 1, result.out
+    text = words(result.out)
+    assert text.startswith("error: the worm-gear neck did not reach -127000 within 2.5 s: ")
+    # The last sample is over 2 s old: the neck stopped answering, it does not "read back".
+    assert "it stopped answering" in text
+    assert "it reads back" not in text

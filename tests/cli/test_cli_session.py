@@ -7,11 +7,12 @@ import json
 import os
 import subprocess
 import sys
+import time
 from typing import Any
 
 import pytest
 
-from cli._helpers import can_open_pty, sim_on_pty
+from cli._helpers import can_open_pty, operator, sim_on_pty
 
 pytestmark = pytest.mark.skipif(not can_open_pty(), reason="no pseudo-terminals here")
 
@@ -72,3 +73,36 @@ def test_info_light_and_odom_on_the_same_simulated_robot() -> None:
         rows = [json.loads(line) for line in lines.stdout.splitlines()]
         assert len(rows) == 3
         assert all(row["x_m"] == 0.0 for row in rows)  # standing: each process starts at 0
+
+
+def test_status_without_drive_boards_shows_the_rest() -> None:
+    # The command to find out what is missing must work when the drive boards are.
+    done = ohmni("status", "--port", "sim://?silent=0,1", "--json")
+    assert done.returncode == 0, done.stderr
+    doc = json.loads(done.stdout)
+    assert doc["absent"] == [0, 1]
+    assert doc["battery"] is not None
+    assert done.stderr == ""
+
+
+DRIVE_5S = ("--linear", "0.2", "--duration", "5", "--json")
+
+
+def test_a_drive_through_an_unplugged_cable_reports_the_missing_counts() -> None:
+    with sim_on_pty() as (port, proc):
+        drive = subprocess.Popen(
+            [sys.executable, "-m", "ohmni_tb", "drive", "--port", port, "--yes", *DRIVE_5S],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(2.5)  # opened (imports, discovery: about 1 s) and driving
+        operator(proc, "unplug")
+        time.sleep(1.0)
+        operator(proc, "plug")
+        out, err = drive.communicate(timeout=60)
+        assert drive.returncode == 0, err
+        result = json.loads(out)
+        # The simulator went silent for 1 s: ~50 control cycles without counts.
+        assert result["missed_counts"] >= 25
+        assert result["link_losses"] == 0  # the port stayed open

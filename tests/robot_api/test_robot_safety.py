@@ -13,13 +13,19 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import math
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
 import pytest
 
-from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
+from ohmni_tb.errors import (
+    InvalidArgumentError,
+    OutOfRangeError,
+    StateError,
+    StopNotConfirmedError,
+)
 from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read, ram_write
 from ohmni_tb.protocol import BROADCAST_ID, Command, Packet, PacketDecoder
 from ohmni_tb.protocol.connection import DEFAULT_PROBE_INTERVAL_S
@@ -984,3 +990,34 @@ def test_the_same_commands_with_good_input_do_reach_the_wire(url: str, act: Act)
 
     after = virtual(main)
     assert not all(idle_schedule(packet) for packet in after)
+
+
+def test_a_robot_whose_drive_boards_never_answered_closes_cleanly(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO, logger="ohmni_tb")
+
+    # `ohmni status` on a bus without drive boards must still show what does answer:
+    # nothing was driven, and no count could ever confirm a stop.
+    async def main() -> tuple[tuple[int, ...], BaseException | None, list[WheelPwm]]:
+        async with Robot.open("sim://?silent=0,1") as robot:
+            wire = Wire(robot)
+            await asyncio.sleep(0.5)
+            absent = robot.state.absent
+        return absent, robot.exit_error, [pwm for _, pwm in wire.wheel_commands()]
+
+    absent, exit_error, commands = virtual(main)
+    assert absent == (0, 1)
+    assert exit_error is None
+    assert commands[-1] == (0, 0)  # the zero command went out all the same
+    assert "drive boards never answered" in caplog.text
+
+
+def test_a_robot_whose_drive_boards_went_silent_still_raises_on_a_clean_exit() -> None:
+    async def main() -> None:
+        async with Robot.open("sim://") as robot:
+            await asyncio.sleep(0.2)
+            sim_line(robot).faults.silent = {int(DeviceId.LEFT_DRIVE), int(DeviceId.RIGHT_DRIVE)}
+
+    with pytest.raises(StopNotConfirmedError):
+        virtual(main)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import os
+import signal
 import sys
 import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
@@ -138,20 +140,95 @@ def run(
 ) -> T:
     """Run a coroutine for a command; our errors become one red line and exit code 1.
 
-    Ctrl-C exits with code 130, after ``on_interrupt`` (a command's summary) has run.
+    Ctrl-C (SIGINT), SIGTERM and SIGHUP cancel the command's task, so its cleanup runs:
+    the Robot stops the wheels and confirms it (the host's watchdog dies with the
+    process, and the drive boards keep their last command). Another signal meanwhile
+    does not cut that short (asyncio's own Ctrl-C handler would raise KeyboardInterrupt
+    in the middle of the event loop, abandoning the stop). The exit code is then 128 +
+    the signal's number (130 for Ctrl-C), after ``on_interrupt`` (a command's summary).
     """
+    signals = _Signals()
+    logger = logging.getLogger("ohmni_tb")
+    shown = _WarningLines(logger)
+    if not _options["debug"]:
+        logger.addHandler(shown)
     try:
-        return asyncio.run(main())
+        return asyncio.run(_guarded(main, signals))
     except OhmniError as exc:
         if _options["debug"]:
             traceback.print_exc()
         # One line whatever the terminal's width; the text is ours, not markup.
         _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
         raise typer.Exit(1) from exc
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError) as exc:
+        if isinstance(exc, asyncio.CancelledError) and signals.first is None:
+            raise
         if on_interrupt is not None:
-            on_interrupt()
-        raise typer.Exit(130) from None
+            with contextlib.suppress(OSError):  # SIGHUP: the terminal may be gone
+                on_interrupt()
+        raise typer.Exit(128 + (signals.first or signal.SIGINT)) from None
+    finally:
+        logger.removeHandler(shown)
+
+
+class _WarningLines(logging.Handler):
+    """The library's warnings during a command, one yellow line each on stderr (Python's
+    last-resort handler would print them bare). A command that installs its own handler
+    on the logger (``drive``, ``demo``) takes them over."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        super().__init__(logging.WARNING)
+        self._logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if any(h is not self for h in self._logger.handlers):
+            return
+        with contextlib.suppress(OSError):  # SIGHUP: the terminal may be gone
+            _err.print(f"[yellow]warning: {escape(record.getMessage())}[/yellow]", soft_wrap=True)
+
+
+#: Signals that end a command through its cleanup (see :func:`run`).
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class _Signals:
+    """The stop signals a command received: the first cancels its task."""
+
+    def __init__(self) -> None:
+        self.first: int | None = None
+        self.count = 0
+
+    def received(self, signum: int, task: asyncio.Task[Any] | None) -> None:
+        self.count += 1
+        if self.first is None:
+            self.first = signum
+            if task is not None:
+                task.cancel()
+        elif self.count == 2:
+            with contextlib.suppress(OSError):
+                _err.print(
+                    "interrupted again: finishing the cleanup first (stopping the wheels, "
+                    "confirming the stop); Ctrl-\\ kills without it",
+                    soft_wrap=True,
+                )
+
+
+async def _guarded(main: Callable[[], Coroutine[Any, Any, T]], signals: _Signals) -> T:
+    """``main()`` with the stop signals handled in the loop (see :func:`run`)."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    installed = []
+    try:
+        for signum in _STOP_SIGNALS:
+            try:
+                loop.add_signal_handler(signum, signals.received, signum, task)
+            except (NotImplementedError, RuntimeError, ValueError):  # no POSIX, no main thread
+                break
+            installed.append(signum)
+        return await main()
+    finally:
+        for signum in installed:
+            loop.remove_signal_handler(signum)
 
 
 async def open_transport(url: str) -> Transport:

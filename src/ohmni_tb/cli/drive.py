@@ -45,7 +45,7 @@ from ohmni_tb.errors import OhmniError, StateError, StopNotConfirmedError
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
-    from ohmni_tb.robot import Robot, WheelEncoderSample, WheelOdomSample
+    from ohmni_tb.robot import Robot, RobotStats, WheelEncoderSample, WheelOdomSample
 
 __all__ = ["GoalNotReachedError", "drive"]
 
@@ -375,7 +375,9 @@ def drive(
     watch = _Warnings()
 
     def interrupted() -> None:
-        if watch.stop is None and not watch.unconfirmed:
+        if not watch.opened:
+            _err.print("interrupted while the robot was opening: nothing was driven")
+        elif watch.stop is None and not watch.unconfirmed:
             _err.print("interrupted: the wheel stop was confirmed on the way out")
 
     if stdin_fd is not None:
@@ -452,6 +454,7 @@ class _Warnings(logging.Handler):
         super().__init__(logging.WARNING)
         self.stop: StopNotConfirmedError | None = None
         self.unconfirmed = False  # the stop on closing failed another way (a link error)
+        self.opened = False  # the Robot opened (and so closes with a confirmed stop)
         self.show: Callable[[str], None] = self._print
 
     @staticmethod
@@ -483,6 +486,7 @@ async def _with_robot(
     logger.addHandler(watch)
     try:
         async with common.open_robot(port) as robot:
+            watch.opened = True
             await _ready(robot)
             return await body(robot, watch)
     except OhmniError as exc:
@@ -510,8 +514,11 @@ async def _ready(robot: Robot) -> None:
     present = robot.state.present
     silent = [int(sid) for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE) if sid not in present]
     if silent:
-        boards = " and ".join(map(str, silent))
-        raise StateError(f"drive board {boards} does not answer: the robot cannot drive")
+        if len(silent) == 1:
+            which = f"drive board {silent[0]} does not answer"
+        else:
+            which = f"drive boards {' and '.join(map(str, silent))} do not answer"
+        raise StateError(f"{which}: the robot cannot drive")
     if robot.latest("wheel_odom") is not None:
         return
     try:
@@ -611,9 +618,23 @@ async def _stopped(robot: Robot) -> dict[str, Any]:
 
 
 async def _timed_or_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
+    before = robot.stats()
     if plan.mode == "duration":
-        return await _timed(robot, plan, quiet)
-    return await _to_goal(robot, plan, quiet)
+        result = await _timed(robot, plan, quiet)
+    else:
+        result = await _to_goal(robot, plan, quiet)
+    return {**result, **_losses(before, robot)}
+
+
+def _losses(before: RobotStats, robot: Robot) -> dict[str, int]:
+    """Feedback lost and regained during a drive (a cable, a silent board): the boards
+    kept their last command meanwhile, and the odometry missed that motion."""
+    after = robot.stats()
+    return {
+        "link_losses": after.bus.link_losses - before.bus.link_losses,
+        "missed_counts": after.streams["wheel_encoder"].missed
+        - before.streams["wheel_encoder"].missed,
+    }
 
 
 async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
@@ -755,7 +776,14 @@ async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
 def _print_result(result: dict[str, Any], *, teleop: bool) -> None:
     stop = result["stop"]
     pose = result["pose"]
-    lines = [f"teleop: {result['keys']} key presses"] if teleop else []
+    keys = result["keys"] if teleop else 0
+    lines = [f"teleop: {keys} key press{'' if keys == 1 else 'es'}"] if teleop else []
+    if result.get("link_losses") or result.get("missed_counts"):
+        lines.append(
+            f"[yellow]warning: during the drive the link was lost {result['link_losses']} "
+            f"time(s) and {result['missed_counts']} control cycles brought no wheel counts: "
+            "the odometry below may have missed motion[/yellow]"
+        )
     lines += [
         f"stop confirmed {stop['after_s']:.3f} s after the stop (both wheel counts held still, "
         f"{stop['samples']} wheel_encoder samples)",
@@ -999,6 +1027,7 @@ async def _teleop(
     shown = watch.show
     watch.show = note
     start = _Snapshot.take(robot)
+    before = robot.stats()
     loop.add_reader(fd, readable)
     try:
         with Live(
@@ -1030,4 +1059,5 @@ async def _teleop(
         "goal": None,
         **_measured(start, _Snapshot.take(robot), first),
         "stop": stop,
+        **_losses(before, robot),
     }

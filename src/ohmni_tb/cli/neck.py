@@ -437,10 +437,19 @@ async def _herkulex_arrival(
             break
     assert last is not None
     raise NeckError(
-        f"the HerkuleX neck did not reach {target} within {limit_s:g} s: it reads back "
-        f"{last.position_raw} raw, torque {last.torque.name.lower()}"
+        f"the HerkuleX neck did not reach {target} within {limit_s:g} s: "
+        f"{_read_back(last.stamp_s)} {last.position_raw} raw, torque "
+        f"{last.torque.name.lower()}"
         + (f", errors {last.status_error!r}" if last.status_error else "")
     )
+
+
+def _read_back(stamp_s: float) -> str:
+    """How a failure names the last sample: current, or stale (the neck went silent)."""
+    age = asyncio.get_running_loop().time() - stamp_s
+    if age <= SAMPLE_TIMEOUT_S:
+        return "it reads back"
+    return f"it stopped answering {age:.1f} s ago (no sample since), when it read back"
 
 
 async def _worm(robot: Robot, handle: WormNeckHandle, ask: _Ask) -> dict[str, Any]:
@@ -509,8 +518,9 @@ async def _worm_arrival(
             return sample
     assert last is not None
     raise NeckError(
-        f"the worm-gear neck did not reach {target} within {WORM_TIMEOUT_S:g} s: it reads "
-        f"back {last.position_raw}" + (" (still moving)" if last.moving else "")
+        f"the worm-gear neck did not reach {target} within {WORM_TIMEOUT_S:g} s: "
+        f"{_read_back(last.stamp_s)} {last.position_raw}"
+        + (" (still moving)" if last.moving else "")
     )
 
 
@@ -531,7 +541,8 @@ async def _next(
             with no ``default``).
     """
     loop = asyncio.get_running_loop()
-    until = loop.time() + SAMPLE_TIMEOUT_S if deadline is None else deadline
+    started = loop.time()
+    until = started + SAMPLE_TIMEOUT_S if deadline is None else deadline
     while True:
         try:
             async with asyncio.timeout_at(until):
@@ -540,7 +551,7 @@ async def _next(
             if default is not None:
                 return default
             raise NeckError(
-                f"no {stream} sample came within {SAMPLE_TIMEOUT_S:g} s: is the neck still "
+                f"no {stream} sample came within {until - started:.1f} s: is the neck still "
                 "answering?"
             ) from None
         except StopAsyncIteration:

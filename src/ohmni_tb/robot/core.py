@@ -374,7 +374,16 @@ class Robot:
             for periodic in self._periodic.values():
                 periodic.cancel_in_flight()
             try:
-                await stop_wheels(bus, timeout_s=self.config.stop_timeout_s)
+                if self._present.isdisjoint((DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)):
+                    # Neither drive board ever answered this Robot: it drove nothing, and
+                    # no count can confirm a stop (robot_state shows them absent). The
+                    # stop still goes (bus.aclose).
+                    _log.info(
+                        "closing: the drive boards never answered; the wheel stop is sent "
+                        "but cannot be confirmed"
+                    )
+                else:
+                    await stop_wheels(bus, timeout_s=self.config.stop_timeout_s)
             except StopNotConfirmedError as exc:
                 self.exit_error = exc
                 _log.warning("closing: %s", exc)
