@@ -22,6 +22,7 @@ from ohmni_tb.errors import OhmniError
 
 if TYPE_CHECKING:
     from ohmni_tb.bus import Bus, BusStats
+    from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot import Robot
     from ohmni_tb.safety import StopReport
     from ohmni_tb.transport import Transport
@@ -36,13 +37,16 @@ __all__ = [
     "console",
     "emit_json",
     "is_simulated",
+    "load_config",
     "open_bus",
     "open_robot",
     "parse_int",
+    "quiet_stdout",
     "resolve_port",
     "run",
     "set_debug",
     "stats_rows",
+    "write_line",
 ]
 
 T = TypeVar("T")
@@ -357,3 +361,37 @@ async def confirm_stop(robot: Robot, timeout_s: float) -> StopReport:
         else f"the wheel counts did not hold still ({reads} wheel_encoder samples)"
     )
     raise StopNotConfirmedError(sid=0, report=report(confirmed=False), reason=reason)
+
+
+def load_config() -> RobotConfig:
+    """The settings (environment, config file) for a command; an invalid one is exit 1,
+    one line (through :func:`run`)."""
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
+
+    async def load() -> RobotConfig:
+        return RobotConfig.load()
+
+    return run(load)
+
+
+def write_line(text: str) -> bool:
+    """Print one line on stdout now (flushed: a pipe's reader sees it at once); ``False``
+    when the reader has gone (``ohmni odom | head -3``), after pointing stdout at nothing
+    so the interpreter's last flush does not fail too."""
+    try:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+    except BrokenPipeError:
+        quiet_stdout()
+        return False
+    return True
+
+
+def quiet_stdout() -> None:
+    """Point stdout at /dev/null (its reader has gone): the exit flush then says nothing."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):  # a test runner's stdout
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        finally:
+            os.close(devnull)

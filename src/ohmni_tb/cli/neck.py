@@ -28,6 +28,7 @@ from ohmni_tb.cli.common import (
     confirm_motion,
     console,
     emit_json,
+    load_config,
     open_robot,
     parse_int,
     resolve_port,
@@ -151,7 +152,7 @@ def neck(
     ohmni neck --deg -10 --json ; ohmni neck rest ; ohmni neck --json (where it is).
     """
     ask = _check_arguments(position, raw, deg, playtime)
-    config = _load_config()
+    config = load_config()
     _check_against_config(ask, config)
     where = resolve_port(port)
     if ask.action != "read":
@@ -207,16 +208,6 @@ def _check_arguments(
     if deg is not None:
         return _Ask("deg", deg=deg, playtime_s=playtime)
     return _Ask(position or "read", playtime_s=playtime)
-
-
-def _load_config() -> RobotConfig:
-    """The settings (environment, config file); an invalid one is exit 1, one line."""
-    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
-
-    async def load() -> RobotConfig:
-        return RobotConfig.load()
-
-    return run(load)
 
 
 def _herkulex_range(config: RobotConfig) -> tuple[int, int]:

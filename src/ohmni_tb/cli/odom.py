@@ -11,17 +11,24 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
 import sys
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from ohmni_tb.cli.common import JsonOption, PortOption, open_robot, parse_int, resolve_port, run
+from ohmni_tb.cli.common import (
+    JsonOption,
+    PortOption,
+    load_config,
+    open_robot,
+    parse_int,
+    quiet_stdout,
+    resolve_port,
+    run,
+)
 from ohmni_tb.errors import OhmniError
 
 if TYPE_CHECKING:
-    from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot import WheelOdomSample
 
 __all__ = ["app"]
@@ -109,7 +116,7 @@ def stream(
         )
     if not math.isfinite(rate) or rate < MIN_RATE_HZ:
         raise typer.BadParameter(f"--rate={rate!r} is out of range: allowed {MIN_RATE_HZ:g}..")
-    config = _load_config()
+    config = load_config()
     if rate > config.wheel_hz:
         raise typer.BadParameter(
             f"--rate={rate!r} is out of range: allowed {MIN_RATE_HZ:g}..{config.wheel_hz:g} Hz "
@@ -122,17 +129,7 @@ def stream(
         if exc.exit_code != 130:  # Ctrl-C: the lines so far were the point, exit 0
             raise
     except BrokenPipeError:  # `ohmni odom | head -3`: the reader is done
-        _quiet_stdout()
-
-
-def _load_config() -> RobotConfig:
-    """The settings (environment, config file); an invalid one is exit 1, one line."""
-    from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
-
-    async def load() -> RobotConfig:
-        return RobotConfig.load()
-
-    return run(load)
+        quiet_stdout()
 
 
 async def _stream(
@@ -205,15 +202,6 @@ def _write(line: str) -> None:
     # A line at a time, flushed: a pipe's reader sees each sample as it comes.
     sys.stdout.write(line + "\n")
     sys.stdout.flush()
-
-
-def _quiet_stdout() -> None:
-    """After a broken pipe, point stdout at /dev/null so the exit flush says nothing."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError):  # not a real file (a test's runner)
-        pass
 
 
 @app.command()

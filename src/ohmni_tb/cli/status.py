@@ -13,8 +13,6 @@ import asyncio
 import contextlib
 import json
 import math
-import os
-import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Annotated, Any, Final
 
@@ -28,6 +26,7 @@ from ohmni_tb.cli.common import (
     open_robot,
     resolve_port,
     run,
+    write_line,
 )
 
 if TYPE_CHECKING:
@@ -145,7 +144,7 @@ async def _watch(robot: Robot, url: str, found: Mapping[str, Any], *, as_json: b
             while True:
                 frame = snapshot(robot, url, found)
                 if live is None:
-                    if not _write_line(json.dumps(frame)):
+                    if not write_line(json.dumps(frame)):
                         return  # the reader went away (`| head`): nothing more to say
                 else:
                     live.update(render(frame), refresh=True)
@@ -163,21 +162,6 @@ async def _watch(robot: Robot, url: str, found: Mapping[str, Any], *, as_json: b
                 task.uncancel()
     if not as_json and not console.is_terminal:
         console.line()  # Live ends a file's last frame without a newline
-
-
-def _write_line(text: str) -> bool:
-    """Print one line now; ``False`` when stdout's reader has gone (a closed pipe)."""
-    try:
-        sys.stdout.write(text + "\n")
-        sys.stdout.flush()
-    except BrokenPipeError:
-        # Point stdout at nothing, so the interpreter's last flush does not fail too.
-        with contextlib.suppress(OSError, ValueError):
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
-            os.close(devnull)
-        return False
-    return True
 
 
 # -- the snapshot (the JSON schema) ------------------------------------------------------
