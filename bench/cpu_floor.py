@@ -1,0 +1,95 @@
+"""The least CPU the Robot's schedule can cost: raw bytes on the same timers, over a pty.
+
+Run: ``python bench/cpu_floor.py`` (``--seconds`` per row, 15 by default).
+
+Against ``ohmni sim --pty`` in its own process, an asyncio loop writes the schedule's
+request bytes on the schedule's timers — every 20 ms both wheel-count reads and a wheel
+command, servos 3, 11, 12 at 30 Hz (staggered), the core board at 10 Hz — straight to
+the pty's descriptor, and reads what comes back from a readiness callback. No bus, no
+pairing, no Robot: the floor under ``bench/robot.py``'s CPU figure (which is the share
+of one core of the process, like these rows). Two rows: counting the reply bytes only,
+and feeding them to the project's :class:`~ohmni_tb.protocol.PacketDecoder`.
+
+The requests are not paced to the line, so some collide with replies on the simulated
+half-duplex line: the reply count is lower than the schedule's 200 a second. The figure
+is the loop's and the system calls' cost, which that does not change much.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import sys
+import time
+import tty
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _pty import simulator_on_pty
+from ohmni_tb.protocol import PacketDecoder, encode_packet, read_request
+from ohmni_tb.protocol.core import read_status
+from ohmni_tb.protocol.drive import read_count, wheel_command
+from schedule import machine
+
+CONTROL = b"".join(encode_packet(p) for p in (read_count(0), read_count(1), wheel_command(0, 0)))
+SERVOS = [encode_packet(read_request(sid, 48, 12)) for sid in (3, 11, 12)]
+CORE = encode_packet(read_status())
+
+
+async def floor(path: str, seconds: float, *, decode: bool) -> tuple[float, int]:
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    tty.setraw(fd)
+    loop = asyncio.get_running_loop()
+    decoder = PacketDecoder()
+    got = [0]
+
+    def readable() -> None:
+        data = os.read(fd, 4096)
+        got[0] += len(decoder.feed(data)) if decode else len(data)
+
+    loop.add_reader(fd, readable)
+    t0 = loop.time() + 0.05
+    stop = t0 + seconds
+
+    def every(period: float, frame: bytes, phase: float) -> None:
+        k = 0
+
+        def fire() -> None:
+            nonlocal k
+            os.write(fd, frame)
+            k += 1
+            due = t0 + phase + k * period
+            if due < stop:
+                loop.call_at(due, fire)
+
+        loop.call_at(t0 + phase, fire)
+
+    every(0.020, CONTROL, 0.0)
+    for i, frame in enumerate(SERVOS):
+        every(1 / 30, frame, 0.010 + i / 90)
+    every(0.100, CORE, 0.013)
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    await asyncio.sleep(seconds + 0.1)
+    share = (time.process_time() - cpu0) / (time.perf_counter() - wall0)
+    loop.remove_reader(fd)
+    os.close(fd)
+    return share, got[0]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=15.0)
+    args = parser.parse_args()
+    print(machine())
+    with simulator_on_pty() as path:
+        for decode in (False, True):
+            share, got = asyncio.run(floor(path, args.seconds, decode=decode))
+            what = f"{got / args.seconds:6.0f} replies/s" if decode else f"{got} bytes in"
+            label = "raw loop + decoder" if decode else "raw loop"
+            print(f"{label:<20} CPU {share:6.2%} of a core   ({what})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
