@@ -8,6 +8,7 @@ wrapping :func:`ohmni_tb.cli.common.open_robot`.
 
 from __future__ import annotations
 
+import asyncio
 import fcntl
 import json
 import math
@@ -634,3 +635,36 @@ def test_the_teleop_summary_counts_one_key_press_in_the_singular(
     }
     drive_cli._print_result(result, teleop=True)
     assert capsys.readouterr().out.splitlines()[0] == "teleop: 1 key press"
+
+
+def test_a_goal_drive_whose_counts_stop_coming_stops_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The motion watchdog off and the stale-feedback stop at its slowest (100 ticks, 2 s):
+    # the goal drive itself must not steer blind until its timeout when the counts stop.
+    real = common.open_robot
+    silenced: list[float] = []
+
+    @asynccontextmanager
+    async def blind(port: str, **overrides: Any) -> AsyncIterator[Any]:
+        overrides = {**overrides, "watchdog_s": 0.0, "stale_ticks": 100}
+        async with real(port, **overrides) as robot:
+            loop = asyncio.get_running_loop()
+
+            def silence() -> None:
+                silenced.append(loop.time())
+                robot.bus.transport.line.faults.silent = {0, 1}
+
+            loop.call_later(1.0, silence)
+            yield robot
+
+    monkeypatch.setattr(common, "open_robot", blind)
+    started = time.monotonic()
+    code, out = invoke("--distance", "5", "--linear", "0.3", *SIM)
+    assert silenced
+    assert code == 1
+    # It stopped steering half a second after the last counts and sent the stop; with
+    # the boards silent nothing can confirm it, and it says so in one error line.
+    [error] = [line for line in out.splitlines() if line.startswith("error:")]
+    assert "WHEEL STOP NOT CONFIRMED" in error
+    assert time.monotonic() - started < 10  # not the goal's timeout of 38.9 s

@@ -215,3 +215,11 @@ def test_reset_sets_and_prints_the_pose() -> None:
     # Its own process only: the next command starts at the origin again.
     (row,) = json_lines(*SIM, "--count", "1")
     assert (row["x_m"], row["y_m"], row["yaw_rad"]) == (0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("option", [("--count", "5"), ("--json",), ("--rate", "20")])
+def test_streaming_options_before_reset_are_refused_not_ignored(option: tuple[str, ...]) -> None:
+    result = invoke("odom", *option, "reset", "--port", "sim://")
+    assert result.code == 2
+    assert option[0] in words(result.out)
+    assert "apply to streaming" in words(result.out)

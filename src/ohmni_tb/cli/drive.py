@@ -491,7 +491,8 @@ async def _with_robot(
             return await body(robot, watch)
     except OhmniError as exc:
         if watch.stop is not None and watch.stop is not exc:
-            _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+            if not isinstance(exc, StopNotConfirmedError):  # else the same news, twice
+                _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
             raise watch.stop from exc
         raise
     except BaseException:
@@ -674,6 +675,10 @@ async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     }
 
 
+#: A goal drive stops when no wheel counts came for this long.
+_FEEDBACK_GAP_S = 0.5
+
+
 def _goal_timeout(goal: float, speed: float, accel: float, plan_decel: float) -> float:
     """Time a goal drive may take: twice the plan's (cruise, ramp up, slow down), + 2 s."""
     expected = abs(goal) / speed + speed / accel + 2 * speed / plan_decel
@@ -714,9 +719,20 @@ async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     first = loop.time()
     done = 0.0
     reached = False
+    starved = False
     try:
         async with asyncio.timeout(timeout_s), robot.subscribe("wheel_encoder", maxlen=1) as sub:
-            async for enc in sub:
+            while True:
+                try:
+                    # The command is only as good as the counts it steers by: with none
+                    # for a while (a cable, a silent board) stop, whatever the watchdog
+                    # and stale-feedback settings say.
+                    enc = await asyncio.wait_for(anext(sub), _FEEDBACK_GAP_S)
+                except TimeoutError:
+                    starved = True
+                    break
+                except StopAsyncIteration:
+                    break
                 odom = robot.latest("wheel_odom")
                 if odom is None:  # published with every wheel_encoder sample
                     continue
@@ -744,6 +760,11 @@ async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     stop = await _stopped(robot)
     end = _Snapshot.take(robot)
     measured = _measured(start, end, first)
+    if starved:
+        raise GoalNotReachedError(
+            f"no wheel counts for {_FEEDBACK_GAP_S:g} s on the way to the goal: the robot "
+            "is stopped (is a drive board silent? `ohmni status`)"
+        )
     if not reached:
         went = (
             f"{measured['distance_m']:+.3f} m of {plan.goal:+.3f} m"

@@ -108,6 +108,20 @@ def stream(
     """
     ctx.obj = {"port": port}
     if ctx.invoked_subcommand is not None:
+        given = [
+            name
+            for name, value, default in (
+                ("--rate", rate, DEFAULT_RATE_HZ),
+                ("--duration", duration, None),
+                ("--count", count, None),
+                ("--json", as_json, False),
+            )
+            if value != default
+        ]
+        if given:
+            raise typer.BadParameter(
+                f"{', '.join(given)} apply to streaming, not to `odom {ctx.invoked_subcommand}`"
+            )
         return
     lines = None if count is None else parse_int(count, "--count", 1, MAX_COUNT)
     if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_DURATION_S):
