@@ -352,17 +352,40 @@ def _words(text: str) -> str:
     return " ".join(text.split())
 
 
-def test_the_demo_says_loudly_and_does_not_drive_when_the_wheels_cannot_be_confirmed() -> None:
-    # The Robot finds no drive board; the demo does not drive, and when the Robot closes it
-    # cannot confirm the wheel stop: one bold line, exit 1.
+def test_the_demo_does_not_drive_when_no_drive_board_answers() -> None:
+    # The Robot finds no drive board: the demo says so and does not drive; the Robot,
+    # which never heard from them, sends the stop and has nothing to confirm it with.
     result = runner.invoke(app, ["demo", "--port", "sim://?silent=0,1"])
+    assert result.exit_code == 0, result.output
+    out = _words(result.stdout)
+    assert "faults: drive_absent:0, drive_absent:1" in out
+    assert "drive skipped: drive boards 0 and 1 do not answer" in out
+    assert "drive: forward" not in result.stdout
+    assert "Traceback" not in result.output
+
+
+def test_the_demo_says_loudly_when_the_drive_boards_go_silent_mid_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Boards that answered and then went silent may be driving: one bold line, exit 1.
+    from ohmni_tb.cli import demo as demo_cli
+    from ohmni_tb.sim.transport import SimTransport
+
+    real = demo_cli._drive
+
+    async def drive_then_silence(robot: Any) -> None:
+        await real(robot)
+        transport = robot.bus.transport
+        assert isinstance(transport, SimTransport)
+        transport.line.faults.silent = {0, 1}
+
+    monkeypatch.setattr(demo_cli, "_drive", drive_then_silence)
+    result = runner.invoke(app, ["demo", "--port", "sim://"])
     assert result.exit_code == 1, result.output
     err = _words(result.stderr)
     assert "WHEEL STOP NOT CONFIRMED, the robot may still be moving" in err
     assert err.count("NOT CONFIRMED") == 1  # one line, not a traceback
     assert "Traceback" not in result.output
-    assert "drive: forward" not in result.stdout
-    assert "drive skipped: drive boards 0 and 1 do not answer" in _words(result.stdout)
 
 
 def _lossy_demo(capsys: pytest.CaptureFixture[str]) -> str:

@@ -726,8 +726,10 @@ async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
                 try:
                     # The command is only as good as the counts it steers by: with none
                     # for a while (a cable, a silent board) stop, whatever the watchdog
-                    # and stale-feedback settings say.
-                    enc = await asyncio.wait_for(anext(sub), _FEEDBACK_GAP_S)
+                    # and stale-feedback settings say. (asyncio.timeout, not wait_for,
+                    # which on 3.11 can swallow a Ctrl-C arriving with a sample.)
+                    async with asyncio.timeout(_FEEDBACK_GAP_S):
+                        enc = await anext(sub)
                 except TimeoutError:
                     starved = True
                     break
