@@ -478,7 +478,10 @@ class Bus:
                     if left <= 0:
                         break
                     try:
-                        await asyncio.wait_for(asyncio.shield(self._progress()), left)
+                        # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
+                        # cancellation that arrives as the inner wait completes.
+                        async with asyncio.timeout(left):
+                            await asyncio.shield(self._progress())
                     except TimeoutError:
                         break
                     except asyncio.CancelledError as exc:

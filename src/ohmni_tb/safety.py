@@ -217,7 +217,10 @@ async def stop_wheels(
         # wire); a second cancellation cuts that short.
         done.set()
         try:
-            await asyncio.wait_for(asyncio.shield(repeater), _REPEATER_GRACE_S)
+            # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation
+            # that arrives as the repeater ends, and the caller would run on.
+            async with asyncio.timeout(_REPEATER_GRACE_S):
+                await asyncio.shield(repeater)
         except TimeoutError:
             repeater.cancel()
         except asyncio.CancelledError:
@@ -235,7 +238,8 @@ async def _repeat(
         # After a wait for the line, the next stop goes a full interval later, not at once.
         due = max(due + repeat_s, loop.time())
         try:
-            await asyncio.wait_for(done.wait(), due - loop.time())
+            async with asyncio.timeout(due - loop.time()):
+                await done.wait()
         except TimeoutError:
             pass
         else:
