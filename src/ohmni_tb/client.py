@@ -29,6 +29,8 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any, Final, Generic, Literal, TypeVar, overload
 
+from pydantic import ValidationError
+
 from ohmni_tb.daemon.protocol import (
     Call,
     ErrorMessage,
@@ -80,6 +82,8 @@ DEFAULT_TIMEOUT_S: Final = 5.0
 _MAX_FRAME_BYTES = 1024 * 1024
 
 _log = logging.getLogger("ohmni_tb.client")
+#: The protocol's field names as this API's.
+_OPTION = {"queue": "maxlen"}
 
 T = TypeVar("T")
 
@@ -219,10 +223,19 @@ class RobotClient:
         falls behind loses the oldest, counted in ``dropped``.
 
         Raises:
-            InvalidArgumentError: No such stream.
+            InvalidArgumentError: No such stream, or ``max_hz`` (above 0, at most 1000) or
+                ``maxlen`` (1..1024) out of range.
             StateError: This connection already has a subscription to it.
         """
         _check_topic(name)
+        try:
+            Subscribe(id=0, topic=name, max_hz=max_hz, queue=maxlen)
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{_OPTION.get(str(e['loc'][0]), e['loc'][0])}={e['input']!r}: {e['msg']}"
+                for e in exc.errors(include_url=False)
+            )
+            raise InvalidArgumentError(f"subscribe {name}: {problems}") from None
         if name in self._subscriptions:
             raise StateError(
                 f"already subscribed to {name!r} on this connection: close that subscription "
@@ -260,9 +273,9 @@ class RobotClient:
         if self._lost is not None:
             raise self._lost
         id = next(self._ids)
+        message: BaseModel = make(id)
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._pending[id] = future  # registered before sending: the reply cannot beat it
-        message: BaseModel = make(id)
         try:
             await self._ws.send(encode(message))
             async with asyncio.timeout(self._timeout_s):
