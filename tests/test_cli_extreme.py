@@ -38,8 +38,8 @@ runner = CliRunner()
 #: Wide enough that rich never wraps a message: "one line" means one line.
 WIDE = {"COLUMNS": "4000"}
 
-#: Parameters whose values are text, not numbers: names, URLs, paths, hex bytes.
-TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture", "file"})
+#: Parameters whose values are text, not numbers: names, URLs, paths, hex bytes, addresses.
+TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture", "file", "listen"})
 
 #: A valid invocation of each command that has numeric parameters (``--port sim://`` is
 #: added): parameter name -> value, True for a flag.

@@ -87,6 +87,20 @@ PUBLIC = {
         "ServoSample", "StreamStats", "Subscription", "TbcoreStatusSample",
         "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
     ],
+    "ohmni_tb.client": ["DEFAULT_TIMEOUT_S", "DEFAULT_URL", "ClientSubscription", "RobotClient"],
+    "ohmni_tb.daemon.protocol": [
+        "CLIENT_OPS", "ERROR_CODES", "MAX_QUEUE", "METHODS", "PROTOCOL_VERSION",
+        "SAMPLE_TYPES", "Call", "ClientMessage", "ErrorCode", "ErrorMessage", "Hello",
+        "Limits", "RequestError", "Result", "SampleMessage", "ServerMessage", "Subscribe",
+        "Unsubscribe", "encode", "json_schema", "parse_client_message",
+        "parse_server_message", "sample_from_json", "sample_json", "schema_text",
+        "stats_from_json", "stats_json", "write_schema",
+    ],
+    "ohmni_tb.daemon.server": [
+        "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_PORT", "HARD_MAX_MESSAGE_BYTES",
+        "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "ClientFigures", "RobotServer",
+        "check_loopback",
+    ],
 }  # fmt: skip
 
 

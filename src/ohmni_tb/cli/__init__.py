@@ -48,6 +48,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "sim": ("ohmni_tb.cli.sim", "sim", "Serve the simulated robot on a pseudo-terminal."),
     "bus": ("ohmni_tb.cli.bus", "app", "Raw bus requests and a traffic monitor."),
     "servo": ("ohmni_tb.cli.servo", "app", "HerkuleX servos: scan, info, read, write, move."),
+    "serve": (
+        "ohmni_tb.cli.serve",
+        "serve",
+        "Serve the robot to many local clients over WebSocket (read-only in this version).",
+    ),
 }
 
 

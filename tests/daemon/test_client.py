@@ -1,0 +1,158 @@
+"""``RobotClient`` against a served Robot: the same values and the same dataclasses."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from ohmni_tb import Robot
+from ohmni_tb.client import RobotClient
+from ohmni_tb.daemon.server import RobotServer
+from ohmni_tb.errors import InvalidArgumentError, StateError, TransportError
+from ohmni_tb.robot import TbcoreStatusSample, WheelOdomSample
+
+
+async def test_info_schedule_and_stats_match_the_robots(robot: Robot, server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        assert await client.info() == await robot.info()
+        assert await client.schedule() == robot.schedule()
+        stats = await client.stats()
+        local = robot.stats()
+        assert set(stats.streams) == set(local.streams)
+        for name, figures in stats.streams.items():
+            assert figures.requested_hz == local.streams[name].requested_hz
+            assert figures.samples <= local.streams[name].samples
+        assert stats.bus.budget_share == local.bus.budget_share
+        assert client.topics == {n: s.requested_hz for n, s in local.streams.items()}
+
+
+async def test_latest_asks_the_daemon_then_follows_a_subscription(
+    robot: Robot, server: RobotServer
+) -> None:
+    async with RobotClient.connect(server.url) as client:
+        async with robot.subscribe("tbcore_status") as status:
+            await anext(status)  # the Robot has one now
+        asked = await client.latest("tbcore_status")
+        assert isinstance(asked, TbcoreStatusSample)
+        assert asked.pack_v > 10
+        async with client.subscribe("wheel_odom") as odom:
+            first = await anext(odom)
+            assert isinstance(first, WheelOdomSample)
+            kept = await client.latest("wheel_odom")
+            assert kept is not None
+            assert kept.x_m == first.x_m  # the same dataclass, the same fields
+            assert kept.stamp_s >= first.stamp_s
+        assert await client.latest("new_neck") is None  # no worm neck on this robot
+
+
+async def test_subscribed_samples_are_the_robots_own(robot: Robot, server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        async with client.subscribe("wheel_odom") as remote:
+            await anext(remote)
+            async with robot.subscribe("wheel_odom") as local:
+                robot_side = [await anext(local) for _ in range(10)]
+            client_side = [await anext(remote) for _ in range(12)]
+        by_stamp = {s.stamp_s: s for s in client_side}
+        matched = [s for s in robot_side if s.stamp_s in by_stamp]
+        assert len(matched) >= 8
+        for sample in matched:
+            assert by_stamp[sample.stamp_s] == sample
+            assert dataclasses.is_dataclass(by_stamp[sample.stamp_s])
+
+
+async def test_bad_names_and_double_subscriptions_are_refused_here(server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        with pytest.raises(InvalidArgumentError, match="no stream 'odom'"):
+            await client.latest("odom")
+        with pytest.raises(InvalidArgumentError, match="no stream"):
+            client.subscribe("odom")
+        async with client.subscribe("wheel_odom"):
+            with pytest.raises(StateError, match="already subscribed to 'wheel_odom'"):
+                client.subscribe("wheel_odom")
+        async with client.subscribe("wheel_odom", max_hz=2) as again:  # closed: allowed again
+            await anext(again)
+
+
+async def test_options_out_of_range_are_value_errors(server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        with pytest.raises(InvalidArgumentError, match="max_hz=-1: Input should be greater"):
+            client.subscribe("wheel_odom", max_hz=-1)
+        with pytest.raises(InvalidArgumentError, match="maxlen=0"):
+            client.subscribe("wheel_odom", maxlen=0)
+        async with client.subscribe("wheel_odom") as odom:  # the connection goes on
+            await anext(odom)
+
+
+async def test_nothing_listening_is_a_transport_error_naming_the_url() -> None:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]  # free, and nobody listens once closed
+    url = f"ws://127.0.0.1:{port}"
+    with pytest.raises(TransportError, match=f"cannot connect to the daemon at {url}"):
+        async with RobotClient.connect(url, timeout_s=2.0):
+            pass
+
+
+def test_ohmni_serve_serves_sim_and_exits_cleanly_on_ctrl_c() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ohmni_tb", "serve", "--port", "sim://", "--listen", "127.0.0.1:0",
+         "--foreground"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        deadline = time.monotonic() + 30
+        line = b""
+        while not line.endswith(b"\n"):
+            ready, _, _ = select.select([proc.stdout], [], [], deadline - time.monotonic())
+            assert ready, "ohmni serve printed no address"
+            chunk = os.read(proc.stdout.fileno(), 1)
+            assert chunk, "ohmni serve ended early"
+            line += chunk
+        url = line.decode().strip()
+        assert url.startswith("ws://127.0.0.1:")
+
+        async def use() -> float:
+            async with RobotClient.connect(url) as client:
+                async with client.subscribe("tbcore_status") as status:
+                    sample = await anext(status)
+                    odom = await client.latest("wheel_odom")  # asked: not subscribed
+                    assert odom is not None
+                    proc.send_signal(signal.SIGINT)
+                    with pytest.raises(TransportError, match="1001"):
+                        async for _ in status:
+                            pass
+                pack_v: float = sample.pack_v
+                return pack_v
+
+        assert asyncio.run(use()) > 10
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130  # 128 + SIGINT, as every command (common.run)
+    log = err.decode()
+    assert "Traceback" not in log
+    assert 'level=info logger=ohmni_tb.daemon msg="client 127.0.0.1:' in log
+    assert "stopped serving" in log
+
+
+def test_ohmni_serve_refuses_a_non_loopback_address() -> None:
+    from typer.testing import CliRunner
+
+    from ohmni_tb.cli import app
+
+    result = CliRunner().invoke(app, ["serve", "--port", "sim://", "--listen", "0.0.0.0:8766"])
+    assert result.exit_code == 2
+    assert "only loopback" in result.output

@@ -1,0 +1,135 @@
+"""The daemon's messages: what a client gets back for each bad frame, samples both ways,
+and the checked-in schema."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import pytest
+
+from ohmni_tb import Robot
+from ohmni_tb.daemon import protocol
+from ohmni_tb.daemon.protocol import (
+    Call,
+    LatestArgs,
+    RequestError,
+    SampleMessage,
+    Subscribe,
+    parse_client_message,
+    parse_server_message,
+    sample_from_json,
+    sample_json,
+)
+from ohmni_tb.robot import STREAM_NAMES
+from ohmni_tb.sim.clock import run_virtual
+
+SCHEMA = Path(__file__).resolve().parents[2] / "docs" / "daemon-schema.json"
+
+
+def refused(frame: str | bytes) -> RequestError:
+    with pytest.raises(RequestError) as caught:
+        parse_client_message(frame)
+    return caught.value
+
+
+def test_a_subscribe_and_a_call_parse() -> None:
+    assert parse_client_message(
+        '{"op": "subscribe", "id": 1, "topic": "wheel_odom", "max_hz": 5, "queue": 8}'
+    ) == Subscribe(id=1, topic="wheel_odom", max_hz=5, queue=8)
+    call = parse_client_message(
+        '{"op": "call", "id": "a", "method": "latest", "args": {"topic": "tbcore_status"}}'
+    )
+    assert call == Call(id="a", method="latest", args=LatestArgs(topic="tbcore_status"))
+
+
+@pytest.mark.parametrize(
+    ("frame", "code", "said"),
+    [
+        ("{", "bad_json", "not JSON"),
+        (b"\xff\xfe", "bad_json", "not JSON"),
+        ("[1, 2]", "bad_json", "JSON object, not list"),
+        ('{"op": "drive", "id": 1}', "unknown_op", "'drive': allowed subscribe, unsubscribe, call"),
+        ('{"op": "subscribe", "id": 1, "topic": "odom"}', "unknown_topic", "'odom': the topics"),
+        ('{"op": "call", "id": 1, "method": "estop"}', "unknown_method", "allowed stats, info"),
+        ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "max_hz": 0}', "bad_message",
+         "max_hz: Input should be greater than 0 (got 0)"),
+        ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "queue": 5000}', "bad_message",
+         "queue: Input should be less than or equal to 1024 (got 5000)"),
+        ('{"op": "subscribe", "topic": "wheel_odom"}', "bad_message", "id: Field required"),
+        ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "rate": 3}', "bad_message",
+         "rate: Extra inputs are not permitted"),
+        ('{"op": "call", "id": 1, "method": "latest"}', "bad_message", "latest needs args"),
+        ('{"op": "call", "id": 1, "method": "stats", "args": {"x": 1}}', "bad_message",
+         "stats takes no arguments"),
+    ],
+)  # fmt: skip
+def test_a_bad_frame_says_what_was_wrong_and_what_is_allowed(
+    frame: str | bytes, code: str, said: str
+) -> None:
+    error = refused(frame)
+    assert error.code == code
+    assert said in error.message
+    reply = error.reply()
+    assert reply.code == code
+
+
+def test_the_error_carries_the_request_id_when_one_was_readable() -> None:
+    assert refused('{"op": "subscribe", "id": 7, "topic": "odom"}').reply().id == 7
+    assert refused('{"op": "nope", "id": "x"}').id == "x"
+    assert refused("{").id is None
+    assert refused('{"op": "nope", "id": true}').id is None  # a bool is not an id
+
+
+def test_every_error_code_is_in_the_schema() -> None:
+    schema = json.dumps(protocol.json_schema())
+    for code in protocol.ERROR_CODES:
+        assert f'"{code}"' in schema
+
+
+def test_the_checked_in_schema_matches_the_code() -> None:
+    assert SCHEMA.read_text(encoding="utf-8") == protocol.schema_text(), (
+        "docs/daemon-schema.json is out of date: regenerate it with "
+        "`.venv/bin/python -m ohmni_tb.daemon.protocol docs/daemon-schema.json`"
+    )
+
+
+def test_every_stream_sample_goes_to_json_and_back_unchanged() -> None:
+    async def main() -> None:
+        seen: dict[str, object] = {}
+        for url, pid_debug in (("sim://", True), ("sim://?neck=worm", False)):
+            async with Robot.open(url, pid_debug=pid_debug) as robot:
+                for _ in range(20):
+                    robot.drive(0.2, 0.3)  # pid_debug publishes while driving
+                    await asyncio.sleep(0.05)
+                for name in STREAM_NAMES:
+                    sample = robot.latest(name)
+                    if sample is not None:
+                        seen[name] = sample
+        assert set(seen) == set(STREAM_NAMES)
+        for name, sample in seen.items():
+            data = json.loads(json.dumps(sample_json(sample)))  # type: ignore[arg-type]  # Sample
+            assert sample_from_json(name, data) == sample, name
+
+    run_virtual(main())
+
+
+def test_the_servers_sample_frame_is_a_valid_sample_message() -> None:
+    data = {
+        "stamp_s": 1.0,
+        "link": "connected",
+        "estopped": False,
+        "watchdog_tripped": False,
+        "faults": [],
+        "neck": "herkulex",
+        "present": [0, 1],
+        "absent": [],
+        "event": None,
+    }
+    frame = '{"op":"sample","topic":"robot_state","dropped":3,"data":' + json.dumps(data) + "}"
+    message = parse_server_message(frame)
+    assert isinstance(message, SampleMessage)
+    assert message.dropped == 3
+    state = sample_from_json(message.topic, message.data)
+    assert state.link.value == "connected"  # type: ignore[union-attr]  # a RobotStateSample

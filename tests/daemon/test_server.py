@@ -1,0 +1,233 @@
+"""``RobotServer`` on loopback in real asyncio, judged from the clients' side: many
+readers at the streams' rates, a stalled client that loses only its own oldest samples,
+rate caps, bad messages answered to their sender only, limits, and shutdown."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import socket
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosedError
+
+from ohmni_tb import Robot
+from ohmni_tb.client import ClientSubscription, RobotClient
+from ohmni_tb.daemon.server import MAX_MESSAGE_BYTES, RobotServer
+from ohmni_tb.errors import ConfigError, TransportClosedError
+
+#: Samples a stream's rate is judged over (seconds of real time).
+WINDOW_S = 3.0
+
+
+def rate_hz(stamps: list[float]) -> float:
+    """Samples per second by the Robot's own stamps."""
+    assert len(stamps) >= 2
+    return (len(stamps) - 1) / (stamps[-1] - stamps[0])
+
+
+async def raw(url: str, **options: Any) -> ClientConnection:
+    """A bare websockets client (the hello read)."""
+    ws = await connect(url, **options)
+    hello = json.loads(await ws.recv())
+    assert hello["op"] == "hello"
+    return ws
+
+
+async def reply(ws: ClientConnection) -> dict[str, Any]:
+    """The next message that is not a sample."""
+    while True:
+        message: dict[str, Any] = json.loads(await asyncio.wait_for(ws.recv(), 5.0))
+        if message["op"] != "sample":
+            return message
+
+
+async def collect(client: RobotClient, topic: str, duration_s: float, **options: Any) -> list[Any]:
+    """Every sample of ``topic`` for ``duration_s``; none lost."""
+    samples: list[Any] = []
+
+    async def read(subscription: ClientSubscription[Any]) -> None:
+        async for sample in subscription:
+            samples.append(sample)  # noqa: PERF401  # each kept at once: the timeout ends it
+
+    async with client.subscribe(topic, **options) as subscription:
+        with contextlib.suppress(TimeoutError):  # the window ends it, not the stream
+            await asyncio.wait_for(read(subscription), duration_s)
+        assert subscription.dropped == 0
+    return samples
+
+
+async def drain(subscription: ClientSubscription[Any]) -> None:
+    async for _ in subscription:
+        pass
+
+
+async def test_twenty_readers_each_get_odometry_and_battery_at_their_rates(
+    server: RobotServer,
+) -> None:
+    async def reader() -> tuple[list[float], list[float]]:
+        async with RobotClient.connect(server.url) as client:
+            odom, core = await asyncio.gather(
+                collect(client, "wheel_odom", WINDOW_S), collect(client, "tbcore_status", WINDOW_S)
+            )
+            return [s.stamp_s for s in odom], [s.stamp_s for s in core]
+
+    results = await asyncio.gather(*(reader() for _ in range(20)))
+    for odom, core in results:
+        assert 48.0 <= rate_hz(odom) <= 52.0
+        assert len(odom) >= 0.9 * 50 * WINDOW_S
+        assert 9.0 <= rate_hz(core) <= 11.0
+        assert len(core) >= 0.9 * 10 * WINDOW_S - 1
+
+
+async def test_a_stalled_client_loses_its_oldest_samples_and_slows_nothing(
+    robot: Robot, server: RobotServer
+) -> None:
+    # A client that stops reading: a small receive buffer and websockets' own reading
+    # paused after one frame, so the daemon's send to it blocks within a second or two.
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(
+        sock, ("127.0.0.1", int(server.url.rsplit(":", 1)[1]))
+    )
+    # Its closing handshake waits behind the unread frames: do not wait 10 s for it.
+    stalled = await raw(server.url, sock=sock, max_queue=1, close_timeout=0.5)
+    for i, topic in enumerate(("wheel_encoder", "wheel_odom", "servo_neck", "servo_ext1")):
+        await stalled.send(json.dumps({"op": "subscribe", "id": i, "topic": topic, "queue": 8}))
+    async with RobotClient.connect(server.url) as other:
+        # The Robot's rate window is 5 s: all of it with the client stalled.
+        odom = await collect(other, "wheel_odom", 5.5)
+        encoder = robot.stats().streams["wheel_encoder"]
+    assert 49.5 <= encoder.achieved_hz <= 50.5, encoder
+    assert 49.0 <= rate_hz([s.stamp_s for s in odom]) <= 51.0
+    figures = max(server.clients, key=lambda c: c.dropped)
+    assert figures.topics == ("wheel_encoder", "wheel_odom", "servo_neck", "servo_ext1")
+    assert figures.dropped > 100  # ~3 s of samples across four topics, at least
+    assert figures.queued <= 4 * 8
+
+    # Reading again, it is told how many it lost.
+    dropped = 0
+    async with asyncio.timeout(10):
+        while dropped == 0:
+            message = json.loads(await stalled.recv())
+            if message["op"] == "sample":
+                dropped += message["dropped"]
+    assert dropped >= 1
+    await stalled.close()
+    stalled.transport.abort()  # its closing handshake may still wait behind unread frames
+    await asyncio.sleep(0)
+    sock.close()
+
+
+async def test_a_rate_cap_sends_at_most_that_rate(server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        odom = await collect(client, "wheel_odom", WINDOW_S, max_hz=10)
+    assert 0.85 * 10 * WINDOW_S <= len(odom) <= 10 * WINDOW_S + 1
+    gaps = [b.stamp_s - a.stamp_s for a, b in itertools.pairwise(odom)]
+    assert min(gaps) >= 0.06  # never two in quick succession (a 50 Hz stream, capped)
+
+
+@pytest.mark.parametrize(
+    ("frame", "code"),
+    [
+        ("{not json", "bad_json"),
+        ('{"op": "drive", "id": 1, "linear_mps": 1}', "unknown_op"),
+        ('{"op": "subscribe", "id": 1, "topic": "odom"}', "unknown_topic"),
+        ('{"op": "call", "id": 1, "method": "estop"}', "unknown_method"),
+        ('{"op": "unsubscribe", "id": 1, "topic": "wheel_odom"}', "not_subscribed"),
+        (
+            '{"op": "call", "id": 1, "args": {"pad": "' + "x" * MAX_MESSAGE_BYTES + '"}}',
+            "too_large",
+        ),
+    ],
+)
+async def test_a_bad_message_is_answered_to_its_sender_only_and_the_connection_stays(
+    server: RobotServer, frame: str, code: str
+) -> None:
+    async with (
+        RobotClient.connect(server.url) as bystander,
+        bystander.subscribe("wheel_odom") as odom,
+    ):
+        await anext(odom)
+        sender = await raw(server.url)
+        await sender.send(frame)
+        error = await reply(sender)
+        assert error["op"] == "error"
+        assert error["code"] == code
+        assert error["message"]
+        # Still served: the same connection answers the next request.
+        await sender.send('{"op": "call", "id": 2, "method": "schedule"}')
+        answer = await reply(sender)
+        assert answer["op"] == "result"
+        assert answer["id"] == 2
+        await sender.close()
+        # The bystander saw samples, no error, and lost nothing.
+        for _ in range(10):
+            await anext(odom)
+        assert odom.dropped == 0
+        assert await bystander.latest("wheel_odom") is not None
+
+
+async def test_a_flooding_client_is_told_and_closed_with_1008(server: RobotServer) -> None:
+    flooder = await raw(server.url)
+    for i in range(400):
+        await flooder.send(json.dumps({"op": "call", "id": i, "method": "schedule"}))
+    codes = []
+
+    async def read_all() -> None:
+        while True:
+            message = json.loads(await asyncio.wait_for(flooder.recv(), 5.0))
+            codes.append(message.get("code"))
+
+    with pytest.raises(ConnectionClosedError, match="1008"):
+        await read_all()
+    assert "rate_limited" in codes
+    assert flooder.close_code == 1008
+    await flooder.close()
+
+
+async def test_an_oversized_frame_beyond_the_hard_limit_closes_with_1009(
+    server: RobotServer,
+) -> None:
+    ws = await raw(server.url)
+    await ws.send("x" * (2 * 1024 * 1024))
+    with pytest.raises(ConnectionClosedError, match="1009"):
+        await asyncio.wait_for(ws.recv(), 5.0)
+    await ws.close()
+
+
+async def test_a_server_that_stops_closes_its_clients_with_1001(robot: Robot) -> None:
+    async with (
+        RobotServer(robot, port=0) as server,
+        RobotClient.connect(server.url) as client,
+        client.subscribe("wheel_odom") as odom,
+    ):
+        await anext(odom)
+        await server.aclose()
+        with pytest.raises(TransportClosedError, match=r"closed the connection \(1001"):
+            await drain(odom)
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.20", "::", "example.com", ""])
+async def test_a_non_loopback_address_is_refused(robot: Robot, host: str) -> None:
+    with pytest.raises(ConfigError, match="only loopback"):
+        RobotServer(robot, host=host)
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "::1", "localhost"])
+async def test_loopback_addresses_serve(robot: Robot, host: str) -> None:
+    try:
+        server = RobotServer(robot, host=host, port=0)
+        await server.start()
+    except OSError as exc:  # pragma: no cover - a machine without IPv6 loopback
+        pytest.skip(f"{host}: {exc}")
+    try:
+        async with RobotClient.connect(server.url) as client:
+            assert client.hello.protocol == 1
+    finally:
+        await server.aclose()
