@@ -28,7 +28,7 @@ import logging
 import math
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, overload
+from typing import Any, Literal, TypeVar, overload
 
 from ohmni_tb._checks import finite, show
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
@@ -80,6 +80,8 @@ from ohmni_tb.transport import Transport, open_transport
 __all__ = ["BusFigures", "Robot", "RobotStats"]
 
 _log = logging.getLogger(__name__)
+#: What a polled stream's parser makes of a read reply.
+_P = TypeVar("_P")
 
 #: Bus priorities: the control slot first; commands (devices.COMMAND_PRIORITY) and every
 #: feedback read share one priority, so they go in the order they fall due: a near-full
@@ -866,24 +868,43 @@ class Robot:
 
     # -- feedback streams ------------------------------------------------------------------
 
+    @staticmethod
+    def _feedback(
+        topic: Topic[Any], result: CycleResult, parse: Callable[[ReadReply], _P]
+    ) -> _P | None:
+        """A polled stream's cycle: note its lateness; the reply parsed, or ``None`` when
+        there was none or it did not parse (a missed cycle, counted)."""
+        topic.note_lateness(result.started_s - result.due_s)
+        reply = result.replies[0]
+        if reply is None:
+            topic.missed += 1
+            return None
+        try:
+            return parse(ReadReply.parse(reply))
+        except OhmniError:
+            topic.missed += 1
+            return None
+
     def _servo_result(self, sid: int, result: CycleResult) -> None:
         watch = self._servos.get(sid)
         if watch is None:
             return
         topic = self._topics[watch.stream]
-        topic.note_lateness(result.started_s - result.due_s)
-        reply = result.replies[0]
-        if reply is None:
-            topic.missed += 1
+
+        def block(read: ReadReply) -> tuple[bytes, TorqueControl]:
+            if len(read.data) != SERVO_BLOCK_LEN:
+                raise MalformedReplyError(
+                    f"servo {sid}: {len(read.data)} bytes, not {SERVO_BLOCK_LEN}"
+                )
+            try:
+                return read.data, TorqueControl(read.data[4])
+            except ValueError as exc:
+                raise MalformedReplyError(f"servo {sid}: torque byte {read.data[4]}") from exc
+
+        parsed = self._feedback(topic, result, block)
+        if parsed is None:
             return
-        try:
-            data = ReadReply.parse(reply).data
-            if len(data) != SERVO_BLOCK_LEN:
-                raise MalformedReplyError(f"servo {sid}: {len(data)} bytes, not {SERVO_BLOCK_LEN}")
-            torque = TorqueControl(data[4])
-        except (OhmniError, ValueError):
-            topic.missed += 1
-            return
+        data, torque = parsed
         position = (data[10] | data[11] << 8) & 0x3FF
         handle = watch.handle
         sample = ServoSample(
@@ -903,15 +924,8 @@ class Robot:
 
     def _worm_result(self, result: CycleResult) -> None:
         topic = self._topics["new_neck"]
-        topic.note_lateness(result.started_s - result.due_s)
-        reply = result.replies[0]
-        if reply is None:
-            topic.missed += 1
-            return
-        try:
-            feedback = parse_feedback(ReadReply.parse(reply))
-        except OhmniError:
-            topic.missed += 1
+        feedback = self._feedback(topic, result, parse_feedback)
+        if feedback is None:
             return
         sample = WormNeckSample(result.started_s, feedback.position, feedback.flags)
         topic.publish(sample, result.started_s)
@@ -922,15 +936,8 @@ class Robot:
 
     def _core_result(self, result: CycleResult) -> None:
         topic = self._topics["tbcore_status"]
-        topic.note_lateness(result.started_s - result.due_s)
-        reply = result.replies[0]
-        if reply is None:
-            topic.missed += 1
-            return
-        try:
-            status = parse_status(ReadReply.parse(reply))
-        except OhmniError:
-            topic.missed += 1
+        status = self._feedback(topic, result, parse_status)
+        if status is None:
             return
         sample = TbcoreStatusSample(
             stamp_s=result.started_s,
