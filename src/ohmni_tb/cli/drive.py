@@ -193,13 +193,7 @@ def _plan(
         for name, value in (("--linear", linear), ("--angular", angular)):
             if value == 0:
                 raise typer.BadParameter(f"{name}=0 gives a --teleop key no speed: give > 0")
-        lin = abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
-        ang = (
-            abs(angular)
-            if angular is not None
-            else min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
-        )
-        return _Plan("teleop", lin, ang)
+        return _Plan("teleop", _linear_speed(config, linear), _angular_speed(config, angular))
     if distance is not None:
         if angular is not None:
             raise typer.BadParameter(
@@ -209,7 +203,7 @@ def _plan(
         if distance == 0:
             raise typer.BadParameter("--distance=0 goes nowhere: give a non-zero distance")
         _within("--distance", distance, -MAX_DISTANCE_M, MAX_DISTANCE_M, "m")
-        speed = abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
+        speed = _linear_speed(config, linear)
         if speed < MIN_GOAL_LINEAR_MPS:
             top = _fmt(_top_linear(config))
             raise typer.BadParameter(
@@ -226,11 +220,7 @@ def _plan(
         if turn == 0:
             raise typer.BadParameter("--turn=0 turns nothing: give a non-zero angle in degrees")
         _within("--turn", turn, -MAX_TURN_DEG, MAX_TURN_DEG, "degrees")
-        speed = (
-            abs(angular)
-            if angular is not None
-            else min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
-        )
+        speed = _angular_speed(config, angular)
         if speed < MIN_GOAL_ANGULAR_RADPS:
             top = _fmt(_top_angular(config))
             raise typer.BadParameter(
@@ -251,6 +241,19 @@ def _plan(
             f"--duration={_fmt(seconds)} is out of range: allowed >0..{MAX_DURATION_S:g} s"
         )
     return _Plan("duration", linear or 0.0, angular or 0.0, duration_s=seconds)
+
+
+def _linear_speed(config: RobotConfig, linear: float | None) -> float:
+    """The speed a goal or teleop drive uses: ``--linear``'s size, else the default
+    within the config's limit."""
+    return abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
+
+
+def _angular_speed(config: RobotConfig, angular: float | None) -> float:
+    """The same for turning: ``--angular``'s size, else the default within the limit."""
+    if angular is not None:
+        return abs(angular)
+    return min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
 
 
 def _top_linear(config: RobotConfig) -> float:
