@@ -18,7 +18,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from ohmni_tb.errors import OhmniError
+from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 
 if TYPE_CHECKING:
     from ohmni_tb.bus import Bus, BusStats
@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 __all__ = [
     "JsonOption",
     "PortOption",
+    "RobotWarnings",
     "TimeoutOption",
     "YesOption",
     "confirm_motion",
@@ -395,3 +396,32 @@ def quiet_stdout() -> None:
             os.dup2(devnull, sys.stdout.fileno())
         finally:
             os.close(devnull)
+
+
+class RobotWarnings(logging.Handler):
+    """The Robot's warnings while a command that drives runs (``drive``, ``demo``): a
+    stop it could not confirm on closing is kept in ``stop`` (the command raises or
+    reports it once, not also as a log line); the rest are shown as they come. Added
+    to the ``ohmni_tb`` logger, it takes the warnings over from :func:`run`'s."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.stop: StopNotConfirmedError | None = None
+        self.unconfirmed = False  # the stop on closing failed another way (a link error)
+        self.opened = False  # the Robot opened (and so closes with a confirmed stop)
+        self.show: Callable[[str], None] = self._print
+
+    @staticmethod
+    def _print(text: str) -> None:
+        _err.print(f"[yellow]robot: {escape(text)}[/yellow]", soft_wrap=True)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        args = record.args if isinstance(record.args, tuple) else ()
+        for arg in args:
+            if isinstance(arg, StopNotConfirmedError):
+                self.stop = arg
+                return
+        message = record.getMessage()
+        if message.startswith("closing: stop not confirmed"):
+            self.unconfirmed = True
+        self.show(message)

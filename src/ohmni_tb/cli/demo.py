@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from ohmni_tb.cli.common import PortOption, confirm_stop, console, run
+from ohmni_tb.cli.common import PortOption, RobotWarnings, confirm_stop, console, run
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
@@ -64,7 +64,7 @@ async def _demo(port: str, motion: bool) -> None:
     # Imported here: `ohmni --help` and the other commands start without the Robot.
     from ohmni_tb import Robot, RobotConfig  # noqa: PLC0415
 
-    watch = _ExitStop()
+    watch = RobotWarnings()
     logger = logging.getLogger("ohmni_tb")
     logger.addHandler(watch)
     failure: OhmniError | None = None
@@ -86,13 +86,13 @@ async def _demo(port: str, motion: bool) -> None:
         failure = exc
     except BaseException:
         # Ctrl-C or a cancellation: still say it if the Robot could not confirm its stop.
-        if watch.error is not None:
-            _print_stop(watch.error)
+        if watch.stop is not None:
+            _print_stop(watch.stop)
         raise
     finally:
         logger.removeHandler(watch)
     # The Robot's verdict on closing is the last word on whether the wheels stopped.
-    stop = watch.error or (failure if isinstance(failure, StopNotConfirmedError) else None)
+    stop = watch.stop or (failure if isinstance(failure, StopNotConfirmedError) else None)
     if stop is None:
         if failure is not None:
             raise failure  # run() prints it as one red line
@@ -106,24 +106,6 @@ async def _demo(port: str, motion: bool) -> None:
 def _print_stop(exc: StopNotConfirmedError) -> None:
     """The robot may be moving: one line nobody can miss."""
     _err.print(f"[bold red]{escape(str(exc))}[/bold red]", soft_wrap=True)
-
-
-class _ExitStop(logging.Handler):
-    """Shows the Robot's warnings as they come, and keeps the one that matters most: a
-    wheel stop the Robot could not confirm while closing (it logs it, as a close must
-    finish), so the demo can fail on it."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.error: StopNotConfirmedError | None = None
-
-    def emit(self, record: logging.LogRecord) -> None:
-        args = record.args if isinstance(record.args, tuple) else ()
-        for arg in args:
-            if isinstance(arg, StopNotConfirmedError):
-                self.error = arg
-                return
-        _err.print(f"[yellow]robot: {escape(record.getMessage())}[/yellow]", soft_wrap=True)
 
 
 async def _devices(robot: Robot) -> None:

@@ -34,6 +34,7 @@ from ohmni_tb.cli import common
 from ohmni_tb.cli.common import (
     JsonOption,
     PortOption,
+    RobotWarnings,
     YesOption,
     confirm_motion,
     console,
@@ -375,7 +376,7 @@ def drive(
         "teleop": "ohmni drive --teleop",
     }[plan.mode]
     confirm_motion(url, what, yes=yes)
-    watch = _Warnings()
+    watch = RobotWarnings()
 
     def interrupted() -> None:
         if not watch.opened:
@@ -449,35 +450,10 @@ def _raw_terminal(fd: int) -> Iterator[None]:
 # -- the Robot ------------------------------------------------------------------------------
 
 
-class _Warnings(logging.Handler):
-    """The Robot's warnings while the command runs: a stop it could not confirm on
-    closing is kept (it is raised or reported once, not also logged), the rest shown."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.stop: StopNotConfirmedError | None = None
-        self.unconfirmed = False  # the stop on closing failed another way (a link error)
-        self.opened = False  # the Robot opened (and so closes with a confirmed stop)
-        self.show: Callable[[str], None] = self._print
-
-    @staticmethod
-    def _print(text: str) -> None:
-        _err.print(f"[yellow]robot: {escape(text)}[/yellow]", soft_wrap=True)
-
-    def emit(self, record: logging.LogRecord) -> None:
-        args = record.args if isinstance(record.args, tuple) else ()
-        for arg in args:
-            if isinstance(arg, StopNotConfirmedError):
-                self.stop = arg
-                return
-        message = record.getMessage()
-        if message.startswith("closing: stop not confirmed"):
-            self.unconfirmed = True
-        self.show(message)
-
-
 async def _with_robot(
-    port: str, watch: _Warnings, body: Callable[[Robot, _Warnings], Awaitable[T]]
+    port: str,
+    watch: RobotWarnings,
+    body: Callable[[Robot, RobotWarnings], Awaitable[T]],
 ) -> T:
     """Open the Robot, check it can drive, run ``body``; the Robot stops on the way out.
 
@@ -1011,7 +987,7 @@ def _teleop_screen(robot: Robot, state: _Teleop, start: _Snapshot, port: str) ->
 
 
 async def _teleop(
-    robot: Robot, watch: _Warnings, plan: _Plan, fd: int, port: str
+    robot: Robot, watch: RobotWarnings, plan: _Plan, fd: int, port: str
 ) -> dict[str, Any]:
     from rich.live import Live  # noqa: PLC0415
 
