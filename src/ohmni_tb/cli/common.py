@@ -37,6 +37,7 @@ __all__ = [
     "confirm_stop",
     "console",
     "emit_json",
+    "error_line",
     "is_simulated",
     "load_config",
     "open_bus",
@@ -76,6 +77,12 @@ TimeoutOption = Annotated[
 console = Console()
 _err = Console(stderr=True)
 _options = {"debug": False}
+
+
+def error_line(message: str) -> None:
+    """Print ``message`` as the command's one red ``error:`` line on stderr (one line
+    whatever the terminal's width; the text is ours, not markup)."""
+    _err.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
 
 
 def set_debug(on: bool) -> None:
@@ -163,7 +170,7 @@ def run(
         if _options["debug"]:
             traceback.print_exc()
         # One line whatever the terminal's width; the text is ours, not markup.
-        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+        error_line(str(exc))
         raise typer.Exit(1) from exc
     except (KeyboardInterrupt, asyncio.CancelledError) as exc:
         if isinstance(exc, asyncio.CancelledError) and signals.first is None:

@@ -12,7 +12,14 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from ohmni_tb.cli.common import PortOption, RobotWarnings, confirm_stop, console, run
+from ohmni_tb.cli.common import (
+    PortOption,
+    RobotWarnings,
+    confirm_stop,
+    console,
+    error_line,
+    run,
+)
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 from ohmni_tb.protocol import Memory
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
@@ -98,7 +105,7 @@ async def _demo(port: str, motion: bool) -> None:
             raise failure  # run() prints it as one red line
         return
     if failure is not None and failure is not stop:
-        _err.print(f"[red]error:[/red] {escape(str(failure))}", soft_wrap=True)
+        error_line(str(failure))
     _print_stop(stop)
     raise typer.Exit(1) from stop
 

@@ -39,6 +39,7 @@ from ohmni_tb.cli.common import (
     confirm_motion,
     console,
     emit_json,
+    error_line,
     resolve_port,
     run,
 )
@@ -349,7 +350,7 @@ def drive(
     try:
         config = RobotConfig.load()
     except OhmniError as exc:
-        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+        error_line(str(exc))
         raise typer.Exit(1) from exc
     plan = _plan(
         config,
@@ -367,7 +368,7 @@ def drive(
     try:
         url = resolve_port(port)
     except OhmniError as exc:
-        _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+        error_line(str(exc))
         raise typer.Exit(1) from exc
     what = {
         "duration": "ohmni drive",
@@ -471,7 +472,7 @@ async def _with_robot(
     except OhmniError as exc:
         if watch.stop is not None and watch.stop is not exc:
             if not isinstance(exc, StopNotConfirmedError):  # else the same news, twice
-                _err.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+                error_line(str(exc))
             raise watch.stop from exc
         raise
     except BaseException:

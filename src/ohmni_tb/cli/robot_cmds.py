@@ -25,6 +25,7 @@ from ohmni_tb.cli.common import (
     PortOption,
     console,
     emit_json,
+    error_line,
     open_robot,
     parse_int,
     resolve_port,
@@ -463,9 +464,7 @@ def pid_set(
 
 def _fail(message: str) -> NoReturn:
     """Print ``message`` as an error line and exit with code 1."""
-    from rich.console import Console  # noqa: PLC0415
-
-    Console(stderr=True).print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
+    error_line(message)
     raise typer.Exit(1)
 
 
