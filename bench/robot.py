@@ -53,21 +53,33 @@ WHEEL_PERIOD_S = 0.020
 
 
 class WheelTap(PassThrough):
-    """Passes everything through; notes the time and PWM of every wheel packet written."""
+    """Passes everything through; notes when each write happened, and with what bytes.
+
+    The writes are decoded after the run (:meth:`wheel_writes`): decoding them as they go
+    would put the instrument's own work into the CPU figure it helps to measure.
+    """
 
     def __init__(self, inner: Transport) -> None:
         super().__init__(inner)
         self.robot = getattr(inner, "robot", None)
-        self._decoder = PacketDecoder()
-        self.writes: list[tuple[float, tuple[int, int]]] = []
+        self._loop = asyncio.get_running_loop()
+        self._written: list[tuple[float, bytes]] = []
 
     def write_nowait(self, data: bytes) -> None:
         self.inner.write_nowait(data)
-        for packet in self._decoder.feed(data):
-            if packet.cmd in (Command.S_JOG, Command.I_JOG) and packet.sid == 0xFE:
-                pwm = decode_wheel_command(packet)
-                # The right board counts mirrored: un-mirror to the commanded value.
-                self.writes.append((asyncio.get_running_loop().time(), (pwm[0], -pwm[1])))
+        self._written.append((self._loop.time(), data))
+
+    def wheel_writes(self) -> list[tuple[float, tuple[int, int]]]:
+        """When each wheel packet was written, and the PWM it carried."""
+        decoder = PacketDecoder()
+        out: list[tuple[float, tuple[int, int]]] = []
+        for at, data in self._written:
+            for packet in decoder.feed(data):
+                if packet.cmd in (Command.S_JOG, Command.I_JOG) and packet.sid == 0xFE:
+                    pwm = decode_wheel_command(packet)
+                    # The right board counts mirrored: un-mirror to the commanded value.
+                    out.append((at, (pwm[0], -pwm[1])))
+        return out
 
 
 @dataclass
@@ -153,7 +165,7 @@ async def run_robot(name: str, port: str, seconds: float, *, usb_latency_ms: int
     control = end.streams["wheel_encoder"]
     row.jitter_p50_ms = control.jitter_p50_ms or math.nan
     row.jitter_p99_ms = control.jitter_p99_ms or math.nan
-    row.latency_ms = latencies(commands, tap.writes)
+    row.latency_ms = latencies(commands, tap.wheel_writes())
     row.wire = (busy - busy0) / wall
     row.budget = end.bus.budget_share
     row.cpu = cpu / wall
