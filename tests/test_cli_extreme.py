@@ -39,7 +39,20 @@ runner = CliRunner()
 WIDE = {"COLUMNS": "4000"}
 
 #: Parameters whose values are text, not numbers: names, URLs, paths, hex bytes, addresses.
-TEXT_PARAMS = frozenset({"port", "url", "register", "mode", "data", "capture", "file", "listen"})
+TEXT_PARAMS = frozenset(
+    {
+        "port",
+        "url",
+        "register",
+        "mode",
+        "data",
+        "capture",
+        "file",
+        "listen",
+        "allow_origin",
+        "token_file",
+    }
+)
 
 #: A valid invocation of each command that has numeric parameters (``--port sim://`` is
 #: added): parameter name -> value, True for a flag.

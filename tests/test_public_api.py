@@ -79,7 +79,8 @@ PUBLIC = {
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
     "ohmni_tb": ["OhmniError", "Robot", "RobotConfig", "__version__"],
     "ohmni_tb.config": [
-        "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
+         "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
+         "user_config_dir",
     ],
     "ohmni_tb.robot": [
         "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAM_NAMES", "BusFigures", "Link",
@@ -87,19 +88,29 @@ PUBLIC = {
         "ServoSample", "StreamStats", "Subscription", "TbcoreStatusSample",
         "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
     ],
-    "ohmni_tb.client": ["DEFAULT_TIMEOUT_S", "DEFAULT_URL", "ClientSubscription", "RobotClient"],
+    "ohmni_tb.client": [
+         "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "MAX_UNSENT", "ClientSubscription", "RemoteServo",
+         "RobotClient",
+    ],
     "ohmni_tb.daemon.protocol": [
-        "CLIENT_OPS", "ERROR_CODES", "MAX_QUEUE", "METHODS", "PROTOCOL_VERSION",
-        "SAMPLE_TYPES", "Call", "ClientMessage", "ErrorCode", "ErrorMessage", "Hello",
-        "Limits", "RequestError", "Result", "SampleMessage", "ServerMessage", "Subscribe",
-        "Unsubscribe", "encode", "json_schema", "parse_client_message",
-        "parse_server_message", "sample_from_json", "sample_json", "schema_text",
-        "stats_from_json", "stats_json", "write_schema",
+         "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS", "METHOD_SPECS",
+         "PROTOCOL_VERSION", "SAMPLE_TYPES", "AcquireArgs", "Call", "ClientMessage", "DriveArgs",
+         "DrivePwmArgs", "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "Hello",
+         "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion", "MoveArgs",
+         "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "RequestError", "RestArgs", "Result",
+         "SampleMessage", "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs",
+         "Unsubscribe", "call_args", "encode", "json_schema", "parse_client_message",
+         "parse_server_message", "sample_from_json", "sample_json", "schema_text",
+         "stats_from_json", "stats_json", "write_schema",
     ],
     "ohmni_tb.daemon.server": [
-        "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_PORT", "HARD_MAX_MESSAGE_BYTES",
-        "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "ClientFigures", "RobotServer",
-        "check_loopback",
+         "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_PORT", "HARD_MAX_MESSAGE_BYTES",
+         "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "ClientFigures", "RobotServer",
+         "check_listen", "is_loopback",
+    ],
+    "ohmni_tb.daemon.auth": [
+         "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token", "default_token_path",
+         "load_or_create_token", "presented_token", "read_token",
     ],
 }  # fmt: skip
 

@@ -1,4 +1,5 @@
-"""The Robot's read-only API over the daemon (``ohmni serve``).
+"""The Robot's API over the daemon (``ohmni serve``): streams, services and, with the
+control lease, the commands.
 
 ::
 
@@ -6,16 +7,21 @@
 
     async with RobotClient.connect("ws://127.0.0.1:8766") as robot:
         odom = await robot.latest("wheel_odom")        # the same WheelOdomSample
-        async with robot.subscribe("tbcore_status", max_hz=2) as status:
-            async for sample in status:
-                print(sample.pack_v)
+        async with robot.lease():                      # one driver at a time
+            robot.drive(0.3, 0.0)                      # not awaited, as on the Robot
+            await robot.neck.move(raw=400, playtime_s=1.0)
+            await robot.confirm()                      # every command so far accepted
         print(await robot.stats())
 
 Samples are the Robot's own frozen dataclasses, rebuilt from the daemon's JSON, so code
-written against :class:`~ohmni_tb.Robot`'s samples reads them unchanged. What differs from
-the embedded Robot: ``latest`` and ``stats`` are awaited (they may ask the daemon), and
-there is one subscription per topic and connection. Motion commands come with the
-daemon's control lease (not in this version).
+written against :class:`~ohmni_tb.Robot` reads them unchanged. The commands that are
+plain calls on the Robot (``drive``, ``drive_wheels``, ``drive_pwm``, ``stop``,
+``set_pid``, ``reset_odometry``, ``enable_stream`` …) are plain calls here too: checked
+here first (a bad value, no lease: raised at once, nothing sent), then sent in order
+without waiting. A command the daemon still refuses is logged, and raised by the next
+command or by :meth:`RobotClient.confirm`. What differs from the embedded Robot:
+``latest``, ``stats`` and ``get_pid`` are awaited (they may ask the daemon), there is one
+subscription per topic and connection, and commands need the lease.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
+import os
 from collections import deque
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -31,12 +39,25 @@ from typing import TYPE_CHECKING, Any, Final, Generic, Literal, TypeVar, overloa
 
 from pydantic import ValidationError
 
+from ohmni_tb._checks import finite
+from ohmni_tb.control.kinematics import (
+    DiffDrive,
+    LimitedTwist,
+    Twist,
+    VelocityLimits,
+    WheelSpeeds,
+    limit_twist,
+    saturate_wheel_speeds,
+)
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.daemon.auth import TOKEN_ENV
 from ohmni_tb.daemon.protocol import (
+    METHOD_SPECS,
     Call,
     ErrorMessage,
     Hello,
     LatestArgs,
-    NoArgs,
+    LeaseMessage,
     Result,
     SampleMessage,
     Subscribe,
@@ -48,12 +69,15 @@ from ohmni_tb.daemon.protocol import (
 )
 from ohmni_tb.errors import (
     InvalidArgumentError,
+    LeaseError,
     OhmniError,
+    OutOfRangeError,
     ProtocolError,
     StateError,
     TransportClosedError,
     TransportError,
 )
+from ohmni_tb.protocol.drive import PWM_LIMIT
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
     PidDebugSample,
@@ -72,7 +96,14 @@ if TYPE_CHECKING:
 
     from ohmni_tb.robot.core import RobotStats
 
-__all__ = ["DEFAULT_TIMEOUT_S", "DEFAULT_URL", "ClientSubscription", "RobotClient"]
+__all__ = [
+    "DEFAULT_TIMEOUT_S",
+    "DEFAULT_URL",
+    "MAX_UNSENT",
+    "ClientSubscription",
+    "RemoteServo",
+    "RobotClient",
+]
 
 #: Where ``ohmni serve`` listens by default.
 DEFAULT_URL: Final = "ws://127.0.0.1:8766"
@@ -80,6 +111,8 @@ DEFAULT_URL: Final = "ws://127.0.0.1:8766"
 DEFAULT_TIMEOUT_S: Final = 5.0
 #: The server's messages are samples and small results; a stats reply is a few KiB.
 _MAX_FRAME_BYTES = 1024 * 1024
+#: Messages waiting to be sent to a daemon that does not take them; one more is an error.
+MAX_UNSENT: Final = 256
 
 _log = logging.getLogger("ohmni_tb.client")
 #: The protocol's field names as this API's.
@@ -95,7 +128,12 @@ _ERRORS: dict[str, type[OhmniError]] = {
     "unknown_method": InvalidArgumentError,
     "unknown_topic": InvalidArgumentError,
     "too_large": InvalidArgumentError,
+    "bad_value": InvalidArgumentError,
     "not_subscribed": StateError,
+    "read_only": StateError,
+    "robot_state": StateError,
+    "no_lease": LeaseError,
+    "lease_held": LeaseError,
     "rate_limited": ProtocolError,
 }
 
@@ -116,29 +154,69 @@ class RobotClient:
         self._latest: dict[str, Any] = {}
         self._subscriptions: dict[str, ClientSubscription[Any]] = {}
         self._reader: asyncio.Task[None] | None = None
+        self._writer: asyncio.Task[None] | None = None
         self._closing = False
         self._lost: TransportClosedError | None = None
+        # Every message goes out through one queue, in the order of the calls.
+        self._unsent: deque[str] = deque()
+        self._unsent_ready = asyncio.Event()
+        # Commands sent without waiting: their answers, and the first refusal not raised.
+        self._commands: set[asyncio.Future[Any]] = set()
+        self._refusal: OhmniError | None = None
+        self._holder: str | None = hello.lease
+        motion = hello.motion
+        self._drive = DiffDrive(motion.wheel_radius_m, motion.wheel_separation_m)
+        self._limits = VelocityLimits(
+            _unlimited(motion.max_linear_mps),
+            _unlimited(motion.max_angular_radps),
+            _unlimited(motion.max_wheel_mps),
+        )
 
     @classmethod
     @asynccontextmanager
     async def connect(
-        cls, url: str = DEFAULT_URL, *, timeout_s: float = DEFAULT_TIMEOUT_S
+        cls,
+        url: str = DEFAULT_URL,
+        *,
+        token: str | None = None,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
     ) -> AsyncIterator[RobotClient]:
         """Connect to the daemon at ``url``; leaving the block closes the connection.
 
+        Args:
+            url: ``ws://host:port`` of ``ohmni serve``.
+            token: The daemon's token, needed when it listens beyond loopback (the
+                content of its token file); default ``$OHMNI_DAEMON_TOKEN``, else none.
+            timeout_s: How long connecting, and each call, may take.
+
         Raises:
-            TransportError: Nothing answers at ``url``, or it is not the daemon.
+            TransportError: Nothing answers at ``url``, it is not the daemon, or it
+                refused the connection (no token or a wrong one: the message says).
         """
         from websockets.asyncio.client import connect  # noqa: PLC0415  # loaded when used
         from websockets.exceptions import (  # noqa: PLC0415
             ConnectionClosed,
             InvalidHandshake,
+            InvalidStatus,
             InvalidURI,
         )
 
+        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
+        headers = {"Authorization": f"Bearer {token}"} if token else None
         try:
             async with asyncio.timeout(timeout_s):
-                ws = await connect(url, max_size=_MAX_FRAME_BYTES, compression=None)
+                ws = await connect(
+                    url,
+                    max_size=_MAX_FRAME_BYTES,
+                    compression=None,
+                    additional_headers=headers,
+                )
+        except InvalidStatus as exc:
+            said = exc.response.body.decode("utf-8", "replace").strip() if exc.response.body else ""
+            raise TransportError(
+                f"the daemon at {url} refused the connection "
+                f"(HTTP {exc.response.status_code}){': ' + said if said else ''}"
+            ) from exc
         except (OSError, InvalidHandshake, InvalidURI, TimeoutError) as exc:
             raise TransportError(f"cannot connect to the daemon at {url}: {_why(exc)}") from exc
         try:
@@ -154,8 +232,10 @@ class RobotClient:
             if not isinstance(hello, Hello):
                 raise TransportError(f"{url} did not greet as the ohmni daemon ({hello.op} first)")
             client = cls(ws, url, hello, timeout_s)
-            client._reader = asyncio.get_running_loop().create_task(
-                client._read_loop(), name=f"ohmni-client {url}"
+            loop = asyncio.get_running_loop()
+            client._reader = loop.create_task(client._read_loop(), name=f"ohmni-client {url}")
+            client._writer = loop.create_task(
+                client._write_loop(), name=f"ohmni-client-writer {url}"
             )
             try:
                 yield client
@@ -178,6 +258,21 @@ class RobotClient:
     def topics(self) -> dict[str, float]:
         """Every stream and its rate in Hz (0: on events)."""
         return dict(self._hello.topics)
+
+    @property
+    def peer(self) -> str:
+        """This connection as the daemon names it (``host:port``)."""
+        return self._hello.peer
+
+    @property
+    def lease_holder(self) -> str | None:
+        """Who holds the control lease (a peer), as last told by the daemon; ``None``: nobody."""
+        return self._holder
+
+    @property
+    def has_lease(self) -> bool:
+        """Whether this connection holds the control lease."""
+        return self._holder is not None and self._holder == self._hello.peer
 
     @overload
     async def latest(self, name: Literal["wheel_encoder"]) -> WheelEncoderSample | None: ...
@@ -210,7 +305,7 @@ class RobotClient:
         _check_topic(name)
         if name in self._subscriptions and name in self._latest:
             return self._latest[name]
-        data = await self._call("latest", LatestArgs(topic=name))
+        data = await self._call("latest", LatestArgs(topic=name).model_dump())
         return None if data is None else sample_from_json(name, data)
 
     def subscribe(
@@ -260,16 +355,249 @@ class RobotClient:
         rows = await self._call("schedule")
         return [(str(n), float(hz), float(phase), float(cost)) for n, hz, phase, cost in rows]
 
-    # -- internals --------------------------------------------------------------------------
+    async def get_pid(self) -> PidGains:
+        """The wheel PIDs' gains (:meth:`Robot.get_pid`; awaited: the daemon is asked)."""
+        return PidGains(**await self._call("get_pid"))
 
-    async def _call(self, method: str, args: LatestArgs | NoArgs | None = None) -> Any:
-        return await self._request(
-            lambda id: Call(id=id, method=method, args=args or NoArgs()), method
+    # -- the control lease -------------------------------------------------------------------
+
+    async def acquire(self, *, steal: bool = False) -> str | None:
+        """Take the control lease: from now on this connection's commands move the robot.
+
+        Only one client holds it. ``steal`` takes it from the holder (an operator taking
+        over a misbehaving script); the loser is told, and the robot stops whenever the
+        lease changes hands. Closing the connection releases it (and stops the robot).
+
+        Returns:
+            The peer it was stolen from, or ``None``.
+
+        Raises:
+            LeaseError: Another client holds it and ``steal`` is not set; ``.holder``
+                names it.
+            StateError: The daemon takes no commands (started read-only).
+        """
+        data = await self._call("acquire", {"steal": bool(steal)})
+        self._holder = data["holder"]
+        stolen_from: str | None = data["stolen_from"]
+        return stolen_from
+
+    async def release(self) -> None:
+        """Give the control lease back (the robot stops). Without the lease: nothing."""
+        if not self.has_lease:
+            return
+        await self._call("release")
+        self._holder = None
+
+    @asynccontextmanager
+    async def lease(self, *, steal: bool = False) -> AsyncIterator[RobotClient]:
+        """``async with client.lease():`` — hold the control lease for the block."""
+        await self.acquire(steal=steal)
+        try:
+            yield self
+        finally:
+            if self._lost is None:
+                with contextlib.suppress(TransportError, LeaseError):
+                    await self.release()
+
+    # -- commands (as the Robot's: not awaited) ----------------------------------------------
+
+    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
+        """:meth:`Robot.drive`: the body velocity target, scaled into the daemon's Robot's
+        limits here as it will be there. Repeat it within the watchdog time
+        (``hello.motion.watchdog_s``) to keep moving.
+
+        Raises:
+            InvalidArgumentError: A value is not a finite number; nothing sent.
+            LeaseError: This connection does not hold the control lease; nothing sent.
+            OhmniError: An earlier command the daemon refused (see :meth:`confirm`).
+        """
+        twist = Twist(_number("linear_mps", linear_mps), _number("angular_radps", angular_radps))
+        limited = limit_twist(twist, self._limits, self._drive)
+        self._command(
+            "drive", {"linear_mps": twist.linear_mps, "angular_radps": twist.angular_radps}
+        )
+        return limited
+
+    def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
+        """:meth:`Robot.drive_wheels`: each wheel's rim speed target; returns what is driven.
+
+        Raises:
+            The same as :meth:`drive`.
+        """
+        asked = WheelSpeeds(_number("left_mps", left_mps), _number("right_mps", right_mps))
+        wheels = saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
+        self._command("drive_wheels", {"left_mps": asked.left_mps, "right_mps": asked.right_mps})
+        return wheels
+
+    def drive_pwm(self, left: int, right: int) -> None:
+        """:meth:`Robot.drive_pwm`: open-loop PWM −1000..1000 for each wheel.
+
+        Raises:
+            InvalidArgumentError: Not ints; OutOfRangeError: outside −1000..1000. Nothing sent.
+            LeaseError: No control lease; nothing sent.
+        """
+        for name, value in (("left", left), ("right", right)):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
+            if not -PWM_LIMIT <= value <= PWM_LIMIT:
+                raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
+        self._command("drive_pwm", {"left": left, "right": right})
+
+    def stop(self) -> None:
+        """:meth:`Robot.stop`: target zero. Anyone may, with or without the lease."""
+        self._command("stop", {})
+
+    async def estop(self) -> None:
+        """:meth:`Robot.estop`: zero PWM ahead of everything, latched until
+        :meth:`clear_estop`. Anyone may, with or without the lease."""
+        await self._call("estop")
+
+    def clear_estop(self) -> None:
+        """:meth:`Robot.clear_estop` (needs the lease)."""
+        self._command("clear_estop", {})
+
+    def enable_controllers(self, enabled: bool = True) -> None:
+        """:meth:`Robot.enable_controllers` (needs the lease)."""
+        if not isinstance(enabled, bool):
+            raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+        self._command("enable_controllers", {"enabled": enabled})
+
+    def set_pid(self, gains: PidGains) -> None:
+        """:meth:`Robot.set_pid`: the wheel PIDs' gains, for every client (needs the lease)."""
+        if not isinstance(gains, PidGains):
+            raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
+        self._command(
+            "set_pid",
+            {n: getattr(gains, n) for n in ("kp", "ki", "kd", "kff", "ff_offset")},
         )
 
-    async def _request(self, make: Any, what: str) -> Any:
+    def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
+        """:meth:`Robot.reset_odometry`, for every client (needs the lease)."""
+        pose = {
+            "x_m": _number("x_m", x_m),
+            "y_m": _number("y_m", y_m),
+            "yaw_rad": _number("yaw_rad", yaw_rad),
+        }
+        self._command("reset_odometry", pose)
+
+    def enable_stream(self, name: str, enabled: bool = True) -> None:
+        """:meth:`Robot.enable_stream`, for every client (needs the lease)."""
+        _check_topic(name)
+        if not isinstance(enabled, bool):
+            raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+        self._command("enable_stream", {"topic": name, "enabled": enabled})
+
+    def set_rate(self, name: str, hz: float) -> None:
+        """:meth:`Robot.set_rate`, for every client (needs the lease; 0.1..100 Hz)."""
+        _check_topic(name)
+        self._command("set_rate", {"topic": name, "hz": _number("hz", hz)})
+
+    async def light_ring(self, hue: int, saturation: int, value: int) -> None:
+        """:meth:`Robot.light_ring` (needs the lease).
+
+        Raises:
+            InvalidArgumentError: A component outside 0..255 (the daemon's Robot says so).
+        """
+        await self._call("light_ring", {"hue": hue, "saturation": saturation, "value": value})
+
+    @property
+    def neck(self) -> RemoteServo:
+        """The neck, HerkuleX or worm gear (:attr:`Robot.neck`); its commands need the lease."""
+        return RemoteServo(self, "neck")
+
+    def servo(self, sid: int) -> RemoteServo:
+        """The HerkuleX servo ``sid`` (:meth:`Robot.servo`); its commands need the lease."""
+        if isinstance(sid, bool) or not isinstance(sid, int) or not 0 <= sid <= 253:
+            raise InvalidArgumentError(f"a servo id is an int 0..253, not {sid!r}")
+        return RemoteServo(self, sid)
+
+    async def confirm(self) -> None:
+        """Wait until the daemon has answered every command sent so far.
+
+        Raises:
+            OhmniError: The first of them it refused (a bad value, the lease gone, an
+                emergency stop latched …), if not raised already.
+            TransportError: The daemon did not answer in time, or went away.
+        """
+        if self._commands:
+            try:
+                async with asyncio.timeout(self._timeout_s):
+                    await asyncio.wait(list(self._commands))
+            except TimeoutError:
+                raise TransportError(
+                    f"the daemon at {self._url} did not answer the commands sent within "
+                    f"{self._timeout_s:g} s"
+                ) from None
+        self._raise_refusal()
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _command(self, method: str, args: dict[str, Any]) -> None:
+        """Send a command without waiting for its answer, after the checks that can be
+        made here: the connection, an earlier refusal, the lease."""
+        if self._lost is not None:
+            raise self._lost
+        self._raise_refusal()
+        if METHOD_SPECS[method].lease and not self.has_lease:
+            holder = self._holder
+            raise LeaseError(
+                f"{method} needs the control lease: "
+                + (
+                    f"{holder} holds it (acquire(steal=True) takes it)"
+                    if holder
+                    else "call await client.acquire() first"
+                ),
+                holder=holder,
+            )
+        id = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending[id] = future
+        self._commands.add(future)
+        future.add_done_callback(self._command_done)
+        self._send(encode(Call(id=id, method=method, args=args)))
+
+    def _command_done(self, future: asyncio.Future[Any]) -> None:
+        self._commands.discard(future)
+        if future.cancelled():
+            return
+        error = future.exception()
+        if error is None or not isinstance(error, OhmniError):
+            return
+        if isinstance(error, TransportClosedError):
+            return  # the connection's own error, raised by the next call
+        _log.warning("%s", error)
+        if self._refusal is None:
+            self._refusal = error
+
+    def _raise_refusal(self) -> None:
+        refusal, self._refusal = self._refusal, None
+        if refusal is not None:
+            raise refusal
+
+    def _send(self, frame: str) -> None:
+        if len(self._unsent) >= MAX_UNSENT:
+            raise TransportError(
+                f"the daemon at {self._url} is not taking messages: {MAX_UNSENT} wait to be sent"
+            )
+        self._unsent.append(frame)
+        self._unsent_ready.set()
+
+    async def _write_loop(self) -> None:
         from websockets.exceptions import ConnectionClosed  # noqa: PLC0415
 
+        with contextlib.suppress(ConnectionClosed):
+            while True:
+                await self._unsent_ready.wait()
+                self._unsent_ready.clear()
+                while self._unsent:
+                    await self._ws.send(self._unsent.popleft())
+                if self._closing:
+                    return
+
+    async def _call(self, method: str, args: dict[str, Any] | None = None) -> Any:
+        return await self._request(lambda id: Call(id=id, method=method, args=args or {}), method)
+
+    async def _request(self, make: Any, what: str) -> Any:
         if self._lost is not None:
             raise self._lost
         id = next(self._ids)
@@ -277,15 +605,13 @@ class RobotClient:
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._pending[id] = future  # registered before sending: the reply cannot beat it
         try:
-            await self._ws.send(encode(message))
+            self._send(encode(message))
             async with asyncio.timeout(self._timeout_s):
                 return await future
         except TimeoutError:
             raise TransportError(
                 f"the daemon at {self._url} did not answer {what} within {self._timeout_s:g} s"
             ) from None
-        except ConnectionClosed:
-            raise self._closed_error() from None
         finally:
             self._pending.pop(id, None)
 
@@ -318,6 +644,12 @@ class RobotClient:
             if subscription is not None:
                 subscription._put(sample, message.dropped)
             return
+        if isinstance(message, LeaseMessage):
+            had = self.has_lease
+            self._holder = message.holder
+            if had and not message.you:
+                _log.warning("lost the control lease at %s: %s", self._url, message.reason)
+            return
         if isinstance(message, Result | ErrorMessage):
             future = self._pending.get(message.id) if message.id is not None else None
             if future is None or future.done():
@@ -329,8 +661,11 @@ class RobotClient:
             if isinstance(message, Result):
                 future.set_result(message.data)
             else:
+                text = f"the daemon refused: {message.message}"
                 error = _ERRORS.get(message.code, OhmniError)
-                future.set_exception(error(f"the daemon refused: {message.message}"))
+                future.set_exception(
+                    LeaseError(text, holder=self._holder) if error is LeaseError else error(text)
+                )
 
     def _closed_error(self) -> TransportClosedError:
         code, reason = self._ws.close_code, self._ws.close_reason
@@ -339,6 +674,15 @@ class RobotClient:
 
     async def _aclose(self) -> None:
         self._closing = True
+        self._unsent_ready.set()  # the writer sends what is queued (a last stop), then ends
+        if self._writer is not None:
+            try:
+                async with asyncio.timeout(self._timeout_s):
+                    await self._writer
+            except TimeoutError:
+                self._writer.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await self._writer
         await self._ws.close()
         if self._reader is not None:
             await self._reader
@@ -454,6 +798,56 @@ class ClientSubscription(Generic[T]):
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
+
+
+class RemoteServo:
+    """The neck or a HerkuleX servo through the daemon (:attr:`RobotClient.neck`,
+    :meth:`RobotClient.servo`): the Robot's handle's commands, awaited, with the lease.
+
+    The daemon's Robot checks every target against the servo's range before anything is
+    sent; a refusal raises :class:`~ohmni_tb.errors.InvalidArgumentError` naming it.
+    """
+
+    def __init__(self, client: RobotClient, target: str | int) -> None:
+        self._client = client
+        self.target = target
+
+    def __repr__(self) -> str:
+        return f"<RemoteServo {self.target!r} at {self._client.url}>"
+
+    async def move(
+        self, raw: int | None = None, *, rad: float | None = None, playtime_s: float | None = None
+    ) -> None:
+        """Move to ``raw`` counts or ``rad`` over ``playtime_s`` (a worm-gear neck: ``raw``
+        only); returns when the daemon has sent it."""
+        args: dict[str, Any] = {"target": self.target, "raw": raw}
+        if rad is not None:
+            args["rad"] = rad
+        if playtime_s is not None:
+            args["playtime_s"] = playtime_s
+        await self._client._call("move", args)
+
+    async def torque(self, mode: str) -> None:
+        """``"on"``, ``"brake"`` or ``"free"`` (a HerkuleX servo)."""
+        await self._client._call("torque", {"target": self.target, "mode": mode})
+
+    async def free(self) -> None:
+        """Torque off."""
+        await self.torque("free")
+
+    async def rest(self, *, free: bool = True) -> None:
+        """Move to the rest position, then (by default) free it; returns when done."""
+        await self._client._call("rest", {"target": self.target, "free": free})
+
+
+def _number(name: str, value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
+    return finite(name, value)
+
+
+def _unlimited(limit: float | None) -> float:
+    return math.inf if limit is None else limit
 
 
 def _check_topic(name: str) -> None:

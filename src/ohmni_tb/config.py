@@ -69,7 +69,14 @@ from ohmni_tb.protocol.worm_neck import WORM_MAX, WORM_MIN
 if TYPE_CHECKING:
     from importlib.resources.abc import Traversable
 
-__all__ = ["CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths"]
+__all__ = [
+    "CONFIG_ENV",
+    "CONFIG_FILE_NAME",
+    "ENV_PREFIX",
+    "RobotConfig",
+    "config_paths",
+    "user_config_dir",
+]
 
 #: Prefix of the environment variables that set a field (``OHMNI_PORT``), any case.
 ENV_PREFIX = "OHMNI_"
@@ -776,12 +783,17 @@ def _default_text(value: object) -> str:
     return str(value)
 
 
-def _default_paths() -> list[Path]:
-    """./ohmni.toml, then $XDG_CONFIG_HOME/ohmni/ohmni.toml (default ~/.config)."""
+def user_config_dir() -> Path:
+    """The user's ohmni directory: ``$XDG_CONFIG_HOME/ohmni`` (default ``~/.config/ohmni``)."""
     xdg = os.environ.get("XDG_CONFIG_HOME", "")
     # The XDG spec ignores a relative path.
     home = Path(xdg) if xdg and Path(xdg).is_absolute() else Path.home() / ".config"
-    return [Path.cwd() / CONFIG_FILE_NAME, home / "ohmni" / CONFIG_FILE_NAME]
+    return home / "ohmni"
+
+
+def _default_paths() -> list[Path]:
+    """./ohmni.toml, then $XDG_CONFIG_HOME/ohmni/ohmni.toml (default ~/.config)."""
+    return [Path.cwd() / CONFIG_FILE_NAME, user_config_dir() / CONFIG_FILE_NAME]
 
 
 def _find_config_file(config_file: str | os.PathLike[str] | None) -> Path | None:

@@ -17,8 +17,9 @@ catches the right thing::
     │                                                               (.sid, .report)
     ├── StateError                  the call does not fit the object's state
     │   ├── BusClosedError          the bus is closed
-    │   └── DeadlineMissedError     a slot could not start before its deadline
-    │                                                     (+ TimeoutError)  (.deadline, .late_s)
+    │   ├── DeadlineMissedError     a slot could not start before its deadline
+    │   │                                                 (+ TimeoutError)  (.deadline, .late_s)
+    │   └── LeaseError              a daemon command without its control lease (.holder)
     ├── ConfigError                 bad settings or URL             (+ ValueError)
     └── InvalidArgumentError        a bad argument; nothing was sent (+ ValueError)
         └── OutOfRangeError         a value outside its allowed range (.name, .value, .low, .high)
@@ -43,6 +44,7 @@ __all__ = [
     "DeviceStatusError",
     "DeviceUnavailableError",
     "InvalidArgumentError",
+    "LeaseError",
     "MalformedReplyError",
     "OhmniError",
     "OutOfRangeError",
@@ -212,6 +214,19 @@ class DeadlineMissedError(StateError, TimeoutError):
         )
         self.deadline = deadline
         self.late_s = late_s
+
+
+class LeaseError(StateError):
+    """A command through the daemon needs its control lease, which this client does not
+    hold (nobody's, or another client's; ``RobotClient.acquire`` takes it).
+
+    Attributes:
+        holder: Who holds the lease (``host:port`` as the daemon names it), if known.
+    """
+
+    def __init__(self, message: str, *, holder: str | None = None) -> None:
+        super().__init__(message)
+        self.holder = holder
 
 
 class ConfigError(OhmniError, ValueError):

@@ -41,7 +41,22 @@ def test_a_subscribe_and_a_call_parse() -> None:
     call = parse_client_message(
         '{"op": "call", "id": "a", "method": "latest", "args": {"topic": "tbcore_status"}}'
     )
-    assert call == Call(id="a", method="latest", args=LatestArgs(topic="tbcore_status"))
+    assert call == Call(id="a", method="latest", args={"topic": "tbcore_status"})
+    assert isinstance(call, Call)
+    assert protocol.call_args(call) == LatestArgs(topic="tbcore_status")
+
+
+def test_a_command_parses_with_its_defaults_filled_by_its_model() -> None:
+    call = parse_client_message(
+        '{"op": "call", "id": 2, "method": "drive", "args": {"linear_mps": 0.3}}'
+    )
+    assert isinstance(call, Call)
+    assert protocol.call_args(call) == protocol.DriveArgs(linear_mps=0.3, angular_radps=0.0)
+    move = parse_client_message(
+        '{"op": "call", "id": 3, "method": "move", "args": {"target": 11, "raw": 512}}'
+    )
+    assert isinstance(move, Call)
+    assert protocol.call_args(move) == protocol.MoveArgs(target=11, raw=512)
 
 
 @pytest.mark.parametrize(
@@ -52,7 +67,8 @@ def test_a_subscribe_and_a_call_parse() -> None:
         ("[1, 2]", "bad_json", "JSON object, not list"),
         ('{"op": "drive", "id": 1}', "unknown_op", "'drive': allowed subscribe, unsubscribe, call"),
         ('{"op": "subscribe", "id": 1, "topic": "odom"}', "unknown_topic", "'odom': the topics"),
-        ('{"op": "call", "id": 1, "method": "estop"}', "unknown_method", "allowed stats, info"),
+        ('{"op": "call", "id": 1, "method": "fly"}', "unknown_method",
+         "'fly': allowed stats, info"),
         ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "max_hz": 0}', "bad_message",
          "max_hz: Input should be greater than 0 (got 0)"),
         ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "queue": 5000}', "bad_message",
@@ -60,9 +76,28 @@ def test_a_subscribe_and_a_call_parse() -> None:
         ('{"op": "subscribe", "topic": "wheel_odom"}', "bad_message", "id: Field required"),
         ('{"op": "subscribe", "id": 1, "topic": "wheel_odom", "rate": 3}', "bad_message",
          "rate: Extra inputs are not permitted"),
-        ('{"op": "call", "id": 1, "method": "latest"}', "bad_message", "latest needs args"),
+        ('{"op": "call", "id": 1, "method": "latest"}', "bad_message",
+         "bad latest args: topic: Field required"),
+        ('{"op": "call", "id": 1, "method": "latest", "args": {"topic": "odom"}}', "unknown_topic",
+         "'odom': the topics"),
         ('{"op": "call", "id": 1, "method": "stats", "args": {"x": 1}}', "bad_message",
-         "stats takes no arguments"),
+         "bad stats args: x: Extra inputs are not permitted (got 1)"),
+        ('{"op": "call", "id": 1, "method": "drive", "args": {"linear_mps": NaN}}', "bad_message",
+         "linear_mps: Input should be a finite number (got NaN)"),
+        ('{"op": "call", "id": 1, "method": "drive", "args": {"linear_mps": Infinity}}',
+         "bad_message", "linear_mps: Input should be a finite number"),
+        ('{"op": "call", "id": 1, "method": "drive", "args": {}}', "bad_message",
+         "bad drive args: linear_mps: Field required"),
+        ('{"op": "call", "id": 1, "method": "drive_pwm", "args": {"left": 1.5, "right": 0}}',
+         "bad_message", "left: Input should be a valid integer"),
+        ('{"op": "call", "id": 1, "method": "move", "args": {"target": "nek", "raw": 5}}',
+         "bad_message", 'target: target must be "neck" or a servo id 0..253, not \'nek\''),
+        ('{"op": "call", "id": 1, "method": "move", "args": {"target": 300}}', "bad_message",
+         "servo id 0..253, not 300"),
+        ('{"op": "call", "id": 1, "method": "torque", "args": {"target": "neck", "mode": "x"}}',
+         "bad_message", "mode: Input should be 'on', 'brake' or 'free' (got 'x')"),
+        ('{"op": "call", "id": 1, "method": "acquire", "args": {"steal": "yes please"}}',
+         "bad_message", "steal: Input should be a valid boolean"),
     ],
 )  # fmt: skip
 def test_a_bad_frame_says_what_was_wrong_and_what_is_allowed(
@@ -86,6 +121,17 @@ def test_every_error_code_is_in_the_schema() -> None:
     schema = json.dumps(protocol.json_schema())
     for code in protocol.ERROR_CODES:
         assert f'"{code}"' in schema
+
+
+def test_the_schema_documents_every_method_its_arguments_and_whether_it_needs_the_lease() -> None:
+    methods = protocol.json_schema()["methods"]
+    assert set(methods) == set(protocol.METHODS)
+    assert methods["drive"]["lease"] is True
+    assert methods["drive"]["args"]["required"] == ["linear_mps"]
+    # Anyone may stop the robot; reading needs no lease either.
+    for name in ("stop", "estop", "stats", "latest", "acquire"):
+        assert methods[name]["lease"] is False, name
+    assert set(protocol.LEASE_METHODS) >= {"drive", "drive_pwm", "move", "set_pid", "release"}
 
 
 def test_the_checked_in_schema_matches_the_code() -> None:

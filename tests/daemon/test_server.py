@@ -17,6 +17,7 @@ from websockets.exceptions import ConnectionClosedError
 
 from ohmni_tb import Robot
 from ohmni_tb.client import ClientSubscription, RobotClient
+from ohmni_tb.daemon.protocol import PROTOCOL_VERSION
 from ohmni_tb.daemon.server import MAX_MESSAGE_BYTES, RobotServer
 from ohmni_tb.errors import ConfigError, TransportClosedError
 
@@ -138,7 +139,8 @@ async def test_a_rate_cap_sends_at_most_that_rate(server: RobotServer) -> None:
         ("{not json", "bad_json"),
         ('{"op": "drive", "id": 1, "linear_mps": 1}', "unknown_op"),
         ('{"op": "subscribe", "id": 1, "topic": "odom"}', "unknown_topic"),
-        ('{"op": "call", "id": 1, "method": "estop"}', "unknown_method"),
+        ('{"op": "call", "id": 1, "method": "fly"}', "unknown_method"),
+        ('{"op": "call", "id": 1, "method": "drive", "args": {"linear_mps": 0.2}}', "no_lease"),
         ('{"op": "unsubscribe", "id": 1, "topic": "wheel_odom"}', "not_subscribed"),
         (
             '{"op": "call", "id": 1, "args": {"pad": "' + "x" * MAX_MESSAGE_BYTES + '"}}',
@@ -214,8 +216,8 @@ async def test_a_server_that_stops_closes_its_clients_with_1001(robot: Robot) ->
 
 
 @pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.20", "::", "example.com", ""])
-async def test_a_non_loopback_address_is_refused(robot: Robot, host: str) -> None:
-    with pytest.raises(ConfigError, match="only loopback"):
+async def test_a_non_loopback_address_without_a_token_is_refused(robot: Robot, host: str) -> None:
+    with pytest.raises(ConfigError, match="without a token: beyond loopback"):
         RobotServer(robot, host=host)
 
 
@@ -228,6 +230,6 @@ async def test_loopback_addresses_serve(robot: Robot, host: str) -> None:
         pytest.skip(f"{host}: {exc}")
     try:
         async with RobotClient.connect(server.url) as client:
-            assert client.hello.protocol == 1
+            assert client.hello.protocol == PROTOCOL_VERSION == 2
     finally:
         await server.aclose()

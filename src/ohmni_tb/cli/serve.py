@@ -6,6 +6,7 @@ import asyncio
 import logging
 import sys
 import time
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -25,43 +26,101 @@ def serve(
         str,
         typer.Option(
             "--listen",
-            help="HOST:PORT to serve on; loopback only in this version (127.0.0.1, [::1], "
-            "localhost). Port 0 picks a free one.",
+            help="HOST:PORT to serve on. Loopback (127.0.0.1, [::1], localhost) needs no "
+            "token; any other address needs the token file. Port 0 picks a free one.",
         ),
     ] = _DEFAULT_LISTEN,
+    read_only: Annotated[
+        bool,
+        typer.Option(
+            "--read-only", help="Refuse every command but stop and estop: clients only watch."
+        ),
+    ] = False,
+    token_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--token-file",
+            help="Require the token in this file (created, mode 0600, when missing). "
+            "Default beyond loopback: ~/.config/ohmni/daemon-token; on loopback: no token.",
+            dir_okay=False,
+        ),
+    ] = None,
+    allow_origin: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--allow-origin",
+            help="A browser origin allowed to connect (repeat for more), e.g. "
+            "http://localhost:8080. Browsers from other origins are refused.",
+        ),
+    ] = None,
     foreground: Annotated[
         bool,
         typer.Option(
             "--foreground",
-            help="Log every connection, refusal and departure to stderr, one structured "
-            "line each (it always runs in the foreground in this version).",
+            help="Log every connection, lease change, refusal and departure to stderr, one "
+            "structured line each (it always runs in the foreground).",
         ),
     ] = False,
 ) -> None:
-    """Serve the robot to many local clients over WebSocket (read-only in this version).
+    """Serve the robot to many local clients over WebSocket: one driver, many readers.
 
     Opens the port like every command, then prints the address (ws://HOST:PORT) alone on
-    the first line of stdout. Clients subscribe to the Robot's streams and call stats,
-    info, latest and schedule (ohmni_tb.client.RobotClient; docs/daemon.md). Ctrl-C or
-    SIGTERM closes the clients, stops the wheels and exits.
+    the first line of stdout. Clients subscribe to the Robot's streams, call its services
+    and, holding the control lease, command it (ohmni_tb.client.RobotClient;
+    docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits.
 
     Example: ohmni serve --port sim:// --listen 127.0.0.1:8766
     """
     host, tcp_port = _parse_listen(listen)
     if foreground:
         _log_to_stderr()
+    token = _token(host, token_file)
     url = resolve_port(port)
-    run(lambda: _serve(url, host, tcp_port))
+    origins = tuple(allow_origin or ())
+    run(lambda: _serve(url, host, tcp_port, read_only=read_only, token=token, origins=origins))
 
 
-async def _serve(url: str, host: str, tcp_port: int) -> None:
+async def _serve(
+    url: str,
+    host: str,
+    tcp_port: int,
+    *,
+    read_only: bool,
+    token: str | None,
+    origins: tuple[str, ...],
+) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
-    from ohmni_tb.daemon.server import RobotServer, check_loopback  # noqa: PLC0415
+    from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
 
-    check_loopback(host)  # before the port opens: a refused address moves nothing
-    async with open_robot(url) as robot, RobotServer(robot, host=host, port=tcp_port) as server:
+    check_listen(host, token)  # before the port opens: a refused address moves nothing
+    async with (
+        open_robot(url) as robot,
+        RobotServer(
+            robot, host=host, port=tcp_port, read_only=read_only, token=token, origins=origins
+        ) as server,
+    ):
         write_line(server.url)
         await asyncio.Event().wait()  # until a signal cancels it
+
+
+def _token(host: str, token_file: Path | None) -> str | None:
+    """The token clients must present: from ``--token-file``, or the default file beyond
+    loopback (made on first use); none on loopback without ``--token-file``."""
+    from ohmni_tb.daemon.auth import default_token_path, load_or_create_token  # noqa: PLC0415
+    from ohmni_tb.daemon.server import is_loopback  # noqa: PLC0415
+
+    if token_file is None and is_loopback(host):
+        return None
+    path = token_file if token_file is not None else default_token_path()
+    try:
+        token = load_or_create_token(path)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--token-file") from None
+    typer.echo(
+        f"clients need the token in {path} (RobotClient.connect(token=...) or $OHMNI_DAEMON_TOKEN)",
+        err=True,
+    )
+    return token
 
 
 def _parse_listen(listen: str) -> tuple[str, int]:
@@ -72,12 +131,6 @@ def _parse_listen(listen: str) -> tuple[str, int]:
             param_hint="--listen",
         )
     host = host.removeprefix("[").removesuffix("]")
-    try:
-        from ohmni_tb.daemon.server import check_loopback  # noqa: PLC0415
-
-        check_loopback(host)
-    except ConfigError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--listen") from None
     return host, int(port_text)
 
 

@@ -3,28 +3,34 @@
 Every message is one JSON object in one WebSocket text frame, with ``op`` naming it::
 
     client → server                          server → client
-    subscribe   {id, topic, max_hz?, queue?}  hello   {protocol, version, topics, limits}
+    subscribe   {id, topic, max_hz?, queue?}  hello   {protocol, version, topics, limits, …}
     unsubscribe {id, topic}                   sample  {topic, dropped, data}
     call        {id, method, args}            result  {id, data}
                                               error   {id | null, code, message}
+                                              lease   {holder, you, reason}
 
 ``id`` is the client's (an integer or a short string); the ``result`` or ``error`` that
-answers a request carries it back. A sample's ``data`` is the Robot's sample dataclass as
-JSON (enums by value, tuples as lists, nested dataclasses as objects): :func:`sample_json`
-and :func:`sample_from_json` go both ways. :func:`parse_client_message` turns one frame
-into a message or raises :class:`RequestError` with the ``error`` to send back.
-:func:`json_schema` is the schema of them all, checked in at ``docs/daemon-schema.json``
-(regenerate: ``python -m ohmni_tb.daemon.protocol docs/daemon-schema.json``).
+answers a request carries it back. A ``call`` names one of :data:`METHODS`; its ``args``
+are checked against that method's model in :data:`METHOD_ARGS` (:func:`call_args`).
+Methods in :data:`LEASE_METHODS` change the robot and need the control lease
+(``acquire``); ``stop`` and ``estop`` are anyone's. A sample's ``data`` is the Robot's
+sample dataclass as JSON (enums by value, tuples as lists, nested dataclasses as
+objects): :func:`sample_json` and :func:`sample_from_json` go both ways.
+:func:`parse_client_message` turns one frame into a message or raises
+:class:`RequestError` with the ``error`` to send back. :func:`json_schema` is the schema
+of them all, checked in at ``docs/daemon-schema.json`` (regenerate:
+``python -m ohmni_tb.daemon.protocol docs/daemon-schema.json``).
 """
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
 from ohmni_tb.robot.core import RobotStats
 from ohmni_tb.robot.samples import (
@@ -42,22 +48,43 @@ from ohmni_tb.robot.samples import (
 __all__ = [
     "CLIENT_OPS",
     "ERROR_CODES",
+    "LEASE_METHODS",
     "MAX_QUEUE",
     "METHODS",
+    "METHOD_SPECS",
     "PROTOCOL_VERSION",
     "SAMPLE_TYPES",
+    "AcquireArgs",
     "Call",
     "ClientMessage",
+    "DriveArgs",
+    "DrivePwmArgs",
+    "DriveWheelsArgs",
+    "EnabledArgs",
     "ErrorCode",
     "ErrorMessage",
     "Hello",
+    "LatestArgs",
+    "LeaseMessage",
+    "LightArgs",
     "Limits",
+    "MethodSpec",
+    "Motion",
+    "MoveArgs",
+    "NoArgs",
+    "PidArgs",
+    "PoseArgs",
+    "RateArgs",
     "RequestError",
+    "RestArgs",
     "Result",
     "SampleMessage",
     "ServerMessage",
+    "StreamArgs",
     "Subscribe",
+    "TorqueArgs",
     "Unsubscribe",
+    "call_args",
     "encode",
     "json_schema",
     "parse_client_message",
@@ -70,12 +97,10 @@ __all__ = [
     "write_schema",
 ]
 
-#: Bumped on any change a peer of the previous version would misread.
-PROTOCOL_VERSION: Final = 1
+#: Bumped on any change a peer of the previous version would misread (2: commands, lease).
+PROTOCOL_VERSION: Final = 2
 #: What a client may ask (``op``).
 CLIENT_OPS: Final = ("subscribe", "unsubscribe", "call")
-#: The services a ``call`` may name, all read-only in this version.
-METHODS: Final = ("stats", "info", "latest", "schedule")
 #: Every stream's sample type, by stream name.
 SAMPLE_TYPES: Final[dict[str, type[Sample]]] = {
     "wheel_encoder": WheelEncoderSample,
@@ -104,7 +129,12 @@ ErrorCode = Literal[
     "not_subscribed",  # unsubscribe from a topic the client is not subscribed to
     "too_large",  # over the message size limit
     "rate_limited",  # over the message rate limit (the connection is then closed)
-    "robot_error",  # the Robot raised: the message says what
+    "no_lease",  # a command that needs the control lease, from a client without it
+    "lease_held",  # acquire while another client holds the lease (steal to take it)
+    "read_only",  # the daemon takes no commands (``ohmni serve --read-only``)
+    "bad_value",  # the Robot refused a value (out of range, not finite): nothing sent
+    "robot_state",  # the Robot cannot do it now (an emergency stop, no such device …)
+    "robot_error",  # the Robot raised otherwise: the message says what
 ]
 #: The ``code`` of an ``error``, for programs to act on.
 ERROR_CODES: Final = ErrorCode.__args__  # type: ignore[attr-defined]  # Literal's members
@@ -114,11 +144,186 @@ MessageId = (
     | Annotated[str, Field(min_length=1, max_length=_MAX_ID_CHARS)]
 )
 Topic = Literal[STREAM_NAMES]  # type: ignore[valid-type]  # the tuple of names, for the schema
-Method = Literal[METHODS]  # type: ignore[valid-type]  # the same
+#: A finite number (JSON has no NaN, but Python's json module reads ``NaN``/``Infinity``).
+Number = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# -- the methods' arguments -----------------------------------------------------------------
+
+
+class NoArgs(_Message):
+    """No arguments."""
+
+
+class LatestArgs(_Message):
+    """``latest``: which stream."""
+
+    topic: Topic
+
+
+class AcquireArgs(_Message):
+    """``acquire``: take the control lease; ``steal`` takes it from its holder (told so)."""
+
+    steal: bool = False
+
+
+class DriveArgs(_Message):
+    """``drive``: body velocity target, as :meth:`Robot.drive`."""
+
+    linear_mps: Number
+    angular_radps: Number = 0.0
+
+
+class DriveWheelsArgs(_Message):
+    """``drive_wheels``: each wheel's rim speed target, as :meth:`Robot.drive_wheels`."""
+
+    left_mps: Number
+    right_mps: Number
+
+
+class DrivePwmArgs(_Message):
+    """``drive_pwm``: open-loop PWM −1000..1000, as :meth:`Robot.drive_pwm`."""
+
+    left: int
+    right: int
+
+
+class EnabledArgs(_Message):
+    """``enable_controllers``: on or off."""
+
+    enabled: bool = True
+
+
+class PidArgs(_Message):
+    """``set_pid``: the wheel PIDs' gains (each 0..1e12), as :class:`PidGains`."""
+
+    kp: Number
+    ki: Number
+    kd: Number
+    kff: Number = 0.0
+    ff_offset: Number = 0.0
+
+
+class PoseArgs(_Message):
+    """``reset_odometry``: the pose to set."""
+
+    x_m: Number = 0.0
+    y_m: Number = 0.0
+    yaw_rad: Number = 0.0
+
+
+class LightArgs(_Message):
+    """``light_ring``: hue, saturation, value, 0..255 each."""
+
+    hue: int
+    saturation: int
+    value: int
+
+
+class StreamArgs(_Message):
+    """``enable_stream``: a stream on or off."""
+
+    topic: Topic
+    enabled: bool = True
+
+
+class RateArgs(_Message):
+    """``set_rate``: a polled stream's rate, 0.1..100 Hz."""
+
+    topic: Topic
+    hz: Number
+
+
+class _ServoCommand(_Message):
+    target: str | int = Field(description='"neck", or a HerkuleX servo id 0..253.')
+
+    @field_validator("target", mode="before")
+    @classmethod
+    def _neck_or_id(cls, value: object) -> object:
+        if value == "neck" or (
+            isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 253
+        ):
+            return value
+        raise ValueError(f'target must be "neck" or a servo id 0..253, not {_shown(value)}')
+
+
+class MoveArgs(_ServoCommand):
+    """``move``: the neck or servo ``target`` to ``raw`` counts or ``rad`` over ``playtime_s``
+    (a worm-gear neck takes ``raw`` only)."""
+
+    raw: int | None = None
+    rad: Number | None = None
+    playtime_s: Number | None = None
+
+
+class TorqueArgs(_ServoCommand):
+    """``torque``: ``on``, ``brake`` or ``free`` for a HerkuleX neck or servo."""
+
+    mode: Literal["on", "brake", "free"]
+
+
+class RestArgs(_ServoCommand):
+    """``rest``: move the neck or servo to its rest position (then free it, by default)."""
+
+    free: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class MethodSpec:
+    """One service of the daemon.
+
+    Attributes:
+        args: Its arguments' model.
+        lease: Whether it needs the control lease.
+        result: What its ``result`` carries (for the docs and the schema).
+    """
+
+    args: type[_Message]
+    lease: bool
+    result: str
+
+
+#: Every service a ``call`` may name.
+METHOD_SPECS: Final[dict[str, MethodSpec]] = {
+    # Read-only: anyone.
+    "stats": MethodSpec(NoArgs, False, "Robot.stats() (see results.stats)"),
+    "info": MethodSpec(
+        NoArgs, False, "firmware tags, servo models (keys: ids), neck, present, absent"
+    ),
+    "latest": MethodSpec(LatestArgs, False, "the topic's sample (see samples), or null"),
+    "schedule": MethodSpec(NoArgs, False, "[[stream, hz, phase_s, line_time_s], ...]"),
+    "get_pid": MethodSpec(NoArgs, False, "{kp, ki, kd, kff, ff_offset}"),
+    "lease": MethodSpec(NoArgs, False, "{holder: peer or null, you: bool}"),
+    # The lease itself.
+    "acquire": MethodSpec(AcquireArgs, False, "{holder, you: true, stolen_from: peer or null}"),
+    "release": MethodSpec(NoArgs, True, "{holder: null, you: false}"),
+    # Stopping: anyone may.
+    "stop": MethodSpec(NoArgs, False, "null"),
+    "estop": MethodSpec(NoArgs, False, "null"),
+    # Commands: the lease holder only.
+    "drive": MethodSpec(DriveArgs, True, "{requested: [m/s, rad/s], twist: [m/s, rad/s], scale}"),
+    "drive_wheels": MethodSpec(DriveWheelsArgs, True, "{left_mps, right_mps} driven"),
+    "drive_pwm": MethodSpec(DrivePwmArgs, True, "null"),
+    "clear_estop": MethodSpec(NoArgs, True, "null"),
+    "enable_controllers": MethodSpec(EnabledArgs, True, "null"),
+    "set_pid": MethodSpec(PidArgs, True, "null"),
+    "reset_odometry": MethodSpec(PoseArgs, True, "null"),
+    "light_ring": MethodSpec(LightArgs, True, "null"),
+    "enable_stream": MethodSpec(StreamArgs, True, "null"),
+    "set_rate": MethodSpec(RateArgs, True, "null"),
+    "move": MethodSpec(MoveArgs, True, "null (sent; the servo's stream shows it moving)"),
+    "torque": MethodSpec(TorqueArgs, True, "null"),
+    "rest": MethodSpec(RestArgs, True, "null (after the rest move, and the free)"),
+}
+#: The services a ``call`` may name.
+METHODS: Final = tuple(METHOD_SPECS)
+#: The services that need the control lease.
+LEASE_METHODS: Final = tuple(name for name, spec in METHOD_SPECS.items() if spec.lease)
+Method = Literal[METHODS]  # type: ignore[valid-type]  # the tuple of names, for the schema
 
 
 # -- client → server -----------------------------------------------------------------------
@@ -146,23 +351,15 @@ class Unsubscribe(_Message):
     topic: Topic
 
 
-class LatestArgs(_Message):
-    """``latest``'s arguments."""
-
-    topic: Topic
-
-
-class NoArgs(_Message):
-    """No arguments (``stats``, ``info``, ``schedule``)."""
-
-
 class Call(_Message):
-    """Call a read-only service: ``stats``, ``info``, ``schedule`` or ``latest {topic}``."""
+    """Call a service: ``method`` with ``args`` (each method's are under ``methods``)."""
 
     op: Literal["call"] = "call"
     id: MessageId
     method: Method
-    args: LatestArgs | NoArgs = Field(default_factory=NoArgs)
+    args: dict[str, Any] = Field(
+        default_factory=dict, description="The method's arguments (see 'methods')."
+    )
 
 
 ClientMessage = Annotated[Subscribe | Unsubscribe | Call, Field(discriminator="op")]
@@ -180,15 +377,41 @@ class Limits(_Message):
     max_queue: int = Field(MAX_QUEUE, description="Largest queue a subscription may ask.")
 
 
+class Motion(_Message):
+    """The Robot's geometry and speed limits, told in ``hello``: a client scales a drive
+    command as the Robot will (``null``: no limit)."""
+
+    wheel_radius_m: float
+    wheel_separation_m: float
+    max_linear_mps: float | None
+    max_angular_radps: float | None
+    max_wheel_mps: float | None
+    watchdog_s: float = Field(
+        description="The wheels stop this long after the last drive command (0: off)."
+    )
+
+
 class Hello(_Message):
     """The first message on every connection."""
 
     op: Literal["hello"] = "hello"
     protocol: int = Field(description="PROTOCOL_VERSION of the server.")
     version: str = Field(description="ohmni_tb's version.")
-    read_only: bool = Field(True, description="No motion commands in this version.")
+    read_only: bool = Field(description="Commands are refused (stop and estop excepted).")
+    peer: str = Field(description="This connection as the server names it (host:port).")
+    lease: str | None = Field(description="Who holds the control lease (peer), or null.")
     topics: dict[str, float] = Field(description="Each stream and its rate (Hz; 0: on events).")
+    motion: Motion
     limits: Limits
+
+
+class LeaseMessage(_Message):
+    """The control lease changed hands: sent to every client."""
+
+    op: Literal["lease"] = "lease"
+    holder: str | None = Field(description="The new holder (peer), or null: nobody.")
+    you: bool = Field(description="This connection holds it now.")
+    reason: str = Field(description="What happened, for people: acquired, stolen by …")
 
 
 class SampleMessage(_Message):
@@ -219,10 +442,14 @@ class ErrorMessage(_Message):
     message: str
 
 
-ServerMessage = Annotated[Hello | SampleMessage | Result | ErrorMessage, Field(discriminator="op")]
+ServerMessage = Annotated[
+    Hello | SampleMessage | Result | ErrorMessage | LeaseMessage, Field(discriminator="op")
+]
 
 _CLIENT: TypeAdapter[Subscribe | Unsubscribe | Call] = TypeAdapter(ClientMessage)
-_SERVER: TypeAdapter[Hello | SampleMessage | Result | ErrorMessage] = TypeAdapter(ServerMessage)
+_SERVER: TypeAdapter[Hello | SampleMessage | Result | ErrorMessage | LeaseMessage] = TypeAdapter(
+    ServerMessage
+)
 _SAMPLES: dict[type[Any], TypeAdapter[Any]] = {
     cls: TypeAdapter(cls) for cls in dict.fromkeys(SAMPLE_TYPES.values())
 }
@@ -263,42 +490,46 @@ def parse_client_message(frame: str | bytes) -> Subscribe | Unsubscribe | Call:
         raise RequestError(
             "unknown_op", f"unknown op {_shown(op)}: allowed {_listed(CLIENT_OPS)}", ident
         )
-    topic = raw.get("topic") if op != "call" else _args(raw).get("topic")
-    if op == "call" and raw.get("method") not in METHODS:
+    method = raw.get("method")
+    if op == "call" and method not in METHODS:
         raise RequestError(
-            "unknown_method",
-            f"unknown method {_shown(raw.get('method'))}: allowed {_listed(METHODS)}",
-            ident,
+            "unknown_method", f"unknown method {_shown(method)}: allowed {_listed(METHODS)}", ident
         )
-    wants_topic = op != "call" or raw.get("method") == "latest"
-    if wants_topic and isinstance(topic, str) and topic not in STREAM_NAMES:
+    topic = raw.get("topic") if op != "call" else _args(raw).get("topic")
+    if isinstance(topic, str) and topic not in STREAM_NAMES:
         raise RequestError(
             "unknown_topic",
             f"unknown topic {_shown(topic)}: the topics are {_listed(STREAM_NAMES)}",
             ident,
         )
-    if op == "call" and raw.get("method") != "latest" and _args(raw):
-        raise RequestError(
-            "bad_message", f"{raw['method']} takes no arguments, not {_shown(_args(raw))}", ident
-        )
     try:
         message = _CLIENT.validate_python(raw)
     except ValidationError as exc:
         raise RequestError("bad_message", f"bad {op}: {_problems(exc, op)}", ident) from None
-    if (
-        isinstance(message, Call)
-        and message.method == "latest"
-        and not isinstance(message.args, LatestArgs)
-    ):
-        raise RequestError(
-            "bad_message",
-            f'latest needs args {{"topic": …}}: one of {_listed(STREAM_NAMES)}',
-            ident,
-        )
+    if isinstance(message, Call):
+        call_args(message)  # the arguments are checked here, at the edge, too
     return message
 
 
-def parse_server_message(frame: str | bytes) -> Hello | SampleMessage | Result | ErrorMessage:
+def call_args(call: Call) -> BaseModel:
+    """``call``'s arguments as its method's model (:data:`METHOD_SPECS`).
+
+    Raises:
+        RequestError: An argument missing, extra or of the wrong type (``bad_message``);
+            the message names it, the value and what is allowed.
+    """
+    model = METHOD_SPECS[call.method].args
+    try:
+        return model.model_validate(call.args)
+    except ValidationError as exc:
+        raise RequestError(
+            "bad_message", f"bad {call.method} args: {_problems(exc, 'args')}", call.id
+        ) from None
+
+
+def parse_server_message(
+    frame: str | bytes,
+) -> Hello | SampleMessage | Result | ErrorMessage | LeaseMessage:
     """One server frame as a message (the client's edge).
 
     Raises:
@@ -349,11 +580,16 @@ def json_schema() -> dict[str, Any]:
         "client_to_server": _CLIENT.json_schema(),
         "server_to_client": _SERVER.json_schema(),
         "samples": {topic: _SAMPLES[cls].json_schema() for topic, cls in SAMPLE_TYPES.items()},
+        "methods": {
+            name: {
+                "lease": spec.lease,
+                "args": spec.args.model_json_schema(),
+                "result": spec.result,
+            }
+            for name, spec in METHOD_SPECS.items()
+        },
         "results": {
             "stats": _STATS.json_schema(),
-            "latest": "the topic's sample (see samples), or null before the first",
-            "info": "firmware tags, servo models (keys: servo ids), neck, present, absent",
-            "schedule": "[[stream, hz, phase_s, line_time_s], ...]",
             "subscribe": "{topic, max_hz, queue, hz}",
             "unsubscribe": "{topic}",
         },
@@ -390,6 +626,10 @@ def _problems(exc: ValidationError, op: str) -> str:
     for error in exc.errors(include_url=False):
         loc = error["loc"][1:] if error["loc"][:1] == (op,) else error["loc"]
         where = ".".join(str(p) for p in loc)
+        if error["type"] == "value_error":
+            # Our own validator's message, which names the value already.
+            parts.append(f"{where}: {error['msg'].removeprefix('Value error, ')}")
+            continue
         given = "" if error["type"] == "missing" else f" (got {_shown(error.get('input'))})"
         parts.append(f"{where or 'message'}: {error['msg']}{given}")
     return "; ".join(parts)

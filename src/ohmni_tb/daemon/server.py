@@ -13,8 +13,10 @@ sends from its queues; a client that reads slowly or not at all fills only its o
 queues, whose **oldest** samples are dropped and counted (the next sample it gets says
 how many in ``dropped``). Neither the Robot's control tick nor other clients wait for it.
 
-Read-only in this version, and loopback only: binding another address is refused until
-the token of the next step exists.
+Commands go through one control lease (:meth:`RobotServer` ``acquire``): any number of
+readers, one driver; ``stop`` and ``estop`` are anyone's. On loopback every local program
+may connect; any other address needs a token (:mod:`ohmni_tb.daemon.auth`), and a
+browser's handshake (it carries ``Origin``) is refused unless its origin is allowed.
 """
 
 from __future__ import annotations
@@ -24,33 +26,52 @@ import contextlib
 import ipaddress
 import json
 import logging
+import math
 import socket
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb import __version__
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.daemon.auth import check_origin, check_token, presented_token
 from ohmni_tb.daemon.protocol import (
     MAX_QUEUE,
+    METHOD_SPECS,
     PROTOCOL_VERSION,
+    AcquireArgs,
     Call,
+    DriveArgs,
+    DriveWheelsArgs,
+    ErrorCode,
     Hello,
+    LatestArgs,
+    LeaseMessage,
+    LightArgs,
     Limits,
+    Motion,
+    MoveArgs,
+    PidArgs,
     RequestError,
+    RestArgs,
     Result,
     Subscribe,
+    TorqueArgs,
     Unsubscribe,
+    call_args,
     encode,
     parse_client_message,
     sample_json,
     stats_json,
 )
-from ohmni_tb.errors import ConfigError, InvalidArgumentError, OhmniError
+from ohmni_tb.errors import ConfigError, InvalidArgumentError, OhmniError, StateError
+from ohmni_tb.robot.devices import ServoHandle
 
 if TYPE_CHECKING:
     from websockets.asyncio.server import Server, ServerConnection
+    from websockets.http11 import Request, Response
 
     from ohmni_tb.robot import Robot, Subscription
 
@@ -63,13 +84,16 @@ __all__ = [
     "MAX_MESSAGE_BYTES",
     "ClientFigures",
     "RobotServer",
-    "check_loopback",
+    "check_listen",
+    "is_loopback",
 ]
 
 _log = logging.getLogger("ohmni_tb.daemon")
 
-#: Loopback only until clients need a token (issue 12's next step).
+#: Loopback: only this machine's programs (any other address needs a token).
 DEFAULT_HOST: Final = "127.0.0.1"
+#: The shortest token a server accepts.
+_MIN_TOKEN_CHARS = 16
 #: Foxglove's bridge takes 8765; the daemon the next one, so both can run.
 DEFAULT_PORT: Final = 8766
 #: A client message is a few hundred bytes; anything longer is refused with an error.
@@ -117,31 +141,50 @@ class ClientFigures:
 
 
 class RobotServer:
-    """Serves a running Robot to WebSocket clients (read-only; loopback only).
+    """Serves a running Robot to WebSocket clients.
 
     Use ``async with RobotServer(robot) as server:`` or :meth:`start` / :meth:`aclose`.
     The Robot stays the caller's: the server does not close it.
 
     Args:
         robot: An open Robot.
-        host: Address to listen on: a loopback address (or ``localhost``).
+        host: Address to listen on. Loopback by default; any other needs ``token``.
         port: TCP port; 0 picks a free one (see :attr:`url`).
+        read_only: Refuse every command but ``stop`` and ``estop`` (and the lease).
+        token: When given, every client must present it (``Authorization: Bearer …`` or
+            ``?token=…``); see :func:`ohmni_tb.daemon.auth.load_or_create_token`.
+        origins: Browser origins allowed to connect (``"http://localhost:8080"``); a
+            handshake with any other ``Origin`` header is refused (403).
 
     Raises:
-        ConfigError: ``host`` is not a loopback address (no token authentication yet).
+        ConfigError: ``host`` is not a loopback address and there is no ``token``, or the
+            token is shorter than 16 characters.
     """
 
-    def __init__(self, robot: Robot, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT) -> None:
-        check_loopback(host)
+    def __init__(
+        self,
+        robot: Robot,
+        *,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        read_only: bool = False,
+        token: str | None = None,
+        origins: Sequence[str] = (),
+    ) -> None:
+        check_listen(host, token)
         if not 0 <= port <= 65535:
             raise InvalidArgumentError(f"port {port} is out of range: allowed 0..65535")
         self._robot = robot
         self._host = host
         self._port = port
+        self._read_only = read_only
+        self._token = token
+        self._origins = tuple(origins)
         self._server: Server | None = None
         self._clients: set[_Client] = set()
         self._pumps: dict[str, _Pump] = {}
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._holder: _Client | None = None
         self._closed = False
 
     @property
@@ -153,6 +196,11 @@ class RobotServer:
     def clients(self) -> list[ClientFigures]:
         """Every connected client's figures."""
         return [client.figures() for client in self._clients]
+
+    @property
+    def lease_holder(self) -> str | None:
+        """The peer (``host:port``) holding the control lease, or ``None``."""
+        return None if self._holder is None else self._holder.peer
 
     async def start(self) -> None:
         """Listen.
@@ -174,11 +222,34 @@ class RobotServer:
                 write_limit=_WRITE_LIMIT,
                 close_timeout=_CLOSE_TIMEOUT_S,
                 compression=None,  # loopback: deflate would cost CPU per client for nothing
+                process_request=self._admit,
             )
         except OSError as exc:
             raise TransportError(f"cannot listen on {self.url}: {exc.strerror or exc}") from exc
         self._port = self._server.sockets[0].getsockname()[1]  # the one chosen for 0
         _log.info("serving on %s", self.url)
+
+    def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
+        """The handshake's checks: a browser's origin, then the token. A refusal is an HTTP
+        error before any WebSocket exists, logged with the peer."""
+        peer = _peer(connection)
+        origin = request.headers.get("Origin")
+        if not check_origin(origin, self._origins):
+            _log.warning("client %s: refused: origin %r is not allowed", peer, origin)
+            return connection.respond(
+                403, f"origin {origin} is not allowed (ohmni serve --allow-origin)\n"
+            )
+        if self._token is not None:
+            given = presented_token(request.path, request.headers.get("Authorization"))
+            if not check_token(given, self._token):
+                _log.warning(
+                    "client %s: refused: %s token", peer, "no" if given is None else "a wrong"
+                )
+                return connection.respond(
+                    401,
+                    "this daemon needs its token: Authorization: Bearer <token>, or ?token=\n",
+                )
+        return None
 
     async def aclose(self) -> None:
         """Close every client (1001, going away), stop listening. Idempotent."""
@@ -215,7 +286,7 @@ class RobotServer:
         self._clients.add(client)
         _log.info("client %s connected (%d now)", client.peer, len(self._clients))
         try:
-            client.reply(self._hello())
+            client.reply(self._hello(client))
             async with asyncio.TaskGroup() as group:
                 group.create_task(client.write_loop(), name=f"ohmni-daemon-writer {client.peer}")
                 try:
@@ -228,6 +299,8 @@ class RobotServer:
             for topic in list(client.subscriptions):
                 self._unsubscribe(client, topic)
             self._clients.discard(client)
+            if self._holder is client:
+                self._set_holder(None, f"released: {client.peer} disconnected")
             _log.info(
                 "client %s left (%s; sent %d, dropped %d)",
                 client.peer,
@@ -275,7 +348,7 @@ class RobotServer:
                     self._unsubscribe(client, message.topic)
                     client.reply(Result(id=message.id, data={"topic": message.topic}))
                 else:
-                    client.reply(Result(id=message.id, data=await self._call(message)))
+                    self._call(client, message)
             except RequestError as exc:
                 self._refuse(client, exc)
             if client.overflowed:
@@ -286,13 +359,25 @@ class RobotServer:
         _log.warning("client %s: refused (%s): %s", client.peer, exc.code, exc.message)
         client.reply(exc.reply())
 
-    def _hello(self) -> Hello:
-        stats = self._robot.stats()
+    def _hello(self, client: _Client) -> Hello:
+        robot = self._robot
+        stats = robot.stats()
+        config = robot.config
         return Hello(
             protocol=PROTOCOL_VERSION,
-            read_only=True,
+            read_only=self._read_only,
             version=__version__,
+            peer=client.peer,
+            lease=self.lease_holder,
             topics={name: s.requested_hz for name, s in stats.streams.items()},
+            motion=Motion(
+                wheel_radius_m=config.wheel_radius_m,
+                wheel_separation_m=config.wheel_separation_m,
+                max_linear_mps=_limit(config.max_linear_mps),
+                max_angular_radps=_limit(config.max_angular_radps),
+                max_wheel_mps=_limit(config.max_wheel_mps),
+                watchdog_s=config.watchdog_s,
+            ),
             limits=Limits(
                 max_message_bytes=MAX_MESSAGE_BYTES,
                 max_messages_per_s=MAX_MESSAGES_PER_S,
@@ -301,20 +386,183 @@ class RobotServer:
             ),
         )
 
-    async def _call(self, call: Call) -> Any:
-        robot = self._robot
+    # -- calls -------------------------------------------------------------------------------
+
+    def _call(self, client: _Client, call: Call) -> None:
+        """Serve one call: at once when the Robot answers at once, else in a task of its own,
+        so a slow one (a rest move takes a second) does not hold up the client's next
+        messages. The lease is checked here, on arrival, in the order of the messages."""
+        spec = METHOD_SPECS[call.method]
+        args = call_args(call)
+        if self._read_only and (spec.lease or call.method == "acquire"):
+            raise RequestError(
+                "read_only",
+                f"{call.method}: this daemon takes no commands (started read-only); "
+                "stop and estop are still anyone's",
+                call.id,
+            )
+        if spec.lease and self._holder is not client:
+            holder = self.lease_holder
+            raise RequestError(
+                "no_lease",
+                f"{call.method} needs the control lease: "
+                + (f"{holder} holds it" if holder else "nobody holds it; acquire it first"),
+                call.id,
+            )
+        serve = self._SYNC.get(call.method)
+        if serve is not None:
+            try:
+                data = serve(self, client, args)
+            except OhmniError as exc:
+                raise _robot_refusal(call, exc) from exc
+            except RequestError as exc:
+                exc.id = call.id
+                raise
+            client.reply(Result(id=call.id, data=data))
+            return
+        task = asyncio.get_running_loop().create_task(
+            self._call_later(client, call, args), name=f"ohmni-daemon-call {call.method}"
+        )
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _call_later(self, client: _Client, call: Call, args: Any) -> None:
+        serve = self._ASYNC[call.method]
         try:
-            if call.method == "stats":
-                return stats_json(robot.stats())
-            if call.method == "schedule":
-                return [list(row) for row in robot.schedule()]
-            if call.method == "info":
-                return await robot.info()
-            topic = getattr(call.args, "topic", "")
-            sample = robot.latest(topic)
-            return None if sample is None else sample_json(sample)
-        except OhmniError as exc:
-            raise RequestError("robot_error", str(exc), call.id) from exc
+            try:
+                data = await serve(self, args)
+            except OhmniError as exc:
+                raise _robot_refusal(call, exc) from exc
+        except RequestError as exc:
+            self._refuse(client, exc)
+            return
+        client.reply(Result(id=call.id, data=data))
+
+    # The services, each one line on the Robot.
+
+    def _acquire(self, client: _Client, args: AcquireArgs) -> Any:
+        holder = self._holder
+        if holder is None or holder is client:
+            if holder is None:
+                self._set_holder(client, f"acquired by {client.peer}")
+            return {"holder": client.peer, "you": True, "stolen_from": None}
+        if not args.steal:
+            raise RequestError(
+                "lease_held",
+                f"the control lease is held by {holder.peer} (for "
+                f"{time.monotonic() - holder.lease_since:.0f} s): acquire with steal to take it",
+            )
+        _log.warning("client %s: stole the control lease from %s", client.peer, holder.peer)
+        self._set_holder(client, f"stolen by {client.peer} from {holder.peer}")
+        return {"holder": client.peer, "you": True, "stolen_from": holder.peer}
+
+    def _release(self, client: _Client, args: object) -> Any:
+        self._set_holder(None, f"released by {client.peer}")
+        return {"holder": None, "you": False}
+
+    def _set_holder(self, client: _Client | None, reason: str) -> None:
+        """Hand the lease over. The robot stops whenever it changes hands: whoever drives
+        next starts from standstill, and a driver that left does not leave it moving."""
+        previous, self._holder = self._holder, client
+        if client is not None:
+            client.lease_since = time.monotonic()
+        if previous is not None:
+            self._robot.stop()
+        _log.info("lease: %s", reason)
+        for other in self._clients:
+            other.reply(LeaseMessage(holder=self.lease_holder, you=other is client, reason=reason))
+
+    def _latest(self, client: _Client, args: LatestArgs) -> Any:
+        sample = self._robot.latest(args.topic)
+        return None if sample is None else sample_json(sample)
+
+    def _drive(self, client: _Client, args: DriveArgs) -> Any:
+        limited = self._robot.drive(args.linear_mps, args.angular_radps)
+        return {
+            "requested": [limited.requested.linear_mps, limited.requested.angular_radps],
+            "twist": [limited.twist.linear_mps, limited.twist.angular_radps],
+            "scale": limited.scale,
+        }
+
+    def _drive_wheels(self, client: _Client, args: DriveWheelsArgs) -> Any:
+        wheels = self._robot.drive_wheels(args.left_mps, args.right_mps)
+        return {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps}
+
+    def _set_pid(self, client: _Client, args: PidArgs) -> Any:
+        self._robot.set_pid(PidGains(**args.model_dump()))
+        return None
+
+    def _get_pid(self, client: _Client, args: object) -> Any:
+        gains = self._robot.get_pid()
+        return {name: getattr(gains, name) for name in ("kp", "ki", "kd", "kff", "ff_offset")}
+
+    _SYNC: Final[dict[str, _SyncCall]] = {
+        "stats": lambda self, client, args: stats_json(self._robot.stats()),
+        "schedule": lambda self, client, args: [list(row) for row in self._robot.schedule()],
+        "latest": _latest,
+        "get_pid": _get_pid,
+        "lease": lambda self, client, args: {
+            "holder": self.lease_holder,
+            "you": self._holder is client,
+        },
+        "acquire": _acquire,
+        "release": _release,
+        "stop": lambda self, client, args: self._robot.stop(),
+        "drive": _drive,
+        "drive_wheels": _drive_wheels,
+        "drive_pwm": lambda self, client, args: self._robot.drive_pwm(args.left, args.right),
+        "clear_estop": lambda self, client, args: self._robot.clear_estop(),
+        "enable_controllers": lambda self, client, args: self._robot.enable_controllers(
+            args.enabled
+        ),
+        "set_pid": _set_pid,
+        "reset_odometry": lambda self, client, args: self._robot.reset_odometry(
+            args.x_m, args.y_m, args.yaw_rad
+        ),
+        "enable_stream": lambda self, client, args: self._robot.enable_stream(
+            args.topic, args.enabled
+        ),
+        "set_rate": lambda self, client, args: self._robot.set_rate(args.topic, args.hz),
+    }
+
+    async def _info(self, args: object) -> Any:
+        return await self._robot.info()
+
+    async def _estop(self, args: object) -> Any:
+        await self._robot.estop()
+
+    async def _light_ring(self, args: LightArgs) -> Any:
+        await self._robot.light_ring(args.hue, args.saturation, args.value)
+
+    def _handle_of(self, target: str | int) -> Any:
+        return self._robot.neck if target == "neck" else self._robot.servo(int(target))
+
+    async def _move(self, args: MoveArgs) -> Any:
+        handle = self._handle_of(args.target)
+        options = {
+            name: value
+            for name, value in (("rad", args.rad), ("playtime_s", args.playtime_s))
+            if value is not None
+        }
+        await handle.move(args.raw, **options)
+
+    async def _torque(self, args: TorqueArgs) -> Any:
+        handle = self._handle_of(args.target)
+        if not isinstance(handle, ServoHandle):
+            raise StateError("the worm-gear neck has no torque modes: it holds without power")
+        await handle.torque(args.mode)
+
+    async def _rest(self, args: RestArgs) -> Any:
+        await self._handle_of(args.target).rest(free=args.free)
+
+    _ASYNC: Final[dict[str, _AsyncCall]] = {
+        "info": _info,
+        "estop": _estop,
+        "light_ring": _light_ring,
+        "move": _move,
+        "torque": _torque,
+        "rest": _rest,
+    }
 
     def _subscribe(self, client: _Client, message: Subscribe) -> dict[str, Any]:
         topic = message.topic
@@ -353,6 +601,29 @@ class RobotServer:
             _log.error("a daemon pump failed", exc_info=task.exception())
 
 
+#: A service served at once: (server, client, args) → result data.
+_SyncCall = Callable[["RobotServer", "_Client", Any], Any]
+#: A service that awaits the Robot: (server, args) → result data.
+_AsyncCall = Callable[["RobotServer", Any], Awaitable[Any]]
+
+
+def _robot_refusal(call: Call, exc: OhmniError) -> RequestError:
+    """What the Robot raised, as the ``error`` for the client: a bad value, a state that
+    does not allow it, or another failure (a device that did not answer …)."""
+    if isinstance(exc, InvalidArgumentError):
+        code: ErrorCode = "bad_value"
+    elif isinstance(exc, StateError):
+        code = "robot_state"
+    else:
+        code = "robot_error"
+    return RequestError(code, f"{call.method}: {exc}", call.id)
+
+
+def _limit(value: float) -> float | None:
+    """A speed limit for JSON: ``None`` for none (infinity)."""
+    return None if math.isinf(value) else value
+
+
 #: The Robot-side queue of a pump: it only falls behind when the event loop itself does.
 _PUMP_QUEUE = 256
 
@@ -366,13 +637,14 @@ class _Pump:
         self.queues: set[_Queue] = set()
 
     async def run(self) -> None:
-        loop = asyncio.get_running_loop()
         async for sample in self.subscription:
             # Encoded once for every client; each writer only wraps it.
             data = json.dumps(sample_json(sample), separators=(",", ":"))
-            now = loop.time()
+            # The rate cap goes by the samples' own stamps (the loop's clock), so a
+            # late wake-up of this pump does not let two samples through close together.
+            stamp = sample.stamp_s
             for queue in self.queues:
-                queue.put(data, now)
+                queue.put(data, stamp)
 
 
 class _Queue:
@@ -426,8 +698,7 @@ class _Client:
 
     def __init__(self, ws: ServerConnection) -> None:
         self.ws = ws
-        address = ws.remote_address
-        self.peer = f"{address[0]}:{address[1]}" if isinstance(address, tuple) else str(address)
+        self.peer = _peer(ws)
         self.subscriptions: dict[str, _Queue] = {}
         self._outbox: deque[str] = deque()
         self._ready = asyncio.Event()
@@ -436,6 +707,8 @@ class _Client:
         self._turn = 0
         self.overflowed = False
         self.sent = 0
+        #: When it took the control lease (monotonic), if it holds it.
+        self.lease_since = 0.0
 
     @property
     def dropped_total(self) -> int:
@@ -521,21 +794,36 @@ class _TokenBucket:
         return True
 
 
-def check_loopback(host: str) -> None:
-    """Refuse to listen anywhere but loopback (no token authentication yet).
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is ``localhost`` or a loopback address (only this machine)."""
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_listen(host: str, token: str | None) -> None:
+    """Refuse to listen beyond loopback without a token.
 
     Raises:
-        ConfigError: ``host`` is not ``localhost`` nor a loopback address.
+        ConfigError: ``host`` is not loopback and ``token`` is ``None``, or the token is
+            shorter than 16 characters.
     """
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
+    if token is not None and len(token) < _MIN_TOKEN_CHARS:
         raise ConfigError(
-            f"refusing to listen on {host!r}: only loopback (127.0.0.1, ::1, localhost) "
-            "until clients need a token; every local program can connect there"
+            f"a daemon token of {len(token)} characters is too easy to guess: at least "
+            f"{_MIN_TOKEN_CHARS} (load_or_create_token() makes one)"
         )
+    if token is None and not is_loopback(host):
+        raise ConfigError(
+            f"refusing to listen on {host!r} without a token: beyond loopback (127.0.0.1, "
+            "::1, localhost) every client must present one (ohmni serve makes it)"
+        )
+
+
+def _peer(connection: ServerConnection) -> str:
+    address = connection.remote_address
+    return f"{address[0]}:{address[1]}" if isinstance(address, tuple) else str(address)
 
 
 def _host_in_url(host: str) -> str:
