@@ -113,6 +113,9 @@ DEFAULT_TIMEOUT_S: Final = 5.0
 _MAX_FRAME_BYTES = 1024 * 1024
 #: Messages waiting to be sent to a daemon that does not take them; one more is an error.
 MAX_UNSENT: Final = 256
+#: Connecting again: the first wait, then doubling up to the last.
+_FIRST_RETRY_S = 0.05
+_MAX_RETRY_S = 2.0
 
 _log = logging.getLogger("ohmni_tb.client")
 #: The protocol's field names as this API's.
@@ -144,8 +147,21 @@ class RobotClient:
     Open it with ``async with RobotClient.connect(url) as robot:``.
     """
 
-    def __init__(self, ws: ClientConnection, url: str, hello: Hello, timeout_s: float) -> None:
+    def __init__(
+        self,
+        ws: ClientConnection,
+        url: str,
+        hello: Hello,
+        timeout_s: float,
+        *,
+        headers: dict[str, str] | None = None,
+        reconnect: bool = False,
+    ) -> None:
         self._ws = ws
+        self._headers = headers
+        self._reconnect = reconnect
+        #: Times the connection was made again after the daemon went away.
+        self.reconnects = 0
         self._url = url
         self._hello = hello
         self._timeout_s = timeout_s
@@ -180,6 +196,7 @@ class RobotClient:
         *,
         token: str | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
+        reconnect: bool = False,
     ) -> AsyncIterator[RobotClient]:
         """Connect to the daemon at ``url``; leaving the block closes the connection.
 
@@ -188,61 +205,30 @@ class RobotClient:
             token: The daemon's token, needed when it listens beyond loopback (the
                 content of its token file); default ``$OHMNI_DAEMON_TOKEN``, else none.
             timeout_s: How long connecting, and each call, may take.
+            reconnect: When the daemon goes away (restarted, its machine rebooted),
+                connect again and again (backing off to one try every 2 s) instead of
+                ending: subscriptions stay open and are renewed, calls in between raise
+                :class:`~ohmni_tb.errors.TransportClosedError`. The control lease is
+                **not** taken again: a driver must ``acquire`` anew (:attr:`reconnects`
+                tells it happened).
 
         Raises:
             TransportError: Nothing answers at ``url``, it is not the daemon, or it
                 refused the connection (no token or a wrong one: the message says).
         """
-        from websockets.asyncio.client import connect  # noqa: PLC0415  # loaded when used
-        from websockets.exceptions import (  # noqa: PLC0415
-            ConnectionClosed,
-            InvalidHandshake,
-            InvalidStatus,
-            InvalidURI,
-        )
-
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         headers = {"Authorization": f"Bearer {token}"} if token else None
+        ws, hello = await _open(url, headers, timeout_s)
         try:
-            async with asyncio.timeout(timeout_s):
-                ws = await connect(
-                    url,
-                    max_size=_MAX_FRAME_BYTES,
-                    compression=None,
-                    additional_headers=headers,
-                )
-        except InvalidStatus as exc:
-            said = exc.response.body.decode("utf-8", "replace").strip() if exc.response.body else ""
-            raise TransportError(
-                f"the daemon at {url} refused the connection "
-                f"(HTTP {exc.response.status_code}){': ' + said if said else ''}"
-            ) from exc
-        except (OSError, InvalidHandshake, InvalidURI, TimeoutError) as exc:
-            raise TransportError(f"cannot connect to the daemon at {url}: {_why(exc)}") from exc
-        try:
-            try:
-                async with asyncio.timeout(timeout_s):
-                    hello = parse_server_message(await ws.recv())
-            except (TimeoutError, ValueError, OSError) as exc:
-                raise TransportError(
-                    f"{url} did not greet as the ohmni daemon: {_why(exc)}"
-                ) from exc
-            except ConnectionClosed as exc:
-                raise TransportError(f"{url} closed the connection at once: {exc}") from exc
-            if not isinstance(hello, Hello):
-                raise TransportError(f"{url} did not greet as the ohmni daemon ({hello.op} first)")
-            client = cls(ws, url, hello, timeout_s)
-            loop = asyncio.get_running_loop()
-            client._reader = loop.create_task(client._read_loop(), name=f"ohmni-client {url}")
-            client._writer = loop.create_task(
-                client._write_loop(), name=f"ohmni-client-writer {url}"
-            )
-            try:
-                yield client
-            finally:
-                await client._aclose()
-        finally:
+            client = cls(ws, url, hello, timeout_s, headers=headers, reconnect=reconnect)
+        except BaseException:
             await ws.close()
+            raise
+        client._start()
+        try:
+            yield client
+        finally:
+            await client._aclose()
 
     @property
     def url(self) -> str:
@@ -615,10 +601,87 @@ class RobotClient:
         finally:
             self._pending.pop(id, None)
 
+    def _start(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._reader = loop.create_task(self._run(), name=f"ohmni-client {self._url}")
+        self._writer = loop.create_task(self._write_loop(), name=f"ohmni-client-writer {self._url}")
+
+    async def _run(self) -> None:
+        """Read the connection; with ``reconnect``, make it again each time it ends."""
+        delay = _FIRST_RETRY_S
+        while True:
+            await self._read_loop()
+            lost = self._closed_error()
+            self._lost = lost
+            self._unsent.clear()  # the old connection's; their callers were told
+            for future in list(self._pending.values()):
+                if not future.done():
+                    future.set_exception(lost)
+            if self._closing or not self._reconnect:
+                for subscription in list(self._subscriptions.values()):
+                    subscription._end(None if self._closing else lost)
+                return
+            _log.warning("%s; connecting again", lost)
+            while True:
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, _MAX_RETRY_S)
+                try:
+                    ws, hello = await _open(self._url, self._headers, self._timeout_s)
+                    break
+                except TransportError as exc:
+                    _log.info("%s; again in %.1f s", exc, delay)
+            delay = _FIRST_RETRY_S
+            self._reconnected(ws, hello)
+
+    def _reconnected(self, ws: ClientConnection, hello: Hello) -> None:
+        had_lease = self.has_lease
+        self._ws = ws
+        self._hello = hello
+        self._holder = hello.lease
+        self._lost = None
+        self.reconnects += 1
+        _log.warning(
+            "connected again to the daemon at %s%s",
+            self._url,
+            ": the control lease was lost with the connection (acquire it again)"
+            if had_lease
+            else "",
+        )
+        if self._writer is None or self._writer.done():
+            self._writer = asyncio.get_running_loop().create_task(
+                self._write_loop(), name=f"ohmni-client-writer {self._url}"
+            )
+        for subscription in self._subscriptions.values():
+            if subscription._started:
+                self._renew(subscription)
+
+    def _renew(self, subscription: ClientSubscription[Any]) -> None:
+        """Ask the new connection for a subscription's samples again (told if refused)."""
+        id = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending[id] = future
+
+        def done(future: asyncio.Future[Any]) -> None:
+            self._pending.pop(id, None)
+            if not future.cancelled() and future.exception() is not None:
+                _log.warning("renewing %s: %s", subscription.name, future.exception())
+
+        future.add_done_callback(done)
+        self._send(
+            encode(
+                Subscribe(
+                    id=id,
+                    topic=subscription.name,
+                    max_hz=subscription._max_hz,
+                    queue=subscription._maxlen,
+                )
+            )
+        )
+
     async def _read_loop(self) -> None:
         from websockets.exceptions import ConnectionClosed  # noqa: PLC0415
 
-        try:
+        with contextlib.suppress(ConnectionClosed):
             async for frame in self._ws:
                 try:
                     message = parse_server_message(frame)
@@ -626,15 +689,6 @@ class RobotClient:
                     _log.warning("the daemon at %s sent a bad message: %s", self._url, exc)
                     continue
                 self._dispatch(message)
-        except ConnectionClosed:
-            pass
-        finally:
-            self._lost = self._closed_error()
-            for future in self._pending.values():
-                if not future.done():
-                    future.set_exception(self._lost)
-            for subscription in list(self._subscriptions.values()):
-                subscription._end(None if self._closing else self._lost)
 
     def _dispatch(self, message: Any) -> None:
         if isinstance(message, SampleMessage):
@@ -685,7 +739,63 @@ class RobotClient:
                     await self._writer
         await self._ws.close()
         if self._reader is not None:
-            await self._reader
+            if self._lost is not None:
+                self._reader.cancel()  # waiting to connect again: no more
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._reader
+            if self._reader.cancelled():
+                for subscription in list(self._subscriptions.values()):
+                    subscription._end(None)
+
+    @property
+    def connected(self) -> bool:
+        """Whether the connection is up (``False`` while connecting again)."""
+        return self._lost is None
+
+
+async def _open(
+    url: str, headers: dict[str, str] | None, timeout_s: float
+) -> tuple[ClientConnection, Hello]:
+    """A connection to the daemon at ``url`` and its ``hello``.
+
+    Raises:
+        TransportError: Nothing answers, it refused the handshake, or it is not the daemon.
+    """
+    from websockets.asyncio.client import connect  # noqa: PLC0415  # loaded when used
+    from websockets.exceptions import (  # noqa: PLC0415
+        ConnectionClosed,
+        InvalidHandshake,
+        InvalidStatus,
+        InvalidURI,
+    )
+
+    try:
+        async with asyncio.timeout(timeout_s):
+            ws = await connect(
+                url, max_size=_MAX_FRAME_BYTES, compression=None, additional_headers=headers
+            )
+    except InvalidStatus as exc:
+        said = exc.response.body.decode("utf-8", "replace").strip() if exc.response.body else ""
+        raise TransportError(
+            f"the daemon at {url} refused the connection "
+            f"(HTTP {exc.response.status_code}){': ' + said if said else ''}"
+        ) from exc
+    except (OSError, InvalidHandshake, InvalidURI, TimeoutError) as exc:
+        raise TransportError(f"cannot connect to the daemon at {url}: {_why(exc)}") from exc
+    try:
+        try:
+            async with asyncio.timeout(timeout_s):
+                hello = parse_server_message(await ws.recv())
+        except (TimeoutError, ValueError, OSError) as exc:
+            raise TransportError(f"{url} did not greet as the ohmni daemon: {_why(exc)}") from exc
+        except ConnectionClosed as exc:
+            raise TransportError(f"{url} closed the connection at once: {exc}") from exc
+        if not isinstance(hello, Hello):
+            raise TransportError(f"{url} did not greet as the ohmni daemon ({hello.op} first)")
+    except BaseException:
+        await ws.close()
+        raise
+    return ws, hello
 
 
 class ClientSubscription(Generic[T]):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import os
 import select
@@ -17,7 +18,7 @@ import pytest
 from ohmni_tb import Robot
 from ohmni_tb.client import RobotClient
 from ohmni_tb.daemon.server import RobotServer
-from ohmni_tb.errors import InvalidArgumentError, StateError, TransportError
+from ohmni_tb.errors import InvalidArgumentError, LeaseError, StateError, TransportError
 from ohmni_tb.robot import TbcoreStatusSample, WheelOdomSample
 
 
@@ -161,3 +162,67 @@ def test_ohmni_serve_serves_sim_and_exits_cleanly_on_ctrl_c() -> None:
     assert "Traceback" not in log
     assert 'level=info logger=ohmni_tb.daemon msg="client 127.0.0.1:' in log
     assert "stopped serving" in log
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def test_clients_that_reconnect_ride_out_a_daemon_restart() -> None:
+    """The daemon killed outright (no closing handshake) and started again on its port:
+    reconnecting clients get their streams back; the lease is not handed back by itself."""
+    listen = f"127.0.0.1:{free_port()}"
+    first, url = start_serving("--listen", listen)
+
+    async def use() -> None:
+        nonlocal first
+        async with contextlib.AsyncExitStack() as stack:
+            readers = [
+                await stack.enter_async_context(RobotClient.connect(url, reconnect=True))
+                for _ in range(4)
+            ]
+            streams = [
+                await stack.enter_async_context(reader.subscribe("tbcore_status"))
+                for reader in readers
+            ]
+            driver = await stack.enter_async_context(RobotClient.connect(url, reconnect=True))
+            await driver.acquire()
+            for stream in streams:
+                await anext(stream)
+            once = await stack.enter_async_context(RobotClient.connect(url))
+            first.kill()
+            first.communicate()
+            async with asyncio.timeout(5):
+                while driver.connected or any(r.connected for r in readers):  # noqa: ASYNC110  # no event for it
+                    await asyncio.sleep(0.02)
+            # Down: calls say so at once; a client without reconnect has ended.
+            with pytest.raises(TransportError, match="closed the connection"):
+                driver.drive(0.1, 0.0)
+            with pytest.raises(TransportError):
+                await readers[0].stats()
+            assert not once.connected
+            second, url2 = start_serving("--listen", listen)
+            first = second
+            assert url2 == url
+            async with asyncio.timeout(15):
+                for stream in streams:
+                    while stream.pending:  # samples from before the restart
+                        await anext(stream)
+                    sample = await anext(stream)
+                    assert sample.pack_v > 10
+            assert all(client.connected for client in (driver, *readers))
+            assert [client.reconnects for client in (driver, *readers)] == [1] * 5
+            assert not driver.has_lease
+            with pytest.raises(LeaseError, match="acquire"):
+                driver.drive(0.1, 0.0)
+            await driver.acquire()
+            driver.drive(0.1, 0.0)
+            await driver.confirm()
+
+    try:
+        asyncio.run(use())
+    finally:
+        stop_serving(first)
