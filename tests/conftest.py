@@ -85,3 +85,11 @@ async def memory_pair() -> AsyncIterator[tuple[MemoryTransport, MemoryTransport]
     yield host, device
     await host.aclose()
     await device.aclose()
+
+
+@pytest.fixture(autouse=True)
+def _no_daemon_unless_asked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The commands go through ``ohmni serve`` when one answers on this machine: not in
+    tests (a developer's own daemon must not answer them), except where a test sets
+    ``OHMNI_DAEMON_URL`` to the daemon it started."""
+    monkeypatch.setenv("OHMNI_DAEMON_URL", "off")

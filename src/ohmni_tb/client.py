@@ -94,6 +94,7 @@ if TYPE_CHECKING:
     from pydantic import BaseModel
     from websockets.asyncio.client import ClientConnection
 
+    from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot.core import RobotStats
 
 __all__ = [
@@ -341,6 +342,23 @@ class RobotClient:
         rows = await self._call("schedule")
         return [(str(n), float(hz), float(phase), float(cost)) for n, hz, phase, cost in rows]
 
+    async def config(self) -> RobotConfig:
+        """The daemon's Robot's settings (:attr:`Robot.config`)."""
+        from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic-settings: when asked
+
+        data: dict[str, Any] = await self._call("config")
+        return RobotConfig(**data)
+
+    def latest_received(self, name: str) -> Any:
+        """The newest sample of stream ``name`` this connection received (it must subscribe
+        to it), or ``None``: no round trip, not awaited.
+
+        Raises:
+            InvalidArgumentError: No such stream.
+        """
+        _check_topic(name)
+        return self._latest.get(name)
+
     async def get_pid(self) -> PidGains:
         """The wheel PIDs' gains (:meth:`Robot.get_pid`; awaited: the daemon is asked)."""
         return PidGains(**await self._call("get_pid"))
@@ -371,8 +389,8 @@ class RobotClient:
         """Give the control lease back (the robot stops). Without the lease: nothing."""
         if not self.has_lease:
             return
+        self._holder = None  # before the daemon's lease message: ours, not a loss
         await self._call("release")
-        self._holder = None
 
     @asynccontextmanager
     async def lease(self, *, steal: bool = False) -> AsyncIterator[RobotClient]:

@@ -118,7 +118,8 @@ def test_the_lines_follow_the_robot(driving: dict[str, Any]) -> None:
     assert (last["x_m"], last["y_m"]) == pytest.approx((x, y), abs=0.03)
     assert last["yaw_rad"] == pytest.approx(yaw, abs=0.05)
     # A read-only command leaves the neck as it is when it exits.
-    assert driving["overrides"] == {"on_exit_neck": "keep"}
+    # Read-only: the neck stays as it is; and no daemon here, so the port is opened.
+    assert driving["overrides"] == {"on_exit_neck": "keep", "via": None}
 
 
 def test_ctrl_c_exits_cleanly() -> None:

@@ -20,7 +20,7 @@ from ohmni_tb.daemon import auth
 from ohmni_tb.daemon.server import RobotServer
 from ohmni_tb.errors import ConfigError, TransportError
 
-from .test_client import start_serving, stop_serving
+from ._serving import start_serving, stop_serving
 
 TOKEN = "x" * 20 + "-a-test-token"
 

@@ -5,13 +5,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import os
-import select
 import signal
 import socket
-import subprocess
-import sys
-import time
 
 import pytest
 
@@ -20,6 +15,8 @@ from ohmni_tb.client import RobotClient
 from ohmni_tb.daemon.server import RobotServer
 from ohmni_tb.errors import InvalidArgumentError, LeaseError, StateError, TransportError
 from ohmni_tb.robot import TbcoreStatusSample, WheelOdomSample
+
+from ._serving import free_port, start_serving, stop_serving
 
 
 async def test_info_schedule_and_stats_match_the_robots(robot: Robot, server: RobotServer) -> None:
@@ -103,41 +100,6 @@ async def test_nothing_listening_is_a_transport_error_naming_the_url() -> None:
             pass
 
 
-def start_serving(*args: str) -> tuple[subprocess.Popen[bytes], str]:
-    """``ohmni serve --port sim:// ARGS`` in its own process, and the URL it printed."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "ohmni_tb", "serve", "--port", "sim://", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 30
-    line = b""
-    while not line.endswith(b"\n"):
-        ready, _, _ = select.select([proc.stdout], [], [], deadline - time.monotonic())
-        assert ready, "ohmni serve printed no address"
-        chunk = os.read(proc.stdout.fileno(), 1)
-        if not chunk:
-            _, err = proc.communicate(timeout=10)
-            raise AssertionError(f"ohmni serve ended early: {err.decode()}")
-        line += chunk
-    return proc, line.decode().strip()
-
-
-def stop_serving(proc: subprocess.Popen[bytes]) -> str:
-    """SIGINT, then what it logged; it must exit as every command does on Ctrl-C."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        _, err = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 130, err.decode()  # 128 + SIGINT, as every command
-    return err.decode()
-
-
 def test_ohmni_serve_serves_sim_and_exits_cleanly_on_ctrl_c() -> None:
     proc, url = start_serving("--listen", "127.0.0.1:0", "--foreground")
     try:
@@ -162,13 +124,6 @@ def test_ohmni_serve_serves_sim_and_exits_cleanly_on_ctrl_c() -> None:
     assert "Traceback" not in log
     assert 'level=info logger=ohmni_tb.daemon msg="client 127.0.0.1:' in log
     assert "stopped serving" in log
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def test_clients_that_reconnect_ride_out_a_daemon_restart() -> None:

@@ -12,7 +12,7 @@ import sys
 import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar, cast
 
 import typer
 from rich.console import Console
@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from ohmni_tb.transport import Transport
 
 __all__ = [
+    "DirectOption",
     "JsonOption",
     "PortOption",
     "RobotWarnings",
@@ -36,6 +37,7 @@ __all__ = [
     "confirm_motion",
     "confirm_stop",
     "console",
+    "daemon_for",
     "emit_json",
     "error_line",
     "is_simulated",
@@ -53,6 +55,14 @@ __all__ = [
 
 T = TypeVar("T")
 
+DirectOption = Annotated[
+    bool,
+    typer.Option(
+        "--direct",
+        help="Open the port even when ohmni serve runs (by default the command goes "
+        "through the daemon, which holds the port).",
+    ),
+]
 PortOption = Annotated[
     str | None,
     typer.Option(
@@ -136,13 +146,44 @@ def confirm_motion(port: str, what: str, *, yes: bool) -> None:
 
 
 @asynccontextmanager
-async def open_robot(port: str, **overrides: Any) -> AsyncIterator[Robot]:
-    """``Robot.open`` with the settings from the environment and config file."""
+async def open_robot(
+    port: str, *, via: str | None = None, control: bool = False, **overrides: Any
+) -> AsyncIterator[Robot]:
+    """``Robot.open`` with the settings from the environment and config file — or, with
+    ``via`` (a daemon's URL from :func:`daemon_for`), the daemon's Robot.
+
+    Args:
+        port: The port to open (resolved: :func:`resolve_port`).
+        via: Use the daemon at this URL instead of opening ``port``.
+        control: The command moves the robot: through the daemon it holds the control
+            lease while it runs (refused, naming the holder, when another client drives).
+        overrides: RobotConfig settings for a Robot this opens (not the daemon's).
+    """
+    if via is not None:
+        from ohmni_tb.cli.remote import open_remote  # noqa: PLC0415
+
+        async with open_remote(via, control=control) as remote:
+            _err.print(
+                f"[dim]via the daemon at {escape(via)} (--direct: open the port)[/dim]",
+                soft_wrap=True,
+            )
+            # The daemon's Robot, behind the part of the Robot's API the commands use
+            # (tests/cli/test_via_daemon.py runs each command through it).
+            yield cast("Robot", remote)
+        return
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # the Robot only when used
     from ohmni_tb.robot import Robot  # noqa: PLC0415
 
     async with Robot.open(port, config=RobotConfig.load(), **overrides) as robot:
         yield robot
+
+
+def daemon_for(port_option: str | None, direct: bool) -> str | None:
+    """The daemon's URL when the command should go through it (``ohmni serve`` answers,
+    and neither ``--port`` nor ``--direct`` was given), else ``None``."""
+    from ohmni_tb.cli.remote import daemon_url  # noqa: PLC0415
+
+    return daemon_url(port_option=port_option, direct=direct)
 
 
 def run(

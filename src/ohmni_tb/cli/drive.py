@@ -32,12 +32,14 @@ from rich.markup import escape
 
 from ohmni_tb.cli import common
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
     RobotWarnings,
     YesOption,
     confirm_motion,
     console,
+    daemon_for,
     emit_json,
     error_line,
     resolve_port,
@@ -323,6 +325,7 @@ def drive(
         ),
     ] = False,
     port: PortOption = None,
+    direct: DirectOption = False,
     yes: YesOption = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -365,8 +368,9 @@ def drive(
     stdin_fd: int | None = None
     if plan.mode == "teleop":
         stdin_fd = _terminal_fd()
+    via = daemon_for(port, direct)
     try:
-        url = resolve_port(port)
+        url = via or resolve_port(port)
     except OhmniError as exc:
         error_line(str(exc))
         raise typer.Exit(1) from exc
@@ -390,14 +394,16 @@ def drive(
         with _raw_terminal(fd):
             summary = run(
                 lambda: _with_robot(
-                    url, watch, lambda robot, watch: _teleop(robot, watch, plan, fd, url)
+                    url, via, watch, lambda robot, watch: _teleop(robot, watch, plan, fd, url)
                 ),
                 on_interrupt=interrupted,
             )
         _print_result(summary, teleop=True)
         return
     result = run(
-        lambda: _with_robot(url, watch, lambda robot, _watch: _timed_or_goal(robot, plan, as_json)),
+        lambda: _with_robot(
+            url, via, watch, lambda robot, _watch: _timed_or_goal(robot, plan, as_json)
+        ),
         on_interrupt=interrupted,
     )
     if as_json:
@@ -453,6 +459,7 @@ def _raw_terminal(fd: int) -> Iterator[None]:
 
 async def _with_robot(
     port: str,
+    via: str | None,
     watch: RobotWarnings,
     body: Callable[[Robot, RobotWarnings], Awaitable[T]],
 ) -> T:
@@ -465,7 +472,7 @@ async def _with_robot(
     logger = logging.getLogger(_LOGGER)
     logger.addHandler(watch)
     try:
-        async with common.open_robot(port) as robot:
+        async with common.open_robot(port, via=via, control=True) as robot:
             watch.opened = True
             await _ready(robot)
             return await body(robot, watch)

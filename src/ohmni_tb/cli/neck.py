@@ -16,17 +16,19 @@ from __future__ import annotations
 import asyncio
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar, cast
 
 import typer
 from rich.markup import escape
 
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
     YesOption,
     confirm_motion,
     console,
+    daemon_for,
     emit_json,
     load_config,
     open_robot,
@@ -127,6 +129,7 @@ def neck(
     ] = None,
     as_json: JsonOption = False,
     port: PortOption = None,
+    direct: DirectOption = False,
     yes: YesOption = False,
 ) -> None:
     """Move the neck and print the target and where it read back (raw and degrees).
@@ -154,10 +157,11 @@ def neck(
     ask = _check_arguments(position, raw, deg, playtime)
     config = load_config()
     _check_against_config(ask, config)
-    where = resolve_port(port)
+    via = daemon_for(port, direct)
+    where = via or resolve_port(port)
     if ask.action != "read":
         confirm_motion(where, _describe(ask), yes=yes)
-    result = run(lambda: _run(where, ask))
+    result = run(lambda: _run(where, via, ask))
     if as_json:
         emit_json(result)
     else:
@@ -301,15 +305,15 @@ def _named(robot: Robot) -> dict[str, int]:
     return {"up": high, "down": low, "center": (low + high) // 2}
 
 
-async def _run(port: str, ask: _Ask) -> dict[str, Any]:
-    from ohmni_tb.robot import ServoHandle  # noqa: PLC0415
-
+async def _run(port: str, via: str | None, ask: _Ask) -> dict[str, Any]:
     # keep: the neck stays where this command sent it (or rested, or freed) on exit.
-    async with open_robot(port, on_exit_neck="keep") as robot:
+    control = ask.action != "read"
+    async with open_robot(port, via=via, control=control, on_exit_neck="keep") as robot:
         handle = robot.neck  # StateError (exit 1) when no neck answered
-        if isinstance(handle, ServoHandle):
-            return await _herkulex(robot, handle, ask)
-        return await _worm(robot, handle, ask)
+        # The Robot's handle, or through the daemon one with the same attributes.
+        if robot.neck_kind == "herkulex":
+            return await _herkulex(robot, cast("ServoHandle", handle), ask)
+        return await _worm(robot, cast("WormNeckHandle", handle), ask)
 
 
 def _base(robot: Robot, sid: int, ask: _Ask) -> dict[str, Any]:

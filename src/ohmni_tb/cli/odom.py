@@ -17,8 +17,10 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
+    daemon_for,
     load_config,
     open_robot,
     parse_int,
@@ -45,8 +47,9 @@ FIRST_SAMPLE_S = 2.0
 MAX_POSITION_M = 10_000.0
 
 _SCOPE = (
-    "odometry is integrated in the process that opened the port: without a daemon (one is "
-    "planned) this pose was this command's own, and the next ohmni command starts at the origin"
+    "odometry is integrated in the process that opened the port: this pose was this "
+    "command's own, and the next ohmni command starts at the origin (run ohmni serve to keep "
+    "one odometry for every command)"
 )
 
 app = typer.Typer(
@@ -92,6 +95,7 @@ def stream(
         bool, typer.Option("--json", help="JSON lines: one object per sample.")
     ] = False,
     port: PortOption = None,
+    direct: DirectOption = False,
 ) -> None:
     """Stream odometry lines: time, x, y, yaw, linear and angular speed.
 
@@ -99,14 +103,14 @@ def stream(
     --rate; --json prints one object a line with t_s (since the first line), x_m, y_m,
     yaw_rad, linear_mps, angular_radps.
 
-    Odometry is integrated in the process that opened the port: without a daemon (one is
-    planned) every ohmni command starts at the origin, and `ohmni odom reset` resets the
-    pose of its own process only.
+    Odometry is integrated in the process that opened the port. While ohmni serve runs,
+    the commands go through it and share its odometry; without it every ohmni command
+    starts at the origin, and `ohmni odom reset` resets the pose of its own process only.
 
     Examples: ohmni odom --port sim:// --count 5 ; ohmni odom --rate 50 --json --duration 10 ;
     ohmni odom reset --x 1 --yaw 1.57 --port sim://
     """
-    ctx.obj = {"port": port}
+    ctx.obj = {"port": port, "direct": direct}
     if ctx.invoked_subcommand is not None:
         given = [
             name
@@ -136,9 +140,10 @@ def stream(
             f"--rate={rate!r} is out of range: allowed {MIN_RATE_HZ:g}..{config.wheel_hz:g} Hz "
             "(the wheel_odom stream's rate, wheel_hz)"
         )
-    where = resolve_port(port)
+    via = daemon_for(port, direct)
+    where = via or resolve_port(port)
     try:
-        run(lambda: _stream(where, rate, duration, lines, as_json))
+        run(lambda: _stream(where, via, rate, duration, lines, as_json))
     except typer.Exit as exc:
         if exc.exit_code != 130:  # Ctrl-C: the lines so far were the point, exit 0
             raise
@@ -147,14 +152,19 @@ def stream(
 
 
 async def _stream(
-    port: str, rate_hz: float, duration_s: float | None, count: int | None, as_json: bool
+    port: str,
+    via: str | None,
+    rate_hz: float,
+    duration_s: float | None,
+    count: int | None,
+    as_json: bool,
 ) -> int:
     """Print samples at ``rate_hz`` until the duration or count; the lines printed."""
     loop = asyncio.get_running_loop()
     period_s = 1.0 / rate_hz
     printed = 0
     # A read-only command: the neck stays as it is on exit (no rest, no free).
-    async with open_robot(port, on_exit_neck="keep") as robot:
+    async with open_robot(port, via=via, on_exit_neck="keep") as robot:
         # A sample a little early still counts for its slot: stamps jitter by a few ms.
         slack_s = 0.5 / robot.config.wheel_hz
         start = loop.time()
@@ -229,12 +239,14 @@ def reset(
     ] = 0.0,
     as_json: JsonOption = False,
     port: PortOption = None,
+    direct: DirectOption = False,
 ) -> None:
     """Reset the odometry pose (default: the origin) and print it.
 
-    Odometry is integrated in the process that opened the port: without a daemon (one is
-    planned) this resets the pose of this command's own Robot only, and the next ohmni
-    command starts at the origin again. Useful to check the pose a reset gives.
+    Through ohmni serve (when it runs) this resets the daemon's odometry, which every
+    client sees. Without it, odometry is integrated in the process that opened the port:
+    this resets the pose of this command's own Robot only, and the next ohmni command
+    starts at the origin again.
 
     Example: ohmni odom reset --x 1.5 --y -0.5 --yaw 1.5708 --port sim://
     """
@@ -249,22 +261,24 @@ def reset(
             f"--yaw={yaw!r} is out of range: allowed -6.2832..6.2832 rad (±2π)"
         )
     parent = ctx.obj if isinstance(ctx.obj, dict) else {}
-    where = resolve_port(port or parent.get("port"))
-    pose = run(lambda: _reset(where, x, y, yaw))
+    port = port or parent.get("port")
+    via = daemon_for(port, direct or bool(parent.get("direct")))
+    where = via or resolve_port(port)
+    pose = run(lambda: _reset(where, via, x, y, yaw))
     if as_json:
         sys.stdout.write(json.dumps(pose, indent=2) + "\n")
         return
     sys.stdout.write(
         f"odometry reset: x {pose['x_m']:+.3f} m  y {pose['y_m']:+.3f} m  "
         f"yaw {pose['yaw_rad']:+.4f} rad ({math.degrees(pose['yaw_rad']):+.2f}°)\n"
-        f"note: {_SCOPE}\n"
+        + ("the daemon's odometry, for every client\n" if via else f"note: {_SCOPE}\n")
     )
 
 
-async def _reset(port: str, x: float, y: float, yaw: float) -> dict[str, Any]:
+async def _reset(port: str, via: str | None, x: float, y: float, yaw: float) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     async with (
-        open_robot(port, on_exit_neck="keep") as robot,
+        open_robot(port, via=via, control=True, on_exit_neck="keep") as robot,
         robot.subscribe("wheel_odom", maxlen=8) as samples,
     ):
         robot.reset_odometry(x, y, yaw)

@@ -21,9 +21,11 @@ import typer
 from rich.markup import escape
 
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
     console,
+    daemon_for,
     emit_json,
     error_line,
     open_robot,
@@ -79,7 +81,7 @@ async def device_info(robot: Robot) -> dict[str, Any]:
 
     found = await robot.info()
     firmware: dict[str, str | None] = {**found["firmware"], "worm_neck": None}
-    if robot.neck_kind == "worm":
+    if robot.neck_kind == "worm" and hasattr(robot, "bus"):  # not through the daemon
         # Robot.info() tags the drive and core boards; the worm neck's board has one too.
         try:
             reply = await robot.bus.read(DeviceId.WORM_NECK, _TAG_ADDR, 0, Memory.EEP)
@@ -108,7 +110,9 @@ def servo_roles(robot: Robot) -> dict[int, str]:
     return roles
 
 
-def info(port: PortOption = None, as_json: JsonOption = False) -> None:
+def info(
+    port: PortOption = None, direct: DirectOption = False, as_json: JsonOption = False
+) -> None:
     """Firmware tags of the boards, the HerkuleX servos' models and the neck kind.
 
     Every expected device is asked; the ones that do not answer are listed too.
@@ -117,8 +121,9 @@ def info(port: PortOption = None, as_json: JsonOption = False) -> None:
     """
 
     async def main() -> dict[str, Any]:
-        url = resolve_port(port)
-        async with open_robot(url, **READ_ONLY) as robot:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, **READ_ONLY) as robot:
             return {"port": url, **(await device_info(robot))}
 
     found = run(main)
@@ -210,6 +215,7 @@ def light(
     saturation: Annotated[str, typer.Argument(help="Saturation, 0..255.", show_default=False)],
     value: Annotated[str, typer.Argument(help="Value (brightness), 0..255.", show_default=False)],
     port: PortOption = None,
+    direct: DirectOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Set the light ring's colour: hue, saturation and value, 0..255 each.
@@ -227,8 +233,9 @@ def light(
         from ohmni_tb.errors import StateError  # noqa: PLC0415
         from ohmni_tb.protocol.devices import DeviceId  # noqa: PLC0415
 
-        url = resolve_port(port)
-        async with open_robot(url, **READ_ONLY) as robot:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, control=True, **READ_ONLY) as robot:
             if DeviceId.CORE not in robot.state.present:
                 raise StateError(
                     f"the core board (sid {int(DeviceId.CORE)}) does not answer: "

@@ -19,9 +19,11 @@ from typing import TYPE_CHECKING, Annotated, Any, Final
 import typer
 
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
     console,
+    daemon_for,
     emit_json,
     open_robot,
     resolve_port,
@@ -57,6 +59,7 @@ _INTERRUPTED = 130
 
 def status(
     port: PortOption = None,
+    direct: DirectOption = False,
     as_json: JsonOption = False,
     watch: Annotated[
         bool,
@@ -78,8 +81,9 @@ def status(
     async def main() -> dict[str, Any] | None:
         from ohmni_tb.cli.robot_cmds import READ_ONLY, device_info  # noqa: PLC0415
 
-        url = resolve_port(port)
-        async with open_robot(url, **READ_ONLY) as robot:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, **READ_ONLY) as robot:
             opened = asyncio.get_running_loop().time()
             found = await device_info(robot)
             await _first_samples(robot, opened + (0.0 if watch else MEASURE_S))

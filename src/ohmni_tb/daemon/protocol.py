@@ -297,6 +297,7 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     "latest": MethodSpec(LatestArgs, False, "the topic's sample (see samples), or null"),
     "schedule": MethodSpec(NoArgs, False, "[[stream, hz, phase_s, line_time_s], ...]"),
     "get_pid": MethodSpec(NoArgs, False, "{kp, ki, kd, kff, ff_offset}"),
+    "config": MethodSpec(NoArgs, False, "the daemon's RobotConfig: every setting by name"),
     "lease": MethodSpec(NoArgs, False, "{holder: peer or null, you: bool}"),
     # The lease itself.
     "acquire": MethodSpec(AcquireArgs, False, "{holder, you: true, stolen_from: peer or null}"),

@@ -501,6 +501,7 @@ class RobotServer:
         "schedule": lambda self, client, args: [list(row) for row in self._robot.schedule()],
         "latest": _latest,
         "get_pid": _get_pid,
+        "config": lambda self, client, args: self._robot.config.model_dump(mode="json"),
         "lease": lambda self, client, args: {
             "holder": self.lease_holder,
             "you": self._holder is client,
