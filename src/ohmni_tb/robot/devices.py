@@ -112,6 +112,10 @@ class ServoHandle:
         self.sid = sid
         self.rest_raw = rest_raw
         self._on_command = on_command
+        # The torque mode this handle last set (None: none yet). The servo's cached
+        # status can predate it (writes get no reply under ACK policy 1), so a move
+        # after free() would otherwise skip the torque and be refused.
+        self._torque_set: TorqueControl | None = None
 
     def __repr__(self) -> str:
         return f"<ServoHandle sid={self.sid} range={self.min_raw}..{self.max_raw}>"
@@ -167,8 +171,13 @@ class ServoHandle:
         if not math.isfinite(playtime_s) or not 0.0 <= playtime_s <= 2.84:
             raise OutOfRangeError("playtime_s", playtime_s, 0.0, 2.84, "s")
         self._touched()
-        if self.servo.last_status is None or not self.servo.last_status.torque_on:
-            await self.servo.torque(TorqueControl.ON)
+        status = self.servo.last_status
+        if (
+            status is None
+            or not status.torque_on
+            or self._torque_set not in (None, TorqueControl.ON)
+        ):
+            await self.torque(TorqueControl.ON)
         await self.servo.move_to(target.value, playtime_s=playtime_s)
 
     async def torque(self, mode: TorqueControl | str) -> None:
@@ -180,6 +189,7 @@ class ServoHandle:
         chosen = torque_mode(mode)
         self._touched()
         await self.servo.torque(chosen)
+        self._torque_set = chosen
 
     async def free(self) -> None:
         """Torque off: the servo can be turned by hand and draws no holding current."""
