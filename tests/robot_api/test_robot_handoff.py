@@ -265,6 +265,22 @@ def test_a_cancelled_release_still_stops_the_wheels_and_releases_the_port() -> N
     assert not out["attached"]
 
 
+def test_a_stream_turned_off_stays_off_after_a_reclaim() -> None:
+    async def main() -> tuple[int, int]:
+        async with Robot.open("sim://") as robot:
+            robot.enable_stream("servo_ext1", False)
+            await robot.release_port()
+            await robot.reclaim_port()
+            ext1 = robot.subscribe("servo_ext1", maxlen=1000)
+            ext2 = robot.subscribe("servo_ext2", maxlen=1000)
+            await asyncio.sleep(1.0)
+            return len(drain(ext1)), len(drain(ext2))
+
+    off, on = virtual(main)
+    assert off == 0
+    assert 28 <= on <= 31
+
+
 def test_a_timed_release_takes_the_port_back_by_itself() -> None:
     async def main() -> dict[str, Any]:
         async with Robot.open("sim://") as robot:
