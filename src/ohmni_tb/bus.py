@@ -34,7 +34,8 @@ What it promises:
   closes, even when the closing task is cancelled.
 * **A lost link is reported** (requests fail with :class:`~ohmni_tb.errors.TransportError`,
   :meth:`Bus.wait_lost` returns) and :meth:`Bus.reconnect` reopens the port on the same
-  Bus, with backoff, keeping its statistics.
+  Bus, with backoff, keeping its statistics. :meth:`Bus.release` closes the port on
+  purpose, so another program can open it, until :meth:`Bus.reconnect` takes it back.
 """
 
 from __future__ import annotations
@@ -546,6 +547,37 @@ class Bus:
         await self._lost.wait()
         return self._lost_reason()
 
+    @property
+    def can_reconnect(self) -> bool:
+        """Whether :meth:`reconnect` can reopen the port (the bus was given a way to)."""
+        return self._reopen is not None
+
+    async def release(self) -> None:
+        """Close the port but keep the Bus, so another program can open it; :meth:`reconnect`
+        takes it back. Idempotent.
+
+        Nothing is sent first (stop the wheels before: :func:`~ohmni_tb.safety.stop_wheels`).
+        Slots still waiting fail with :class:`~ohmni_tb.errors.TransportError`, and so do
+        requests until :meth:`reconnect` returns; :meth:`wait_lost` returns. Unlike a lost
+        link it is not counted in ``link_losses``. It returns once the transport is closed:
+        for a serial port, its file descriptor and its exclusive lock are released.
+
+        Raises:
+            StateError: The bus cannot reopen its port (use :meth:`open` or ``reopen=``):
+                nothing was done.
+            BusClosedError: The bus is closed.
+        """
+        if self._reopen is None:
+            raise StateError(
+                "this bus cannot reopen its port, so it cannot release it: create it with "
+                "Bus.open(url) or Bus(transport, reopen=...)"
+            )
+        if self._shutting():
+            raise BusClosedError("the bus is closed")
+        if self._failure is None:
+            self._link_down(TransportError("the port was released to another program"), loss=False)
+        await self._transport.aclose()
+
     def _lost_reason(self) -> TransportError:
         if self._failure is None:
             raise BusClosedError("the bus was closed")
@@ -1046,16 +1078,21 @@ class Bus:
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:
+        self._link_down(exc, loss=True)
+
+    def _link_down(self, exc: TransportError, *, loss: bool) -> None:
+        """The link is down (lost, or released when not ``loss``): fail what waits."""
         if self._failure is not None or self._closed:
             return
         loop = self._loop
         now = loop.time() if loop is not None else 0.0
         self._failure = exc
-        self._link_losses += 1
-        if not self._closing:
-            _log.warning("bus link lost: %s", exc)
+        if loss:
+            self._link_losses += 1
+            if not self._closing:
+                _log.warning("bus link lost: %s", exc)
         self._conn.link_lost(now)
-        error = TransportError(f"the bus link was lost: {exc}")
+        error = TransportError(f"the bus link was lost: {exc}" if loss else str(exc))
         error.__cause__ = exc
         self._fail_all(error)
         for slot_exchange in list(self._urgent):

@@ -18,6 +18,10 @@ wheel counts, in one atomic slot), each HerkuleX servo's feedback at 30 Hz, the
 worm-gear neck at 30 Hz, the core board at 10 Hz, on absolute deadlines with staggered
 phases. Commands (neck moves, light ring, PID writes) go in the free time at a priority
 between the control slot and the feedback reads.
+
+:meth:`Robot.release_port` hands the serial port to another program for a while (the
+vendor's tb-node, a flashing tool) and :meth:`Robot.reclaim_port` takes it back, on the
+same Robot: its streams, statistics and subscriptions carry on.
 """
 
 from __future__ import annotations
@@ -26,11 +30,11 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar, overload
 
-from ohmni_tb._checks import finite, show
+from ohmni_tb._checks import check_seconds, finite, show
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
@@ -44,6 +48,7 @@ from ohmni_tb.control.kinematics import (
 from ohmni_tb.control.odometry import Odometry
 from ohmni_tb.control.pid import PidController, PidGains, PidStep
 from ohmni_tb.errors import (
+    BusClosedError,
     BusTimeoutError,
     InvalidArgumentError,
     MalformedReplyError,
@@ -51,6 +56,7 @@ from ohmni_tb.errors import (
     OutOfRangeError,
     StateError,
     StopNotConfirmedError,
+    TransportError,
 )
 from ohmni_tb.herkulex import TorqueControl, stat
 from ohmni_tb.herkulex.units import angle_rad_from_raw, voltage_v_from_raw
@@ -82,6 +88,8 @@ __all__ = ["BusFigures", "Robot", "RobotStats"]
 _log = logging.getLogger(__name__)
 #: What a polled stream's parser makes of a read reply.
 _P = TypeVar("_P")
+#: What a shielded coroutine returns.
+_R = TypeVar("_R")
 
 #: Bus priorities: the control slot first; commands (devices.COMMAND_PRIORITY) and every
 #: feedback read share one priority, so they go in the order they fall due: a near-full
@@ -113,6 +121,14 @@ REBASE_AFTER = 3
 THERMAL_HYSTERESIS_RAW = 10
 #: Servo sample index for the stream names of the external servos.
 EXT_STREAMS = ("servo_ext1", "servo_ext2")
+#: A timed port release (:meth:`Robot.release_port`), seconds: long enough for the
+#: other program to open the port at all, and at most an hour — longer, or open-ended,
+#: is ``duration_s=None`` (until :meth:`Robot.reclaim_port`).
+RELEASE_MIN_S = 0.1
+RELEASE_MAX_S = 3600.0
+#: The wait before the second attempt to reopen a port another program still holds
+#: (then doubling, up to ``reconnect_max_backoff_s``).
+RECLAIM_BACKOFF_S = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -267,6 +283,13 @@ class Robot:
         self._early_pending = False
         self._early_slot: Slot | None = None
         self._early_writes = 0
+        # Port hand-off: the link watcher (or a reclaim that becomes it), the timer of a
+        # timed release, and the first attempt of a reclaim under way.
+        self._link_task: asyncio.Task[None] | None = None
+        self._reclaim_timer: asyncio.TimerHandle | None = None
+        self._reclaim: asyncio.Future[None] | None = None
+        self._releasing: asyncio.Task[Any] | None = None  # the task releasing the port
+        self._port_lock = asyncio.Lock()
 
     # -- opening and closing -----------------------------------------------------------
 
@@ -339,23 +362,29 @@ class Robot:
         for periodic in self._periodic.values():
             periodic.start(t0)
         self._state_timer = self._loop.call_later(1.0 / self.config.state_hz, self._state_tick)
-        self._spawn(self._watch_link(), "link watcher")
+        self._link_task = self._spawn(self._watch_link(), "link watcher")
         if self._expected - self._present:
             self._reprobe_timer = self._loop.call_later(REPROBE_S, self._reprobe)
         self._publish_state("opened")
 
     async def _close_shielded(self) -> None:
         """Close, and finish closing even if the caller is cancelled meanwhile."""
-        task = self._loop.create_task(self._close(), name="ohmni robot close")
+        await self._shielded(self._close(), "close")
+
+    async def _shielded(self, work: Coroutine[Any, Any, _R], name: str) -> _R:
+        """Run ``work`` to its end even if the caller is cancelled meanwhile (the
+        cancellation is raised afterwards): a stop must never be cut short."""
+        task = self._loop.create_task(work, name=f"ohmni robot {name}")
         cancelled: asyncio.CancelledError | None = None
         while not task.done():
             try:
                 await asyncio.shield(task)
             except asyncio.CancelledError as exc:
                 cancelled = exc
-        task.result()
+        result = task.result()
         if cancelled is not None:
             raise cancelled
+        return result
 
     async def _close(self) -> None:
         if self._closed:
@@ -363,42 +392,56 @@ class Robot:
         self._closed = True
         for periodic in self._periodic.values():
             periodic.stop()
-        for timer in (self._state_timer, self._reprobe_timer):
+        for timer in (self._state_timer, self._reprobe_timer, self._reclaim_timer):
             if timer is not None:
                 timer.cancel()
-        for task in list(self._tasks):
-            task.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._cancel_tasks()
         bus = self._bus
         stop = wheel_command(0, 0)
+        # Not when the port is released (or lost): there is nothing to send the stop on.
         if bus.connected:
-            for periodic in self._periodic.values():
-                periodic.cancel_in_flight()
-            try:
-                if self._present.isdisjoint((DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)):
-                    # Neither drive board ever answered this Robot: it drove nothing, and
-                    # no count can confirm a stop (robot_state shows them absent). The
-                    # stop still goes (bus.aclose).
-                    _log.info(
-                        "closing: the drive boards never answered; the wheel stop is sent "
-                        "but cannot be confirmed"
-                    )
-                else:
-                    await stop_wheels(bus, timeout_s=self.config.stop_timeout_s)
-            except StopNotConfirmedError as exc:
-                self.exit_error = exc
-                _log.warning("closing: %s", exc)
-            except OhmniError as exc:
-                _log.warning("closing: stop not confirmed: %s", exc)
-            await self._neck_on_exit()
+            self.exit_error = await self._stop_and_rest("closing")
         self._state.link = Link.CLOSED
         self._publish_state("closed")
         for topic in self._topics.values():
             topic.close()
         await bus.aclose(final=[stop])
 
-    async def _neck_on_exit(self) -> None:
+    async def _cancel_tasks(self) -> None:
+        """Cancel every background task (the link watcher, reprobes, guards); wait."""
+        for task in list(self._tasks):
+            task.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def _stop_and_rest(self, why: str) -> StopNotConfirmedError | None:
+        """Stop the wheels until their counts confirm it (``stop_timeout_s``) and rest or
+        free the neck (``on_exit_neck``): what closing and releasing the port do before
+        the port goes. Returns the stop's error when the counts did not confirm it."""
+        for periodic in self._periodic.values():
+            periodic.cancel_in_flight()
+        error: StopNotConfirmedError | None = None
+        try:
+            if self._present.isdisjoint((DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)):
+                # Neither drive board ever answered this Robot: it drove nothing, and no
+                # count can confirm a stop (robot_state shows them absent). The stop still
+                # goes, last, as the port closes.
+                _log.info(
+                    "%s: the drive boards never answered; the wheel stop is sent but cannot "
+                    "be confirmed",
+                    why,
+                )
+            else:
+                await stop_wheels(self._bus, timeout_s=self.config.stop_timeout_s)
+        except StopNotConfirmedError as exc:
+            error = exc
+            _log.warning("%s: %s", why, exc)
+        except OhmniError as exc:
+            _log.warning("%s: stop not confirmed: %s", why, exc)
+        await self._neck_on_exit(why)
+        return error
+
+    async def _neck_on_exit(self, why: str) -> None:
         choice = self.config.on_exit_neck
         if choice == "keep" or not isinstance(self._neck, ServoHandle):
             return
@@ -410,7 +453,7 @@ class Robot:
                     await self._neck.free()
         except (OhmniError, TimeoutError) as exc:
             _log.warning(
-                "closing: the neck was not %s: %s", "rested" if choice == "rest" else "freed", exc
+                "%s: the neck was not %s: %s", why, "rested" if choice == "rest" else "freed", exc
             )
 
     @property
@@ -460,7 +503,10 @@ class Robot:
             self._neck = self._servo_handle(config.neck_id, "servo_neck", neck=True)
         elif self._neck_kind == "worm":
             self._neck = WormNeckHandle(
-                self._bus, min_raw=config.worm_min_raw, max_raw=config.worm_max_raw
+                self._bus,
+                min_raw=config.worm_min_raw,
+                max_raw=config.worm_max_raw,
+                check=self._check_port,
             )
         for ext_id, stream in zip(config.ext_servo_ids, EXT_STREAMS, strict=False):
             self._expected.add(ext_id)
@@ -481,6 +527,7 @@ class Robot:
             rest_raw=config.neck_rest_raw if neck else 512,
             zero_offset_raw=config.neck_zero_offset_raw if neck else 0,
             on_command=self._servo_commanded,
+            check=self._check_port,
         )
         # The hold time counts from when this Robot found the servo: a neck some earlier
         # process left holding is rested neck_hold_s from now, not at the first sample
@@ -529,7 +576,10 @@ class Robot:
             elif sid == DeviceId.WORM_NECK and self._neck_kind == "none":
                 self._neck_kind = "worm"
                 self._neck = WormNeckHandle(
-                    self._bus, min_raw=config.worm_min_raw, max_raw=config.worm_max_raw
+                    self._bus,
+                    min_raw=config.worm_min_raw,
+                    max_raw=config.worm_max_raw,
+                    check=self._check_port,
                 )
                 self._add_worm_stream()
                 self._expected.discard(config.neck_id)
@@ -1017,6 +1067,11 @@ class Robot:
     # -- link loss -------------------------------------------------------------------------
 
     async def _watch_link(self) -> None:
+        """Wait for a lost link; stop the targets and reopen it (``reconnect``).
+
+        Not running while the port is released: :meth:`release_port` cancels it before
+        it closes the port, and the reclaim becomes the watcher again.
+        """
         bus = self._bus
         while not self._closed:
             reason = await bus.wait_lost()
@@ -1026,9 +1081,7 @@ class Robot:
                 periodic.stop()
             self._state.link = Link.LOST
             self._state.faults.add("link_lost")
-            self._stop_targets()
-            self._limiter.reset()
-            self._reset_pids()
+            self._halt()
             self._publish_state(f"link lost: {reason}")
             if not self.config.reconnect:
                 return
@@ -1037,15 +1090,231 @@ class Robot:
             except StateError as exc:  # an injected link that cannot be reopened
                 self._publish_state(f"not reconnecting: {exc}")
                 return
-            with contextlib.suppress(OhmniError):
-                await bus.send_now(wheel_command(0, 0))
-            self._state.link = Link.CONNECTED
-            self._state.faults.discard("link_lost")
-            self._last_step_s = None
-            t0 = self._loop.time() + 0.005
-            for periodic in self._periodic.values():
+            await self._link_back("link back: reconnected")
+
+    async def _link_back(self, event: str) -> None:
+        """The port is open again: a wheel stop first, then the schedule on a fresh phase
+        (the control slot and the streams that are on)."""
+        with contextlib.suppress(OhmniError):
+            await self._bus.send_now(wheel_command(0, 0))
+        self._state.link = Link.CONNECTED
+        self._state.faults.discard("link_lost")
+        self._last_step_s = None
+        t0 = self._loop.time() + 0.005
+        for name, periodic in self._periodic.items():
+            if name == "wheel_encoder" or self._topics[name].enabled:
                 periodic.start(t0)
-            self._publish_state("link back: reconnected")
+        self._publish_state(event)
+
+    def _halt(self) -> None:
+        """Drop the drive targets, the ramp and the PIDs' state (the link went)."""
+        self._stop_targets()
+        self._limiter.reset()
+        self._reset_pids()
+
+    # -- port hand-off (public) ----------------------------------------------------------
+
+    async def release_port(self, duration_s: float | None = None) -> None:
+        """Hand the serial port to another program (tb-node, a flashing tool) for a while.
+
+        The wheels are stopped first, as leaving ``async with`` stops them: the stop
+        jumps the queue and is repeated until the wheel counts confirm it (within
+        ``stop_timeout_s``). The HerkuleX neck is then rested or freed as on exit
+        (``on_exit_neck``, default ``free``): while the port is released nobody watches
+        its temperature, and a neck left holding torque overheats; ``keep`` leaves it
+        holding. The worm-gear neck holds without power and is left as it is. Then the
+        streams stop and the port closes (its file descriptor and exclusive lock are
+        free); ``robot_state`` says ``released`` with an event, and ``link`` is
+        :attr:`Link.RELEASED` in :attr:`state` and every later sample.
+
+        While released, :meth:`drive`, :meth:`drive_wheels`, :meth:`drive_pwm`, the neck
+        and servo commands, :meth:`light_ring` and :meth:`info` raise
+        :class:`~ohmni_tb.errors.StateError` and send nothing; :meth:`latest`,
+        :meth:`subscribe` and :meth:`stats` keep working (the streams just pause), and
+        the link watcher does not take the release for a lost link. Closing the Robot
+        while released sends nothing and returns at once.
+
+        Releasing again while released replaces the timer (``duration_s`` counts from
+        the new call; ``None`` cancels it) and stops a reclaim that waits for the port.
+        It runs to its end even if the caller is cancelled (then the cancellation goes on).
+
+        Args:
+            duration_s: Take the port back by itself after this many seconds,
+                0.1..3600 (:meth:`reclaim_port` is called for you); ``None``: keep it
+                released until :meth:`reclaim_port`.
+
+        Raises:
+            OutOfRangeError: ``duration_s`` is not a number of seconds in 0.1..3600;
+                nothing changed.
+            StateError: The Robot is closed, or it cannot reopen its port (it was opened
+                on an injected transport that is not simulated); nothing changed.
+            StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
+                may be moving. The port was released all the same, as closing would
+                have closed it (the other program may be what is needed to stop it).
+        """
+        if duration_s is not None:
+            check_seconds("duration_s", duration_s, RELEASE_MIN_S, RELEASE_MAX_S)
+            duration_s = float(duration_s)
+        self._check_open()
+        if not self._bus.can_reconnect:
+            raise StateError(
+                "this Robot cannot reopen its port, so it will not release it: it was opened "
+                "on an injected transport; open it by URL (Robot.open('/dev/ttyUSB0'))"
+            )
+        async with self._port_lock:
+            self._check_open()
+            error = await self._shielded(self._release(duration_s), "release port")
+        if error is not None:
+            raise error
+
+    async def reclaim_port(self) -> None:
+        """Take the serial port back after :meth:`release_port`. A no-op when not released.
+
+        The port is reopened, a zero wheel command goes out first, the streams restart
+        on a fresh phase, ``link`` is :attr:`Link.CONNECTED` again and ``robot_state``
+        says ``port reclaimed``; then it returns. Absent devices are asked again.
+
+        If the port cannot be opened now (the other program still holds it), it does
+        not raise: ``robot_state`` says the Robot is waiting for the port, the link
+        stays :attr:`Link.RELEASED`, and this returns after that first attempt while the
+        Robot keeps trying in the background with a doubling backoff (up to
+        ``reconnect_max_backoff_s``), as after a lost link; ``port reclaimed`` follows
+        once it opens. Check :attr:`state` (``link``) or watch ``robot_state`` to know;
+        drive commands raise :class:`~ohmni_tb.errors.StateError` until then. A
+        :meth:`release_port` meanwhile stops the waiting. Cancelling the call does not
+        cancel the reclaim.
+
+        Raises:
+            StateError: The Robot is closed (or closed while this waited).
+        """
+        self._check_open()
+        async with self._port_lock:
+            self._check_open()
+            if self._state.link is not Link.RELEASED:
+                return
+            first = self._reclaim
+            if first is None:
+                first = self._start_reclaim()
+            await asyncio.shield(first)
+        self._check_open()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StateError("the robot is closed")
+
+    async def _release(self, duration_s: float | None) -> StopNotConfirmedError | None:
+        """:meth:`release_port`'s work, under the port lock; the stop's error, if any."""
+        bus = self._bus
+        if self._state.link is Link.RELEASED:
+            # A reclaim waiting for the port, or a timed one due, stops: released again.
+            await self._cancel_tasks()
+            if bus.connected:
+                # That reclaim had just reopened the port (nothing drove since the stop).
+                await bus.release()
+            self._arm_reclaim(duration_s)
+            self._publish_state(f"port release renewed: {_released_for(duration_s)}")
+            return None
+        self._releasing = asyncio.current_task()
+        try:
+            for periodic in self._periodic.values():
+                periodic.stop()
+            if self._reprobe_timer is not None:
+                self._reprobe_timer.cancel()
+                self._reprobe_timer = None
+            # Nothing of the Robot's may use the port from here: the link watcher (or it
+            # would take the release for a loss), a reprobe, a guard (the neck is done
+            # with below).
+            await self._cancel_tasks()
+            error: StopNotConfirmedError | None = None
+            if bus.connected:
+                error = await self._stop_and_rest("releasing the port")
+                # The last word before the port goes, as closing's (the stop of a Robot
+                # whose drive boards never answered, too).
+                with contextlib.suppress(OhmniError):
+                    await bus.send_now(wheel_command(0, 0))
+            try:
+                await bus.release()
+            except BusClosedError as exc:  # close() ran meanwhile
+                raise StateError("the robot was closed while releasing its port") from exc
+            self._state.link = Link.RELEASED
+            # Not lost any more: nobody tries to reopen it now.
+            self._state.faults.discard("link_lost")
+            self._halt()
+        finally:
+            self._releasing = None
+        self._arm_reclaim(duration_s)
+        unconfirmed = "" if error is None else f" (the wheel stop was not confirmed: {error})"
+        self._publish_state(
+            f"port released to another program {_released_for(duration_s)}{unconfirmed}"
+        )
+        return error
+
+    def _arm_reclaim(self, duration_s: float | None) -> None:
+        if self._reclaim_timer is not None:
+            self._reclaim_timer.cancel()
+            self._reclaim_timer = None
+        if duration_s is not None:
+            self._reclaim_timer = self._loop.call_later(duration_s, self._reclaim_due)
+
+    def _reclaim_due(self) -> None:
+        self._reclaim_timer = None
+        if self._closed or self._state.link is not Link.RELEASED:
+            return
+        self._publish_state("port release time is up: reclaiming the port")
+        self._spawn(self.reclaim_port(), "timed reclaim")
+
+    def _start_reclaim(self) -> asyncio.Future[None]:
+        """Start reopening the released port; the future is done after the first try."""
+        if self._reclaim_timer is not None:
+            self._reclaim_timer.cancel()
+            self._reclaim_timer = None
+        first: asyncio.Future[None] = self._loop.create_future()
+        self._reclaim = first
+        self._link_task = self._spawn(self._reclaim_link(first), "reclaim port")
+        return first
+
+    async def _reclaim_link(self, first: asyncio.Future[None]) -> None:
+        """Reopen the released port, retrying while another program holds it; then watch
+        the link as before. ``first`` is done after the first attempt."""
+        bus = self._bus
+        try:
+            try:
+                await bus.reconnect(attempts=1)
+            except TransportError as exc:
+                self._publish_state(
+                    f"reclaiming the port: another program still holds it ({exc}); "
+                    f"waiting for it, trying again every {RECLAIM_BACKOFF_S:g}.."
+                    f"{self.config.reconnect_max_backoff_s:g} s"
+                )
+                if not first.done():
+                    first.set_result(None)
+                await asyncio.sleep(RECLAIM_BACKOFF_S)
+                await bus.reconnect(
+                    backoff_s=RECLAIM_BACKOFF_S * 2,
+                    max_backoff_s=self.config.reconnect_max_backoff_s,
+                )
+            await self._link_back("port reclaimed")
+            if self._expected - self._present and self._reprobe_timer is None:
+                self._reprobe_timer = self._loop.call_later(REPROBE_S, self._reprobe)
+        finally:
+            self._reclaim = None
+            if not first.done():
+                first.set_result(None)
+        await self._watch_link()
+
+    def _check_port(self) -> None:
+        """Refuse a command while the port is released, or being released (but for the
+        release's own: the neck is rested or freed on the way)."""
+        if self._releasing is not None and asyncio.current_task() is not self._releasing:
+            raise StateError("the port is being released to another program (release_port())")
+        if self._state.link is not Link.RELEASED:
+            return
+        if self._reclaim is not None and self._reclaim.done():
+            raise StateError(
+                "the port is released and another program still holds it: the robot is "
+                "waiting for it (robot_state says 'port reclaimed' when it is back)"
+            )
+        raise StateError("the port is released to another program; reclaim_port() first")
 
     # -- robot_state -----------------------------------------------------------------------
 
@@ -1253,6 +1522,7 @@ class Robot:
     def _check_can_drive(self) -> None:
         if self._closed:
             raise StateError("the robot is closed")
+        self._check_port()
         if self._state.estopped:
             raise StateError("an emergency stop is latched: call robot.clear_estop() first")
 
@@ -1274,7 +1544,8 @@ class Robot:
 
         Raises:
             InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, or the robot is closed.
+            StateError: An emergency stop is latched, the port is released
+                (:meth:`release_port`), or the robot is closed.
         """
         twist = Twist(_number("linear_mps", linear_mps), _number("angular_radps", angular_radps))
         self._check_can_drive()
@@ -1301,7 +1572,8 @@ class Robot:
 
         Raises:
             InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, or the robot is closed.
+            StateError: An emergency stop is latched, the port is released
+                (:meth:`release_port`), or the robot is closed.
         """
         asked = WheelSpeeds(_number("left_mps", left_mps), _number("right_mps", right_mps))
         self._check_can_drive()
@@ -1323,7 +1595,8 @@ class Robot:
         Raises:
             InvalidArgumentError: Not ints.
             OutOfRangeError: Outside −1000..1000; nothing changes.
-            StateError: An emergency stop is latched, or the robot is closed.
+            StateError: An emergency stop is latched, the port is released
+                (:meth:`release_port`), or the robot is closed.
         """
         for name, value in (("left", left), ("right", right)):
             if isinstance(value, bool) or not isinstance(value, int):
@@ -1478,12 +1751,19 @@ class Robot:
 
         Raises:
             OutOfRangeError: A component is outside 0..255; nothing sent.
+            StateError: The port is released (:meth:`release_port`); nothing sent.
         """
         packet = set_light_ring(hue, saturation, value)
+        self._check_port()
         await self._bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
 
     async def info(self) -> dict[str, Any]:
-        """Firmware tags, servo models and the neck kind."""
+        """Firmware tags, servo models and the neck kind.
+
+        Raises:
+            StateError: The port is released (:meth:`release_port`).
+        """
+        self._check_port()
         tags: dict[str, str | None] = {}
         for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE):
             try:
@@ -1550,3 +1830,10 @@ def _reopener(url: str | None, transport: Transport) -> Callable[[], Any] | None
         return await open_transport(url)
 
     return reopen
+
+
+def _released_for(duration_s: float | None) -> str:
+    """How long a release lasts, in words for ``robot_state``."""
+    if duration_s is None:
+        return "until reclaim_port()"
+    return f"for {duration_s:g} s"

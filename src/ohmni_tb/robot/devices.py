@@ -31,10 +31,11 @@ _TORQUE_NAMES = {"on": TorqueControl.ON, "brake": TorqueControl.BRAKE, "free": T
 
 
 class _CommandRequester:
-    """The bus as a servo's Requester, at command priority."""
+    """The bus as a servo's Requester, at command priority; ``check`` may refuse first."""
 
-    def __init__(self, bus: Bus) -> None:
+    def __init__(self, bus: Bus, check: Callable[[], None] | None = None) -> None:
         self._bus = bus
+        self._check = check
 
     async def request(
         self,
@@ -44,6 +45,8 @@ class _CommandRequester:
         timeout_s: float | None = None,
         retries: int | None = None,
     ) -> Packet | None:
+        if self._check is not None:
+            self._check()
         return await self._bus.request(
             packet,
             expect_reply=expect_reply,
@@ -53,6 +56,8 @@ class _CommandRequester:
         )
 
     async def send(self, packet: Packet) -> None:
+        if self._check is not None:
+            self._check()
         await self._bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
 
     def ack_policy(self, sid: int) -> int:
@@ -89,6 +94,8 @@ class ServoHandle:
         rest_raw: Where :meth:`rest` moves it.
         zero_offset_raw: Raw counts added to 512 to define 0 rad.
         on_command: Called with the loop time of every command (the hold-time guard).
+        check: Called before anything is sent; it raises to refuse (the Robot's: its
+            port is released to another program).
     """
 
     def __init__(
@@ -101,9 +108,10 @@ class ServoHandle:
         rest_raw: int,
         zero_offset_raw: int = 0,
         on_command: Callable[[int], None] | None = None,
+        check: Callable[[], None] | None = None,
     ) -> None:
         self.servo = Servo(
-            _CommandRequester(bus),
+            _CommandRequester(bus, check),
             sid,
             zero_offset_raw=zero_offset_raw,
             min_raw=min_raw,
@@ -112,6 +120,10 @@ class ServoHandle:
         self.sid = sid
         self.rest_raw = rest_raw
         self._on_command = on_command
+        # The torque mode this handle last set (None: none yet). The servo's cached
+        # status can predate it (writes get no reply under ACK policy 1), so a move
+        # after free() would otherwise skip the torque and be refused.
+        self._torque_set: TorqueControl | None = None
 
     def __repr__(self) -> str:
         return f"<ServoHandle sid={self.sid} range={self.min_raw}..{self.max_raw}>"
@@ -160,6 +172,7 @@ class ServoHandle:
             OutOfRangeError: Outside ``min_raw..max_raw`` or a playtime outside
                 0..2.84 s; nothing sent.
             DeviceStatusError: The servo has a latched fault.
+            StateError: ``check`` refused (the Robot's port is released); nothing sent.
         """
         target = self.servo.target(raw, angle_rad=rad)  # checks before anything is sent
         if isinstance(playtime_s, bool) or not isinstance(playtime_s, int | float):
@@ -167,8 +180,13 @@ class ServoHandle:
         if not math.isfinite(playtime_s) or not 0.0 <= playtime_s <= 2.84:
             raise OutOfRangeError("playtime_s", playtime_s, 0.0, 2.84, "s")
         self._touched()
-        if self.servo.last_status is None or not self.servo.last_status.torque_on:
-            await self.servo.torque(TorqueControl.ON)
+        status = self.servo.last_status
+        if (
+            status is None
+            or not status.torque_on
+            or self._torque_set not in (None, TorqueControl.ON)
+        ):
+            await self.torque(TorqueControl.ON)
         await self.servo.move_to(target.value, playtime_s=playtime_s)
 
     async def torque(self, mode: TorqueControl | str) -> None:
@@ -180,6 +198,7 @@ class ServoHandle:
         chosen = torque_mode(mode)
         self._touched()
         await self.servo.torque(chosen)
+        self._torque_set = chosen
 
     async def free(self) -> None:
         """Torque off: the servo can be turned by hand and draws no holding current."""
@@ -211,10 +230,14 @@ class WormNeckHandle:
 
     The hardware stalls its motor until a power cycle on a target beyond its travel, so
     every target is checked against ``min_raw..max_raw`` (inside −127000…120000) first.
+    ``check``, if given, is called before anything is sent and raises to refuse.
     """
 
-    def __init__(self, bus: Bus, *, min_raw: int, max_raw: int) -> None:
+    def __init__(
+        self, bus: Bus, *, min_raw: int, max_raw: int, check: Callable[[], None] | None = None
+    ) -> None:
         self._bus = bus
+        self._check = check
         self.min_raw = min_raw
         self.max_raw = max_raw
         self.sid = 4
@@ -228,6 +251,7 @@ class WormNeckHandle:
         Raises:
             InvalidArgumentError: Not an int, or an argument only a HerkuleX neck takes.
             OutOfRangeError: Outside the configured range; nothing sent.
+            StateError: ``check`` refused (the Robot's port is released); nothing sent.
         """
         if unsupported:
             raise InvalidArgumentError(
@@ -236,6 +260,8 @@ class WormNeckHandle:
         position = check_worm_target(raw)  # type: ignore[arg-type]  # checked: None is refused there
         if not self.min_raw <= position <= self.max_raw:
             raise OutOfRangeError("worm neck position", position, self.min_raw, self.max_raw, "raw")
+        if self._check is not None:
+            self._check()
         await self._bus.request(set_target(position), expect_reply=False, priority=COMMAND_PRIORITY)
 
     async def rest(self, *, free: bool = True) -> None:

@@ -185,8 +185,14 @@ class WormNeckSample:
 class Link(enum.StrEnum):
     """The state of the Robot's serial link."""
 
+    #: The port is open and the schedule runs.
     CONNECTED = "connected"
+    #: The link failed; the Robot reopens it (``reconnect``).
     LOST = "lost"
+    #: Handed to another program (:meth:`Robot.release_port`): the port is closed until
+    #: :meth:`Robot.reclaim_port` (or the release's ``duration_s``) takes it back.
+    RELEASED = "released"
+    #: The Robot was closed.
     CLOSED = "closed"
 
 
@@ -196,7 +202,7 @@ class RobotStateSample:
 
     Attributes:
         stamp_s: When it was published.
-        link: The serial link.
+        link: The serial link (``released`` while another program has the port).
         estopped: An emergency stop is latched (:meth:`Robot.clear_estop`).
         watchdog_tripped: No drive command for ``watchdog_s``: the wheels were stopped.
         faults: What is wrong now, short names: ``stale_feedback``, ``link_lost``,
