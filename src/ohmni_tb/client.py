@@ -504,6 +504,18 @@ class RobotClient:
         """
         await self._call("light_ring", {"hue": hue, "saturation": saturation, "value": value})
 
+    async def release_port(self, duration_s: float | None = None) -> None:
+        """:meth:`Robot.release_port`: the daemon hands the serial port to another program
+        (tb-node, a flashing tool) for ``duration_s`` (0.1..3600 s; ``None``: until
+        :meth:`reclaim_port`), after stopping the wheels. Streams say ``released`` in
+        ``robot_state`` meanwhile. Needs the lease."""
+        await self._call("release_port", {"duration_s": duration_s})
+
+    async def reclaim_port(self) -> None:
+        """:meth:`Robot.reclaim_port`: the daemon takes the port back (waiting, in the
+        background, while the other program still holds it). Needs the lease."""
+        await self._call("reclaim_port")
+
     @property
     def neck(self) -> RemoteServo:
         """The neck, HerkuleX or worm gear (:attr:`Robot.neck`); its commands need the lease."""

@@ -284,13 +284,16 @@ async def open_remote(url: str, *, control: bool) -> AsyncIterator[DaemonRobot]:
     from ohmni_tb.robot.samples import STREAM_NAMES  # noqa: PLC0415
 
     async with RobotClient.connect(url) as client, contextlib.AsyncExitStack() as stack:
+        config = await client.config()
+        state = await client.latest("robot_state")
+        try:
+            info = await client.info()
+        except StateError:
+            # The port is handed to another program: no device can be asked. What the
+            # daemon's Robot found when it had the port is in its state.
+            info = _info_from_state(config, state)
         remote = DaemonRobot(
-            client,
-            await client.config(),
-            await client.info(),
-            await client.stats(),
-            await client.get_pid(),
-            await client.latest("robot_state"),
+            client, config, info, await client.stats(), await client.get_pid(), state
         )
         for name in STREAM_NAMES:
             subscription = await stack.enter_async_context(client.subscribe(name, maxlen=256))
@@ -316,3 +319,19 @@ async def open_remote(url: str, *, control: bool) -> AsyncIterator[DaemonRobot]:
                 # robot at the daemon (nothing else here could).
                 with contextlib.suppress(Exception):
                     await asyncio.shield(client.release())
+
+
+def _info_from_state(config: RobotConfig, state: RobotStateSample | None) -> dict[str, Any]:
+    """``Robot.info()``'s shape from the Robot's state, without asking the devices: the
+    firmware tags and servo models unknown (``None``)."""
+    neck = state.neck if state is not None else "none"
+    servos = [sid for sid in config.ext_servo_ids if state is None or sid in state.present]
+    if neck == "herkulex":
+        servos.insert(0, config.neck_id)
+    return {
+        "firmware": {"left_drive": None, "right_drive": None, "core": None},
+        "servos": dict.fromkeys(servos),
+        "neck": neck,
+        "present": list(state.present) if state is not None else [],
+        "absent": list(state.absent) if state is not None else [],
+    }

@@ -53,6 +53,24 @@ def serve(
             "http://localhost:8080. Browsers from other origins are refused.",
         ),
     ] = None,
+    handoff: Annotated[
+        float | None,
+        typer.Option(
+            "--handoff",
+            metavar="SECONDS",
+            help="Do not serve: tell the daemon running at --listen to hand the serial port "
+            "to another program (tb-node, a flashing tool) for SECONDS (0.1..3600), after "
+            "stopping the wheels; it takes the port back by itself then.",
+            show_default=False,
+        ),
+    ] = None,
+    reclaim: Annotated[
+        bool,
+        typer.Option(
+            "--reclaim",
+            help="Do not serve: tell the daemon running at --listen to take the port back now.",
+        ),
+    ] = False,
     foreground: Annotated[
         bool,
         typer.Option(
@@ -69,9 +87,15 @@ def serve(
     and, holding the control lease, command it (ohmni_tb.client.RobotClient;
     docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits.
 
-    Example: ohmni serve --port sim:// --listen 127.0.0.1:8766
+    With --handoff SECONDS or --reclaim it does not serve: it asks the daemon already
+    running at --listen to hand the serial port to another program, or take it back.
+
+    Example: ohmni serve --port sim:// --listen 127.0.0.1:8766 ; ohmni serve --handoff 60
     """
     host, tcp_port = _parse_listen(listen)
+    if handoff is not None or reclaim:
+        _hand_off(host, tcp_port, handoff, reclaim=reclaim, token_file=token_file)
+        return
     if foreground:
         _log_to_stderr()
     token = _token(host, token_file)
@@ -101,6 +125,48 @@ async def _serve(
     ):
         write_line(server.url)
         await asyncio.Event().wait()  # until a signal cancels it
+
+
+def _hand_off(
+    host: str, tcp_port: int, seconds: float | None, *, reclaim: bool, token_file: Path | None
+) -> None:
+    """``--handoff`` / ``--reclaim``: ask the running daemon, holding its lease meanwhile."""
+    import math  # noqa: PLC0415
+
+    if seconds is not None and reclaim:
+        raise typer.BadParameter("--handoff and --reclaim ask opposite things: give one")
+    if seconds is not None and not (math.isfinite(seconds) and 0.1 <= seconds <= 3600):
+        raise typer.BadParameter(
+            f"--handoff={seconds!r} is out of range: allowed 0.1..3600 s", param_hint="--handoff"
+        )
+    token = None
+    if token_file is not None:
+        from ohmni_tb.daemon.auth import read_token  # noqa: PLC0415
+
+        try:
+            token = read_token(token_file)
+        except (OSError, ConfigError) as exc:
+            raise typer.BadParameter(str(exc), param_hint="--token-file") from None
+    local = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
+    url = f"ws://[{local}]:{tcp_port}" if ":" in local else f"ws://{local}:{tcp_port}"
+
+    async def ask() -> None:
+        from ohmni_tb.client import RobotClient  # noqa: PLC0415
+
+        async with RobotClient.connect(url, token=token) as client, client.lease():
+            if reclaim:
+                await client.reclaim_port()
+            else:
+                await client.release_port(seconds)
+
+    run(ask)
+    if reclaim:
+        write_line(f"the daemon at {url} takes the port back (robot_state says when it has it)")
+    else:
+        write_line(
+            f"the daemon at {url} released the port for {seconds:g} s; it takes it back then "
+            "(now: ohmni serve --reclaim)"
+        )
 
 
 def _token(host: str, token_file: Path | None) -> str | None:

@@ -75,6 +75,7 @@ __all__ = [
     "PidArgs",
     "PoseArgs",
     "RateArgs",
+    "ReleasePortArgs",
     "RequestError",
     "RestArgs",
     "Result",
@@ -238,6 +239,13 @@ class RateArgs(_Message):
     hz: Number
 
 
+class ReleasePortArgs(_Message):
+    """``release_port``: hand the serial port to another program for ``duration_s``
+    (0.1..3600 s; ``null``: until ``reclaim_port``)."""
+
+    duration_s: Number | None = None
+
+
 class _ServoCommand(_Message):
     target: str | int = Field(description='"neck", or a HerkuleX servo id 0..253.')
 
@@ -319,6 +327,10 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     "move": MethodSpec(MoveArgs, True, "null (sent; the servo's stream shows it moving)"),
     "torque": MethodSpec(TorqueArgs, True, "null"),
     "rest": MethodSpec(RestArgs, True, "null (after the rest move, and the free)"),
+    "release_port": MethodSpec(
+        ReleasePortArgs, True, "null, once the wheels stopped and the port is closed"
+    ),
+    "reclaim_port": MethodSpec(NoArgs, True, "null (robot_state says when it is back)"),
 }
 #: The services a ``call`` may name.
 METHODS: Final = tuple(METHOD_SPECS)

@@ -54,6 +54,7 @@ from ohmni_tb.daemon.protocol import (
     Motion,
     MoveArgs,
     PidArgs,
+    ReleasePortArgs,
     RequestError,
     RestArgs,
     Result,
@@ -556,7 +557,15 @@ class RobotServer:
     async def _rest(self, args: RestArgs) -> Any:
         await self._handle_of(args.target).rest(free=args.free)
 
+    async def _release_port(self, args: ReleasePortArgs) -> Any:
+        await self._robot.release_port(args.duration_s)
+
+    async def _reclaim_port(self, args: object) -> Any:
+        await self._robot.reclaim_port()
+
     _ASYNC: Final[dict[str, _AsyncCall]] = {
+        "release_port": _release_port,
+        "reclaim_port": _reclaim_port,
         "info": _info,
         "estop": _estop,
         "light_ring": _light_ring,
