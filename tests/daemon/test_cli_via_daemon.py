@@ -169,3 +169,11 @@ def test_without_a_daemon_the_commands_open_the_port(monkeypatch: pytest.MonkeyP
     assert json.loads(result.stdout)["port"] == "sim://"
     assert "via the daemon" not in result.out
     assert os.environ["OHMNI_DAEMON_URL"] != "off"
+
+
+def test_the_commands_look_for_the_daemon_where_it_listens_by_default() -> None:
+    from ohmni_tb.cli import common
+    from ohmni_tb.client import DEFAULT_URL
+    from ohmni_tb.daemon.server import DEFAULT_HOST, DEFAULT_PORT
+
+    assert common._DEFAULT_DAEMON_URL == DEFAULT_URL == f"ws://{DEFAULT_HOST}:{DEFAULT_PORT}"

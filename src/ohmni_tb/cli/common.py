@@ -8,11 +8,13 @@ import json
 import logging
 import os
 import signal
+import socket
 import sys
 import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar, cast
+from typing import TYPE_CHECKING, Annotated, Any, Final, TypeVar, cast
+from urllib.parse import urlsplit
 
 import typer
 from rich.console import Console
@@ -28,6 +30,7 @@ if TYPE_CHECKING:
     from ohmni_tb.transport import Transport
 
 __all__ = [
+    "DAEMON_URL_ENV",
     "DirectOption",
     "JsonOption",
     "PortOption",
@@ -54,6 +57,13 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+
+#: Where the commands look for ``ohmni serve`` (``off``: never).
+DAEMON_URL_ENV: Final = "OHMNI_DAEMON_URL"
+#: ohmni_tb.client.DEFAULT_URL, without importing the client.
+_DEFAULT_DAEMON_URL = "ws://127.0.0.1:8766"
+#: How long the check that the daemon listens may take (loopback: microseconds).
+_PROBE_S = 0.3
 
 DirectOption = Annotated[
     bool,
@@ -179,11 +189,26 @@ async def open_robot(
 
 
 def daemon_for(port_option: str | None, direct: bool) -> str | None:
-    """The daemon's URL when the command should go through it (``ohmni serve`` answers,
-    and neither ``--port`` nor ``--direct`` was given), else ``None``."""
-    from ohmni_tb.cli.remote import daemon_url  # noqa: PLC0415
+    """The daemon's URL when the command should go through it, else ``None`` (open the port).
 
-    return daemon_url(port_option=port_option, direct=direct)
+    Not with ``--direct``, nor with ``--port`` (the command names what to open), nor with
+    ``$OHMNI_DAEMON_URL=off``, nor when nothing listens at ``$OHMNI_DAEMON_URL`` (default
+    ``ws://127.0.0.1:8766``): a plain TCP connect decides, so a command without a daemon
+    loads no WebSocket code.
+    """
+    if direct or port_option is not None:
+        return None
+    url = os.environ.get(DAEMON_URL_ENV) or _DEFAULT_DAEMON_URL
+    if url.lower() == "off":
+        return None
+    parts = urlsplit(url)
+    if parts.scheme not in ("ws", "wss") or parts.hostname is None:
+        return None
+    try:
+        with socket.create_connection((parts.hostname, parts.port or 80), timeout=_PROBE_S):
+            return url
+    except OSError:
+        return None
 
 
 def run(

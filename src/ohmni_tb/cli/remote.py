@@ -2,7 +2,7 @@
 the daemon (:class:`~ohmni_tb.client.RobotClient`).
 
 A command opens the port itself unless a daemon answers (then the port is the daemon's:
-a second opener would only get "port busy"). :func:`daemon_url` decides; :func:`open_remote`
+a second opener would only get "port busy"): ``common.daemon_for`` decides; :func:`open_remote`
 connects, takes the daemon's settings, subscribes to every stream (so ``latest`` needs no
 round trip, as on the Robot) and, for a command that moves the robot, takes the control
 lease — refused, with who holds it, when another client drives. Leaving gives the lease
@@ -13,15 +13,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
-import socket
-from collections import deque
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Any, Final, Generic, TypeVar
-from urllib.parse import urlsplit
+from typing import TYPE_CHECKING, Any
 
 from ohmni_tb.errors import LeaseError, OhmniError, StateError
+from ohmni_tb.robot.streams import Subscription, Topic
 
 if TYPE_CHECKING:
     from ohmni_tb.client import ClientSubscription, RemoteServo, RobotClient
@@ -30,99 +27,10 @@ if TYPE_CHECKING:
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.robot import RobotStateSample, RobotStats
 
-__all__ = ["DAEMON_URL_ENV", "DaemonRobot", "daemon_url", "open_remote"]
+__all__ = ["DaemonRobot", "open_remote"]
 
-#: Where the commands look for the daemon (default ``ws://127.0.0.1:8766``).
-DAEMON_URL_ENV: Final = "OHMNI_DAEMON_URL"
-#: How long the check that something listens there may take (loopback: microseconds).
-_PROBE_S = 0.3
 #: How often the daemon's figures are fetched for ``stats()``.
 _STATS_EVERY_S = 0.25
-
-T = TypeVar("T")
-
-
-def daemon_url(*, port_option: str | None, direct: bool) -> str | None:
-    """The daemon's URL if a command should use it, else ``None`` (open the port).
-
-    Not with ``--direct``, nor with ``--port`` (the command names what to open), nor with
-    ``$OHMNI_DAEMON_URL=off``, nor when nothing listens at ``$OHMNI_DAEMON_URL`` (default
-    ``ws://127.0.0.1:8766``): a plain TCP connect decides, so a command without a daemon
-    does not even load WebSocket code.
-    """
-    if direct or port_option is not None:
-        return None
-    from ohmni_tb.client import DEFAULT_URL  # noqa: PLC0415
-
-    url = os.environ.get(DAEMON_URL_ENV) or DEFAULT_URL
-    if url.lower() == "off":
-        return None
-    parts = urlsplit(url)
-    if parts.scheme not in ("ws", "wss") or parts.hostname is None:
-        return None
-    try:
-        with socket.create_connection((parts.hostname, parts.port or 80), timeout=_PROBE_S):
-            return url
-    except OSError:
-        return None
-
-
-class _Local(Generic[T]):
-    """One command's subscription to a stream the connection already receives: the
-    Robot's Subscription's interface (async iterator, context manager, bounded queue)."""
-
-    def __init__(self, owner: DaemonRobot, name: str, maxlen: int) -> None:
-        self._owner = owner
-        self.name = name
-        self._maxlen = maxlen
-        self._queue: deque[T] = deque()
-        self._waiter: asyncio.Future[None] | None = None
-        self._closed = False
-        self.dropped = 0
-
-    @property
-    def pending(self) -> int:
-        return len(self._queue)
-
-    def _put(self, sample: T) -> None:
-        if len(self._queue) >= self._maxlen:
-            self._queue.popleft()
-            self.dropped += 1
-        self._queue.append(sample)
-        self._wake()
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._owner._locals[self.name].discard(self)
-            self._wake()
-
-    def get_nowait(self) -> T | None:
-        return self._queue.popleft() if self._queue else None
-
-    def _wake(self) -> None:
-        if self._waiter is not None and not self._waiter.done():
-            self._waiter.set_result(None)
-
-    def __aiter__(self) -> _Local[T]:
-        return self
-
-    async def __anext__(self) -> T:
-        while not self._queue:
-            if self._closed:
-                raise StopAsyncIteration
-            self._waiter = asyncio.get_running_loop().create_future()
-            try:
-                await self._waiter
-            finally:
-                self._waiter = None
-        return self._queue.popleft()
-
-    async def __aenter__(self) -> _Local[T]:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        self.close()
 
 
 class _RemoteHandle:
@@ -181,7 +89,8 @@ class DaemonRobot:
         self._stats = stats
         self._pid = pid
         self._state = state
-        self._locals: dict[str, set[_Local[Any]]] = {}
+        # The Robot's own stream objects, fed from the daemon: subscriptions behave alike.
+        self._topics: dict[str, Topic[Any]] = {}
         self._tasks: list[asyncio.Task[None]] = []
 
     @property
@@ -224,10 +133,14 @@ class DaemonRobot:
     def latest(self, name: str) -> Any:
         return self.client.latest_received(name)
 
-    def subscribe(self, name: str, *, maxlen: int = 64) -> _Local[Any]:
-        local: _Local[Any] = _Local(self, name, maxlen)
-        self._locals.setdefault(name, set()).add(local)
-        return local
+    def subscribe(self, name: str, *, maxlen: int = 64) -> Subscription[Any]:
+        return self._topic(name).subscribe(maxlen)
+
+    def _topic(self, name: str) -> Topic[Any]:
+        topic = self._topics.get(name)
+        if topic is None:
+            topic = self._topics[name] = Topic(name)
+        return topic
 
     def stats(self) -> RobotStats:
         return self._stats
@@ -258,11 +171,14 @@ class DaemonRobot:
 
     async def _pump(self, subscription: ClientSubscription[Any]) -> None:
         name = subscription.name
-        async for sample in subscription:
-            if name == "robot_state":
-                self._state = sample
-            for local in list(self._locals.get(name, ())):
-                local._put(sample)
+        topic = self._topic(name)
+        try:
+            async for sample in subscription:
+                if name == "robot_state":
+                    self._state = sample
+                topic.publish(sample, sample.stamp_s)
+        finally:
+            topic.close()  # the commands' subscriptions end with the connection
 
     async def _poll_stats(self) -> None:
         while True:
