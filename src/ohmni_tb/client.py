@@ -296,22 +296,28 @@ class RobotClient:
         return None if data is None else sample_from_json(name, data)
 
     def subscribe(
-        self, name: str, *, max_hz: float | None = None, maxlen: int = DEFAULT_QUEUE_SIZE
+        self,
+        name: str,
+        *,
+        max_hz: float | None = None,
+        every: int | None = None,
+        maxlen: int = DEFAULT_QUEUE_SIZE,
     ) -> ClientSubscription[Any]:
         """The samples of stream ``name`` from now on (an async iterator; also ``async with``).
 
-        ``max_hz`` caps the rate (the daemon sends at most that many a second, the newest
-        each time); ``maxlen`` bounds the queue here and at the daemon: a reader that
-        falls behind loses the oldest, counted in ``dropped``.
+        ``every`` keeps only every Nth sample of the stream (1..10000); ``max_hz`` caps the
+        rate (the daemon sends at most that many a second, the newest each time); both may
+        be given. ``maxlen`` bounds the queue here and at the daemon: a reader that falls
+        behind loses the oldest, counted in ``dropped``.
 
         Raises:
-            InvalidArgumentError: No such stream, or ``max_hz`` (above 0, at most 1000) or
-                ``maxlen`` (1..1024) out of range.
+            InvalidArgumentError: No such stream, or ``max_hz`` (above 0, at most 1000),
+                ``every`` (1..10000) or ``maxlen`` (1..1024) out of range.
             StateError: This connection already has a subscription to it.
         """
         _check_topic(name)
         try:
-            Subscribe(id=0, topic=name, max_hz=max_hz, queue=maxlen)
+            Subscribe(id=0, topic=name, max_hz=max_hz, every=every, queue=maxlen)
         except ValidationError as exc:
             problems = "; ".join(
                 f"{_OPTION.get(str(e['loc'][0]), e['loc'][0])}={e['input']!r}: {e['msg']}"
@@ -323,7 +329,9 @@ class RobotClient:
                 f"already subscribed to {name!r} on this connection: close that subscription "
                 "first, or open another connection"
             )
-        subscription: ClientSubscription[Any] = ClientSubscription(self, name, max_hz, maxlen)
+        subscription: ClientSubscription[Any] = ClientSubscription(
+            self, name, max_hz, maxlen, every=every
+        )
         self._subscriptions[name] = subscription
         return subscription
 
@@ -703,6 +711,7 @@ class RobotClient:
                     id=id,
                     topic=subscription.name,
                     max_hz=subscription._max_hz,
+                    every=subscription._every,
                     queue=subscription._maxlen,
                 )
             )
@@ -835,10 +844,19 @@ class ClientSubscription(Generic[T]):
     :class:`~ohmni_tb.errors.TransportClosedError` when the daemon goes away.
     """
 
-    def __init__(self, client: RobotClient, topic: str, max_hz: float | None, maxlen: int) -> None:
+    def __init__(
+        self,
+        client: RobotClient,
+        topic: str,
+        max_hz: float | None,
+        maxlen: int,
+        *,
+        every: int | None = None,
+    ) -> None:
         self._client = client
         self._topic = topic
         self._max_hz = max_hz
+        self._every = every
         self._maxlen = maxlen
         self._queue: deque[T] = deque()
         self._waiter: asyncio.Future[None] | None = None
@@ -870,7 +888,11 @@ class ClientSubscription(Generic[T]):
         try:
             await self._client._request(
                 lambda id: Subscribe(
-                    id=id, topic=self._topic, max_hz=self._max_hz, queue=self._maxlen
+                    id=id,
+                    topic=self._topic,
+                    max_hz=self._max_hz,
+                    every=self._every,
+                    queue=self._maxlen,
                 ),
                 f"subscribe {self._topic}",
             )

@@ -133,6 +133,16 @@ async def test_a_rate_cap_sends_at_most_that_rate(server: RobotServer) -> None:
     assert min(gaps) >= 0.06  # never two in quick succession (a 50 Hz stream, capped)
 
 
+async def test_every_nth_sample_decimates_the_stream(server: RobotServer) -> None:
+    async with RobotClient.connect(server.url) as client:
+        odom = await collect(client, "wheel_odom", WINDOW_S, every=5)
+    assert 0.85 * 10 * WINDOW_S <= len(odom) <= 10 * WINDOW_S + 1
+    gaps = sorted(b.stamp_s - a.stamp_s for a, b in itertools.pairwise(odom))
+    # Five 20 ms periods apart: never closer (a missed cycle may make one gap longer).
+    assert gaps[0] >= 0.09
+    assert gaps[len(gaps) // 2] == pytest.approx(0.1, abs=0.005)
+
+
 @pytest.mark.parametrize(
     ("frame", "code"),
     [

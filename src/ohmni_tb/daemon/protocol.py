@@ -120,6 +120,8 @@ _MAX_ID_CHARS = 64
 MAX_QUEUE = 1024
 #: Fastest rate cap a subscription may ask; no stream is faster than 100 Hz.
 _MAX_HZ = 1000.0
+#: Largest decimation a subscription may ask (one sample in 10,000).
+_MAX_EVERY = 10_000
 
 ErrorCode = Literal[
     "bad_json",  # not JSON, or not one JSON object
@@ -350,6 +352,10 @@ class Subscribe(_Message):
     topic: Topic
     max_hz: Annotated[float, Field(gt=0, le=_MAX_HZ)] | None = Field(
         None, description="Rate cap: at most this many samples a second, the newest each time."
+    )
+    every: Annotated[int, Field(ge=1, le=_MAX_EVERY)] | None = Field(
+        default=None,
+        description="Decimation: only every Nth sample of the stream (before max_hz).",
     )
     queue: Annotated[int, Field(ge=1, le=MAX_QUEUE)] = Field(
         64, description="Samples held for this client; when full the oldest is dropped."
@@ -603,7 +609,7 @@ def json_schema() -> dict[str, Any]:
         },
         "results": {
             "stats": _STATS.json_schema(),
-            "subscribe": "{topic, max_hz, queue, hz}",
+            "subscribe": "{topic, max_hz, every, queue, hz}",
             "unsubscribe": "{topic}",
         },
     }

@@ -590,9 +590,15 @@ class RobotServer:
             queue = _Queue(client, topic)
             client.subscriptions[topic] = queue
             pump.queues.add(queue)
-        queue.configure(message.queue, message.max_hz)
+        queue.configure(message.queue, message.max_hz, message.every)
         hz = self._robot.stats().streams[topic].requested_hz
-        return {"topic": topic, "max_hz": message.max_hz, "queue": message.queue, "hz": hz}
+        return {
+            "topic": topic,
+            "max_hz": message.max_hz,
+            "every": message.every,
+            "queue": message.queue,
+            "hz": hz,
+        }
 
     def _unsubscribe(self, client: _Client, topic: str) -> None:
         queue = client.subscriptions.pop(topic)
@@ -667,18 +673,29 @@ class _Queue:
         self.maxlen = 64
         self.interval_s = 0.0
         self.next_due_s = 0.0
+        self.every = 1
+        self._since_sent = 0
         #: Samples lost since the client's last one (told in that topic's next sample).
         self.dropped = 0
         self.dropped_total = 0
         self._prefix = f'{{"op":"sample","topic":{json.dumps(topic)},"dropped":'
 
-    def configure(self, maxlen: int, max_hz: float | None) -> None:
+    def configure(self, maxlen: int, max_hz: float | None, every: int | None) -> None:
         self.maxlen = maxlen
         self.interval_s = 0.0 if max_hz is None else 1.0 / max_hz
+        self.every = every or 1
+        self._since_sent = 0
         while len(self.items) > maxlen:
             self._drop()
 
     def put(self, data: str, now: float) -> None:
+        if self.every > 1:
+            # Every Nth sample of the stream: the first one, then each Nth after it.
+            self._since_sent += 1
+            if self._since_sent != 1:
+                if self._since_sent >= self.every:
+                    self._since_sent = 0
+                return
         if self.interval_s:
             # Absolute due times: the average rate is the cap even when samples arrive
             # with jitter; after a pause it restarts instead of bursting to catch up.
