@@ -112,3 +112,30 @@ def test_square_example_refuses_a_real_robot_without_consent() -> None:
     )
     assert result.returncode == 2
     assert "--yes" in result.stderr
+
+
+def test_one_script_drives_its_own_robot_or_the_daemons() -> None:
+    from daemon._serving import free_port, start_serving, stop_serving
+
+    script = str(EXAMPLES / "embedded_or_daemon.py")
+    alone = subprocess.run(
+        [sys.executable, script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert alone.returncode == 0, alone.stderr
+    assert "through its own Robot on sim://" in alone.stdout
+    proc, url = start_serving("--listen", f"127.0.0.1:{free_port()}")
+    try:
+        shared = subprocess.run(
+            [sys.executable, script, "--daemon", url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+    finally:
+        stop_serving(proc)
+    assert shared.returncode == 0, shared.stderr
+    for run in (alone, shared):
+        metres = float(re.search(r"drove (\d+\.\d+) m", run.stdout).group(1))  # type: ignore[union-attr]  # asserted by the run
+        assert 0.2 < metres < 0.35, run.stdout
+    assert f"through the daemon at {url}" in shared.stdout

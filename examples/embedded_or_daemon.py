@@ -1,0 +1,58 @@
+"""One script, two ways to reach the robot: its own Robot, or the daemon's (``ohmni serve``).
+
+    python examples/embedded_or_daemon.py                      # opens sim:// itself
+    ohmni serve --port sim:// &                                 # or: the daemon owns the port
+    python examples/embedded_or_daemon.py --daemon ws://127.0.0.1:8766
+
+``patrol`` is written once against what the Robot and ``RobotClient`` share — ``drive``,
+``stop`` and ``subscribe`` — so only the line that opens the robot differs. Through the
+daemon the script takes the control lease first (one driver at a time); other programs
+can watch meanwhile (``ohmni status``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import sys
+from typing import Any
+
+from ohmni_tb import Robot
+from ohmni_tb.client import RobotClient
+
+
+async def patrol(robot: Any, *, speed_mps: float, seconds: float) -> float:
+    """Drive forward for ``seconds``, stop; return the distance the odometry measured."""
+    loop = asyncio.get_running_loop()
+    async with robot.subscribe("wheel_odom", maxlen=1) as odom:
+        start = await anext(odom)
+        until = loop.time() + seconds
+        while loop.time() < until:
+            robot.drive(speed_mps, 0.0)  # within the watchdog time: keeps it moving
+            await asyncio.sleep(0.05)
+        robot.stop()
+        end = start
+        async for sample in odom:  # until it stands still
+            end = sample
+            if abs(sample.linear_mps) < 0.005:
+                break
+    return math.hypot(end.x_m - start.x_m, end.y_m - start.y_m)
+
+
+async def main(daemon: str | None) -> int:
+    if daemon is None:
+        async with Robot.open("sim://") as robot:
+            travelled = await patrol(robot, speed_mps=0.3, seconds=1.0)
+    else:
+        async with RobotClient.connect(daemon) as client, client.lease():
+            travelled = await patrol(client, speed_mps=0.3, seconds=1.0)
+    where = f"the daemon at {daemon}" if daemon else "its own Robot on sim://"
+    print(f"drove {travelled:.3f} m through {where}")
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--daemon", metavar="URL", help="use ohmni serve at URL")
+    sys.exit(asyncio.run(main(parser.parse_args().daemon)))
