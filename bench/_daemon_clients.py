@@ -1,0 +1,262 @@
+"""The clients of ``bench/daemon.py``, in their own process so the daemon's CPU is its own.
+
+Run by the benchmark, not by hand::
+
+    python bench/_daemon_clients.py URL readers N [--stalled K]
+    python bench/_daemon_clients.py URL churn [--every-s 0.2]
+
+``readers``: N :class:`~ohmni_tb.client.RobotClient` connections on one event loop, each
+subscribed to every stream of :data:`TOPICS` with one task per subscription reading it
+continuously; ``--stalled`` adds K raw WebSocket connections that subscribe to the same
+and never read (a small receive buffer, so the daemon sees them stall within a second).
+``churn``: a new connection every ``--every-s``, visiting for 0.5–3.5 s (about ten at a
+time): most subscribe to a few topics and unsubscribe politely, some leave with their
+subscriptions open, some cut the TCP connection without a closing handshake.
+
+It talks to the benchmark in JSON lines: it prints ``{"event": "ready", …}`` once every
+reader is subscribed, answers each ``mark`` line on stdin with its cumulative figures
+(``{"event": "mark", …}``), and on ``quit`` (or stdin's end: the benchmark is gone)
+closes every connection, prints ``{"event": "done", …}`` and exits. Errors go to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import random
+import socket
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from ohmni_tb.client import ClientSubscription, RobotClient
+
+#: Every stream the Robot runs by default (not ``new_neck``: the simulated neck is a
+#: HerkuleX servo; not ``pid_debug``: off unless configured).
+TOPICS = (
+    "wheel_encoder",
+    "wheel_odom",
+    "tbcore_status",
+    "servo_neck",
+    "servo_ext1",
+    "servo_ext2",
+    "robot_state",
+)
+#: The stalled connections' kernel receive buffer (Linux doubles it): small, so the
+#: daemon's own buffers fill within a second instead of after megabytes of autotuning.
+_STALLED_RECEIVE_BUFFER = 4096
+#: How long a churn visit lasts, s (uniform): with a visit every 0.2 s, ten at a time.
+_VISIT_S = (0.5, 3.5)
+#: Churn visits by kind, and their weights.
+_KINDS = ("polite", "leave", "abort")
+_WEIGHTS = (6, 3, 1)
+
+
+@dataclass
+class Tally:
+    """What the clients received and lost, cumulative."""
+
+    received: Counter[str] = field(default_factory=Counter)
+    subscriptions: list[ClientSubscription[Any]] = field(default_factory=list)
+    connected: int = 0
+    visits: Counter[str] = field(default_factory=Counter)
+    errors: Counter[str] = field(default_factory=Counter)
+    stalled_peers: list[str] = field(default_factory=list)
+
+    def figures(self, event: str) -> dict[str, Any]:
+        return {
+            "event": event,
+            "received": dict(self.received),
+            "dropped": sum(s.dropped for s in self.subscriptions),
+            "connected": self.connected,
+            "visits": dict(self.visits),
+            "errors": dict(self.errors),
+            "stalled_peers": self.stalled_peers,
+            "cpu_s": time.process_time(),
+        }
+
+    def error(self, exc: BaseException) -> None:
+        key = f"{type(exc).__name__}: {exc}"[:200]
+        if not self.errors[key]:
+            print(f"clients: {key}", file=sys.stderr)
+        self.errors[key] += 1
+
+
+def say(message: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(message) + "\n")
+    sys.stdout.flush()
+
+
+async def count(subscription: ClientSubscription[Any], received: Counter[str]) -> None:
+    async for _ in subscription:
+        received[subscription.name] += 1
+
+
+async def reader(
+    url: str, tally: Tally, subscribed: Callable[[], None], stop: asyncio.Event
+) -> None:
+    """One connection reading every topic until ``stop``."""
+    async with RobotClient.connect(url) as client, contextlib.AsyncExitStack() as stack:
+        subscriptions = [
+            await stack.enter_async_context(client.subscribe(topic)) for topic in TOPICS
+        ]
+        tally.subscriptions.extend(subscriptions)
+        tally.connected += 1
+        subscribed()
+        async with asyncio.TaskGroup() as group:
+            tasks = [group.create_task(count(s, tally.received)) for s in subscriptions]
+            await stop.wait()
+            for task in tasks:
+                task.cancel()
+        tally.connected -= 1
+
+
+async def stalled(
+    url: str, tally: Tally, subscribed: Callable[[], None], stop: asyncio.Event
+) -> None:
+    """One connection that subscribes to every topic and never reads."""
+    from websockets.asyncio.client import connect  # noqa: PLC0415
+
+    host, _, port = url.removeprefix("ws://").rpartition(":")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _STALLED_RECEIVE_BUFFER)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, (host, int(port)))
+    # max_queue=1: websockets stops reading the socket after one unread frame.
+    ws = await connect(url, sock=sock, compression=None, max_queue=1)
+    try:
+        for n, topic in enumerate(TOPICS, 1):
+            await ws.send(json.dumps({"op": "subscribe", "id": n, "topic": topic}))
+        local = ws.local_address
+        tally.stalled_peers.append(f"{local[0]}:{local[1]}")
+        subscribed()
+        await stop.wait()
+    finally:
+        ws.transport.abort()
+
+
+async def visit(url: str, kind: str, stay_s: float, rng: random.Random, tally: Tally) -> None:
+    """One churn visit: connect, subscribe to a few topics, read for ``stay_s``, leave."""
+    topics = rng.sample(TOPICS, rng.randint(2, 4))
+    tally.visits[kind] += 1
+    try:
+        if kind == "abort":
+            await _visit_abort(url, topics, stay_s)
+            return
+        async with RobotClient.connect(url) as client:
+            tally.connected += 1
+            try:
+                if rng.random() < 0.3:
+                    await client.stats()
+                received: Counter[str] = Counter()
+                async with contextlib.AsyncExitStack() as stack:
+                    subscriptions = []
+                    for topic in topics:
+                        max_hz = rng.choice((None, None, 5.0))
+                        subscription = client.subscribe(topic, max_hz=max_hz)
+                        if kind == "polite":
+                            await stack.enter_async_context(subscription)
+                        else:
+                            await subscription.start()  # left open: the daemon cleans up
+                        subscriptions.append(subscription)
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(stay_s), asyncio.TaskGroup() as group:
+                            for subscription in subscriptions:
+                                group.create_task(count(subscription, received))
+            finally:
+                tally.connected -= 1
+    except Exception as exc:  # counted and shown: the churn goes on, the daemon is judged
+        tally.error(exc)
+
+
+async def _visit_abort(url: str, topics: list[str], stay_s: float) -> None:
+    from websockets.asyncio.client import connect  # noqa: PLC0415
+
+    ws = await connect(url, compression=None)
+    try:
+        for n, topic in enumerate(topics, 1):
+            await ws.send(json.dumps({"op": "subscribe", "id": n, "topic": topic}))
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(stay_s):
+                async for _ in ws:
+                    pass
+    finally:
+        ws.transport.abort()  # no closing handshake: as a process that crashed
+
+
+async def churn(url: str, every_s: float, tally: Tally, stop: asyncio.Event) -> None:
+    rng = random.Random(12)
+    loop = asyncio.get_running_loop()
+    async with asyncio.TaskGroup() as group:
+        due = loop.time()
+        while not stop.is_set():
+            kind = rng.choices(_KINDS, _WEIGHTS)[0]
+            group.create_task(visit(url, kind, rng.uniform(*_VISIT_S), rng, tally))
+            due += every_s
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout_at(due):
+                    await stop.wait()
+
+
+async def commands(tally: Tally, stop: asyncio.Event) -> None:
+    """Answer the benchmark's ``mark`` lines; ``quit`` or the end of stdin stops."""
+    loop = asyncio.get_running_loop()
+    lines = asyncio.StreamReader()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(lines), sys.stdin)
+    while line := (await lines.readline()).decode().strip():
+        if line == "mark":
+            say(tally.figures("mark"))
+        elif line == "quit":
+            break
+    stop.set()
+
+
+async def run(args: argparse.Namespace) -> None:
+    tally = Tally()
+    stop = asyncio.Event()
+    async with asyncio.TaskGroup() as group:
+        if args.mode == "readers":
+            # A client that fails to connect fails the group, and this process with it.
+            total = args.clients + args.stalled
+            subscribed = 0
+            everyone = asyncio.Event()
+
+            def one_more() -> None:
+                nonlocal subscribed
+                subscribed += 1
+                if subscribed == total:
+                    everyone.set()
+
+            for n in range(total):
+                client = reader if n < args.clients else stalled
+                group.create_task(client(args.url, tally, one_more, stop))
+            await everyone.wait()
+        else:
+            group.create_task(churn(args.url, args.every_s, tally, stop))
+        say({"event": "ready"})
+        group.create_task(commands(tally, stop))
+    say(tally.figures("done"))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("url")
+    parser.add_argument("mode", choices=("readers", "churn"))
+    parser.add_argument("clients", type=int, nargs="?", default=0)
+    parser.add_argument("--stalled", type=int, default=0)
+    parser.add_argument("--every-s", type=float, default=0.2)
+    args = parser.parse_args()
+    try:
+        asyncio.run(run(args))
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
