@@ -115,7 +115,7 @@ def test_square_example_refuses_a_real_robot_without_consent() -> None:
 
 
 def test_one_script_drives_its_own_robot_or_the_daemons() -> None:
-    from daemon._serving import free_port, start_serving, stop_serving
+    from daemon_api._serving import free_port, start_serving, stop_serving
 
     script = str(EXAMPLES / "embedded_or_daemon.py")
     alone = subprocess.run(

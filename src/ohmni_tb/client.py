@@ -53,6 +53,7 @@ from ohmni_tb.control.pid import PidGains
 from ohmni_tb.daemon.auth import TOKEN_ENV
 from ohmni_tb.daemon.protocol import (
     METHOD_SPECS,
+    BatchMessage,
     Call,
     ErrorMessage,
     Hello,
@@ -730,6 +731,10 @@ class RobotClient:
                 self._dispatch(message)
 
     def _dispatch(self, message: Any) -> None:
+        if isinstance(message, BatchMessage):
+            for one in message.samples:
+                self._dispatch(one)
+            return
         if isinstance(message, SampleMessage):
             sample = sample_from_json(message.topic, message.data)
             self._latest[message.topic] = sample

@@ -7,6 +7,7 @@ Every message is one JSON object in one WebSocket text frame, with ``op`` naming
     unsubscribe {id, topic}                   sample  {topic, dropped, data}
     call        {id, method, args}            result  {id, data}
                                               error   {id | null, code, message}
+                                              batch   {samples: [sample, …]}
                                               lease   {holder, you, reason}
 
 ``id`` is the client's (an integer or a short string); the ``result`` or ``error`` that
@@ -55,6 +56,7 @@ __all__ = [
     "PROTOCOL_VERSION",
     "SAMPLE_TYPES",
     "AcquireArgs",
+    "BatchMessage",
     "Call",
     "ClientMessage",
     "DriveArgs",
@@ -444,6 +446,14 @@ class SampleMessage(_Message):
     data: dict[str, Any] = Field(description="The sample; its schema is under 'samples'.")
 
 
+class BatchMessage(_Message):
+    """Several samples in one frame: what waited for this client since the last flush
+    (``SAMPLE_FLUSH_S``), oldest first within each topic."""
+
+    op: Literal["batch"] = "batch"
+    samples: list[SampleMessage]
+
+
 class Result(_Message):
     """The answer to a request."""
 
@@ -462,13 +472,14 @@ class ErrorMessage(_Message):
 
 
 ServerMessage = Annotated[
-    Hello | SampleMessage | Result | ErrorMessage | LeaseMessage, Field(discriminator="op")
+    Hello | SampleMessage | BatchMessage | Result | ErrorMessage | LeaseMessage,
+    Field(discriminator="op"),
 ]
 
 _CLIENT: TypeAdapter[Subscribe | Unsubscribe | Call] = TypeAdapter(ClientMessage)
-_SERVER: TypeAdapter[Hello | SampleMessage | Result | ErrorMessage | LeaseMessage] = TypeAdapter(
-    ServerMessage
-)
+_SERVER: TypeAdapter[
+    Hello | SampleMessage | BatchMessage | Result | ErrorMessage | LeaseMessage
+] = TypeAdapter(ServerMessage)
 _SAMPLES: dict[type[Any], TypeAdapter[Any]] = {
     cls: TypeAdapter(cls) for cls in dict.fromkeys(SAMPLE_TYPES.values())
 }
@@ -548,7 +559,7 @@ def call_args(call: Call) -> BaseModel:
 
 def parse_server_message(
     frame: str | bytes,
-) -> Hello | SampleMessage | Result | ErrorMessage | LeaseMessage:
+) -> Hello | SampleMessage | BatchMessage | Result | ErrorMessage | LeaseMessage:
     """One server frame as a message (the client's edge).
 
     Raises:
