@@ -97,9 +97,9 @@ PUBLIC = {
          "PROTOCOL_VERSION", "SAMPLE_TYPES", "AcquireArgs", "Call", "ClientMessage", "DriveArgs",
          "DrivePwmArgs", "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "Hello",
          "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion", "MoveArgs",
-         "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "RequestError", "RestArgs", "Result",
-         "SampleMessage", "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs",
-         "Unsubscribe", "call_args", "encode", "json_schema", "parse_client_message",
+         "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs", "RequestError",
+         "RestArgs", "Result", "SampleMessage", "ServerMessage", "StreamArgs", "Subscribe",
+         "TorqueArgs", "Unsubscribe", "call_args", "encode", "json_schema", "parse_client_message",
          "parse_server_message", "sample_from_json", "sample_json", "schema_text",
          "stats_from_json", "stats_json", "write_schema",
     ],
@@ -107,6 +107,21 @@ PUBLIC = {
          "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_PORT", "HARD_MAX_MESSAGE_BYTES",
          "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "ClientFigures", "RobotServer",
          "check_listen", "is_loopback",
+    ],
+    "ohmni_tb.foxglove": [
+         "CHANNELS", "DEFAULT_HOST", "DEFAULT_PORT", "ChannelSpec", "ChannelStats",
+         "FoxgloveBridge", "McapRecorder", "RecordingError",
+    ],
+    "ohmni_tb.foxglove.channels": [
+         "BASE_FRAME", "CHANNELS", "ODOM_FRAME", "ChannelSpec", "Encoder", "WallClock",
+         "channel_schema", "channels_of", "encoder_for", "json_schema_of",
+    ],
+    "ohmni_tb.foxglove.bridge": [
+         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "FoxgloveBridge",
+    ],
+    "ohmni_tb.foxglove.record": [
+         "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "McapRecorder",
+         "RecordingError",
     ],
     "ohmni_tb.daemon.auth": [
          "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token", "default_token_path",
