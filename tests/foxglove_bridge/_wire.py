@@ -187,8 +187,13 @@ class FoxgloveClient:
         self._topics: dict[int, str] = {}
 
     @classmethod
-    async def connect(cls, url: str) -> FoxgloveClient:
-        client = cls(await connect(url, subprotocols=[SUBPROTOCOL]))  # type: ignore[list-item]
+    async def connect(cls, url: str, *, close_timeout_s: float = 10.0) -> FoxgloveClient:
+        ws = await connect(
+            url,
+            subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+            close_timeout=close_timeout_s,
+        )
+        client = cls(ws)
         client.server_info = json.loads(await client.ws.recv())
         assert client.server_info["op"] == "serverInfo", client.server_info
         while True:  # the channels come in one advertise or more, right after

@@ -191,3 +191,21 @@ async def test_the_bridge_outlives_the_robot_quietly() -> None:
     messages = sum(stats.messages for stats in bridge.stats().values())
     await bridge.aclose()
     assert messages == 0
+
+
+async def test_a_client_that_never_reads_costs_the_robot_nothing(
+    robot: Robot, bridge: FoxgloveBridge
+) -> None:
+    # A client that stops reading cannot finish a close handshake either: a short wait.
+    client = await FoxgloveClient.connect(bridge.url, close_timeout_s=0.1)
+    await client.subscribe(*client.channels)  # everything, then never reads a frame
+    before = robot.stats().streams["wheel_odom"].samples
+    await asyncio.sleep(2.0)
+    published = robot.stats().streams["wheel_odom"].samples - before
+    stats = bridge.stats()
+    # The bridge handed every sample to the SDK (which drops that client's oldest when
+    # its queue is full): it lost none, and the Robot kept its rate.
+    assert published >= 90
+    assert all(s.dropped == 0 for s in stats.values())
+    assert stats["/tf"].messages >= published
+    await client.close()
