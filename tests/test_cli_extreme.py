@@ -74,6 +74,12 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("odom", "reset"): {"x": "0.5", "y": "-0.5", "yaw": "1"},
     # Asks a daemon on a port where none listens: never a developer's own daemon.
     ("serve",): {"handoff": "1", "listen": "127.0.0.1:1"},
+    # A file of its own, replaced each time (FILE is text: not fuzzed).
+    ("record",): {
+        "file": str(Path(tempfile.gettempdir(), "ohmni-extreme-record.mcap")),
+        "duration": "0.2",
+        "overwrite": True,
+    },
     # Never the developer's own config file: the fuzz writes where --file points.
     ("pid", "set"): {
         "kp": "600",
@@ -92,6 +98,7 @@ TOO_SLOW: dict[tuple[tuple[str, ...], str], float] = {
     (("drive",), "duration"): 0.5,
     (("neck",), "playtime"): 0.5,
     (("odom",), "duration"): 0.5,
+    (("record",), "duration"): 0.5,
 }
 
 

@@ -109,6 +109,21 @@ PUBLIC = {
          "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "SAMPLE_FLUSH_S", "ClientFigures",
          "RobotServer", "check_listen", "is_loopback",
     ],
+    "ohmni_tb.foxglove": [
+         "CHANNELS", "DEFAULT_HOST", "DEFAULT_PORT", "ChannelSpec", "ChannelStats",
+         "FoxgloveBridge", "McapRecorder", "RecordingError",
+    ],
+    "ohmni_tb.foxglove.channels": [
+         "BASE_FRAME", "CHANNELS", "ODOM_FRAME", "ChannelSpec", "Encoder", "WallClock",
+         "channel_schema", "channels_of", "encoder_for", "json_schema_of",
+    ],
+    "ohmni_tb.foxglove.bridge": [
+         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "FoxgloveBridge",
+    ],
+    "ohmni_tb.foxglove.record": [
+         "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "McapRecorder",
+         "RecordingError",
+    ],
     "ohmni_tb.daemon.auth": [
          "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token", "default_token_path",
          "load_or_create_token", "presented_token", "read_token",

@@ -53,6 +53,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "serve",
         "Serve the robot to many local clients over WebSocket (read-only in this version).",
     ),
+    "record": (
+        "ohmni_tb.cli.record",
+        "record",
+        "Record every stream to an MCAP file for Foxglove (--duration S, or until Ctrl-C).",
+    ),
 }
 
 

@@ -1,0 +1,37 @@
+"""See and record the robot with Foxglove and MCAP, through the official foxglove-sdk.
+
+:class:`FoxgloveBridge` serves an open Robot's streams to the Foxglove app (WebSocket,
+``ws://127.0.0.1:8765`` by default); :class:`McapRecorder` writes them to an MCAP file.
+Both publish the channels of :data:`CHANNELS` (:mod:`ohmni_tb.foxglove.channels`): the
+odometry as ``foxglove.FrameTransform`` and ``foxglove.PoseInFrame`` for the 3D panel,
+and every stream's samples as JSON, named like tb_control's topics. See docs/foxglove.md.
+
+Needs the ``foxglove`` extra: ``pip install 'ohmni_tb[foxglove]'`` (foxglove-sdk, mcap).
+"""
+
+from __future__ import annotations
+
+try:
+    import foxglove as _sdk
+except ImportError as exc:  # pragma: no cover - depends on what is installed
+    raise ImportError(
+        "ohmni_tb.foxglove needs foxglove-sdk: pip install 'ohmni_tb[foxglove]'"
+    ) from exc
+
+from ohmni_tb.foxglove._pump import ChannelStats
+from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT, FoxgloveBridge
+from ohmni_tb.foxglove.channels import CHANNELS, ChannelSpec
+from ohmni_tb.foxglove.record import McapRecorder, RecordingError
+
+__all__ = [
+    "CHANNELS",
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "ChannelSpec",
+    "ChannelStats",
+    "FoxgloveBridge",
+    "McapRecorder",
+    "RecordingError",
+]
+
+del _sdk

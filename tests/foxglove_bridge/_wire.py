@@ -1,0 +1,246 @@
+"""What a Foxglove client does, written out for the tests: the WebSocket protocol's
+messages, and protobuf decoded with nothing but the schema the server advertises.
+
+The protobuf schema of a well-known Foxglove message is a ``FileDescriptorSet``
+(itself protobuf): :class:`Descriptors` reads it with the same wire decoder, so the tests
+need no protobuf package and decode exactly what a client would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+
+#: The subprotocol foxglove-sdk's server requires (it refuses foxglove.websocket.v1).
+SUBPROTOCOL = "foxglove.sdk.v1"
+#: Server → client binary opcode of a message on a subscribed channel.
+MESSAGE_DATA = 0x01
+
+# -- protobuf's wire format -----------------------------------------------------------------
+
+_VARINT, _FIXED64, _LENGTH, _FIXED32 = 0, 1, 2, 5
+
+
+def _varint(data: bytes, at: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        byte = data[at]
+        at += 1
+        value |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return value, at
+        shift += 7
+
+
+def fields(data: bytes) -> list[tuple[int, int, Any]]:
+    """Every (field number, wire type, raw value) of one message, in order."""
+    out: list[tuple[int, int, Any]] = []
+    at = 0
+    while at < len(data):
+        key, at = _varint(data, at)
+        number, wire = key >> 3, key & 7
+        value: int | bytes
+        if wire == _VARINT:
+            value, at = _varint(data, at)
+        elif wire == _FIXED64:
+            value, at = data[at : at + 8], at + 8
+        elif wire == _LENGTH:
+            size, at = _varint(data, at)
+            value, at = data[at : at + size], at + size
+        elif wire == _FIXED32:
+            value, at = data[at : at + 4], at + 4
+        else:
+            raise ValueError(f"wire type {wire} at {at}")
+        out.append((number, wire, value))
+    return out
+
+
+# FieldDescriptorProto.type values used by Foxglove's schemas.
+_DOUBLE, _FLOAT, _INT64, _UINT64, _INT32 = 1, 2, 3, 4, 5
+_FIXED64_T, _FIXED32_T, _BOOL, _STRING, _MESSAGE = 6, 7, 8, 9, 11
+_BYTES, _UINT32, _ENUM = 12, 13, 14
+
+
+@dataclass
+class _Field:
+    name: str
+    number: int
+    type: int
+    type_name: str
+    repeated: bool
+
+
+@dataclass
+class Descriptors:
+    """Message types by full name (``foxglove.FrameTransform``), from a FileDescriptorSet."""
+
+    messages: dict[str, dict[int, _Field]] = field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, file_descriptor_set: bytes) -> Descriptors:
+        self = cls()
+        for number, _, file_proto in fields(file_descriptor_set):
+            if number != 1:
+                continue
+            parts = fields(file_proto)
+            package = next((v.decode() for n, _, v in parts if n == 2), "")
+            for n, _, message in parts:
+                if n == 4:
+                    self._message(package, message)
+        return self
+
+    def _message(self, scope: str, data: bytes) -> None:
+        parts = fields(data)
+        name = next(v.decode() for n, _, v in parts if n == 1)
+        full = f"{scope}.{name}" if scope else name
+        table: dict[int, _Field] = {}
+        for n, _, value in parts:
+            if n == 2:
+                attrs = {k: v for k, _, v in fields(value)}
+                table[attrs[3]] = _Field(
+                    name=attrs[1].decode(),
+                    number=attrs[3],
+                    type=attrs[5],
+                    type_name=attrs.get(6, b"").decode().lstrip("."),
+                    repeated=attrs.get(4) == 3,
+                )
+            elif n == 3:
+                self._message(full, value)
+        self.messages[full] = table
+
+    def decode(self, type_name: str, data: bytes) -> dict[str, Any]:
+        """``data`` as a dict of the fields it carries (proto3 omits zeros and empties)."""
+        table = self.messages[type_name]
+        out: dict[str, Any] = {}
+        for number, _, raw in fields(data):
+            spec = table.get(number)
+            if spec is None:
+                continue
+            value = self._value(spec, raw)
+            if spec.repeated:
+                out.setdefault(spec.name, []).append(value)
+            else:
+                out[spec.name] = value
+        return out
+
+    def _value(self, spec: _Field, raw: Any) -> Any:
+        if spec.type == _DOUBLE:
+            return struct.unpack("<d", raw)[0]
+        if spec.type == _FLOAT:
+            return struct.unpack("<f", raw)[0]
+        if spec.type in (_INT64, _INT32):
+            return raw - (1 << 64) if raw >= 1 << 63 else raw
+        if spec.type in (_UINT64, _UINT32, _ENUM):
+            return raw
+        if spec.type == _BOOL:
+            return bool(raw)
+        if spec.type == _STRING:
+            return raw.decode()
+        if spec.type == _BYTES:
+            return raw
+        if spec.type == _MESSAGE:
+            return self.decode(spec.type_name, raw)
+        if spec.type == _FIXED64_T:
+            return struct.unpack("<Q", raw)[0]
+        if spec.type == _FIXED32_T:
+            return struct.unpack("<I", raw)[0]
+        raise ValueError(f"field type {spec.type}")
+
+
+# -- the WebSocket protocol -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Advertised:
+    """One channel as the server advertised it."""
+
+    id: int
+    topic: str
+    encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema: bytes
+
+
+@dataclass(frozen=True)
+class Message:
+    """One message on a subscribed channel."""
+
+    topic: str
+    log_time_ns: int
+    payload: bytes
+
+
+class FoxgloveClient:
+    """A Foxglove WebSocket client: the server's info and channels, subscribe, receive."""
+
+    def __init__(self, ws: ClientConnection) -> None:
+        self.ws = ws
+        self.server_info: dict[str, Any] = {}
+        self.channels: dict[str, Advertised] = {}
+        self._topics: dict[int, str] = {}
+
+    @classmethod
+    async def connect(cls, url: str, *, close_timeout_s: float = 10.0) -> FoxgloveClient:
+        ws = await connect(
+            url,
+            subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+            close_timeout=close_timeout_s,
+        )
+        client = cls(ws)
+        client.server_info = json.loads(await client.ws.recv())
+        assert client.server_info["op"] == "serverInfo", client.server_info
+        while True:  # the channels come in one advertise or more, right after
+            try:
+                async with asyncio.timeout(0.5):
+                    frame = await client.ws.recv()
+            except TimeoutError:
+                break
+            message = json.loads(frame)
+            if message["op"] == "advertise":
+                for channel in message["channels"]:
+                    schema = channel["schema"]
+                    encoding = channel.get("schemaEncoding", "")
+                    raw = base64.b64decode(schema) if encoding == "protobuf" else schema.encode()
+                    client.channels[channel["topic"]] = Advertised(
+                        channel["id"],
+                        channel["topic"],
+                        channel["encoding"],
+                        channel["schemaName"],
+                        encoding,
+                        raw,
+                    )
+        return client
+
+    async def subscribe(self, *topics: str) -> None:
+        subscriptions = []
+        for topic in topics:
+            channel = self.channels[topic]
+            subscriptions.append({"id": channel.id, "channelId": channel.id})
+            self._topics[channel.id] = topic
+        await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+
+    async def messages(self, seconds: float) -> list[Message]:
+        """Every message on the subscribed channels for ``seconds``."""
+        out: list[Message] = []
+        loop = asyncio.get_running_loop()
+        end = loop.time() + seconds
+        while (left := end - loop.time()) > 0:
+            try:
+                async with asyncio.timeout(left):
+                    frame = await self.ws.recv()
+            except TimeoutError:
+                break
+            if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA:
+                subscription, log_time = struct.unpack_from("<IQ", frame, 1)
+                out.append(Message(self._topics[subscription], log_time, frame[13:]))
+        return out
+
+    async def close(self) -> None:
+        await self.ws.close()
