@@ -4,6 +4,7 @@ Run by the benchmark, not by hand::
 
     python bench/_daemon_clients.py URL readers N [--stalled K]
     python bench/_daemon_clients.py URL churn [--every-s 0.2]
+    python bench/_daemon_clients.py URL driver N
 
 ``readers``: N :class:`~ohmni_tb.client.RobotClient` connections on one event loop, each
 subscribed to every stream of :data:`TOPICS` with one task per subscription reading it
@@ -12,6 +13,10 @@ and never read (a small receive buffer, so the daemon sees them stall within a s
 ``churn``: a new connection every ``--every-s``, visiting for 0.5–3.5 s (about ten at a
 time): most subscribe to a few topics and unsubscribe politely, some leave with their
 subscriptions open, some cut the TCP connection without a closing handshake.
+``driver``: one connection takes the control lease and sends a new open-loop PWM
+(``drive_pwm``, so the wheel packet carries exactly the value) every 50–150 ms, as a
+teleop does, noting ``time.monotonic()`` just before each; N readers of every stream
+beside it. Its ``done`` line carries the commands, ``[[t, [left, right]], …]``.
 
 It talks to the benchmark in JSON lines: it prints ``{"event": "ready", …}`` once every
 reader is subscribed, answers each ``mark`` line on stdin with its cumulative figures
@@ -67,6 +72,7 @@ class Tally:
     visits: Counter[str] = field(default_factory=Counter)
     errors: Counter[str] = field(default_factory=Counter)
     stalled_peers: list[str] = field(default_factory=list)
+    sent: list[tuple[float, tuple[int, int]]] = field(default_factory=list)
 
     def figures(self, event: str) -> dict[str, Any]:
         return {
@@ -77,6 +83,7 @@ class Tally:
             "visits": dict(self.visits),
             "errors": dict(self.errors),
             "stalled_peers": self.stalled_peers,
+            "commands": self.sent,
             "cpu_s": time.process_time(),
         }
 
@@ -203,6 +210,28 @@ async def churn(url: str, every_s: float, tally: Tally, stop: asyncio.Event) -> 
                     await stop.wait()
 
 
+async def driver(url: str, tally: Tally, ready: asyncio.Event, stop: asyncio.Event) -> None:
+    """The lease holder: a new PWM every 50–150 ms until ``stop`` (the same values and
+    pauses as ``bench/robot.py``'s teleop, seeded alike)."""
+    rng = random.Random(7)
+    async with RobotClient.connect(url) as client, client.lease():
+        ready.set()
+        previous = (0, 0)
+        while not stop.is_set():
+            pwm = previous
+            while pwm == previous:
+                value = rng.randrange(-300, 301, 10)
+                pwm = (value, value)
+            tally.sent.append((time.monotonic(), pwm))
+            client.drive_pwm(*pwm)
+            previous = pwm
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(rng.uniform(0.05, 0.15)):
+                    await stop.wait()
+        client.drive_pwm(0, 0)
+        await client.confirm()
+
+
 async def commands(tally: Tally, stop: asyncio.Event) -> None:
     """Answer the benchmark's ``mark`` lines; ``quit`` or the end of stdin stops."""
     loop = asyncio.get_running_loop()
@@ -220,7 +249,7 @@ async def run(args: argparse.Namespace) -> None:
     tally = Tally()
     stop = asyncio.Event()
     async with asyncio.TaskGroup() as group:
-        if args.mode == "readers":
+        if args.mode in ("readers", "driver"):
             # A client that fails to connect fails the group, and this process with it.
             total = args.clients + args.stalled
             subscribed = 0
@@ -235,7 +264,12 @@ async def run(args: argparse.Namespace) -> None:
             for n in range(total):
                 client = reader if n < args.clients else stalled
                 group.create_task(client(args.url, tally, one_more, stop))
-            await everyone.wait()
+            if total:
+                await everyone.wait()
+            if args.mode == "driver":
+                holding = asyncio.Event()
+                group.create_task(driver(args.url, tally, holding, stop))
+                await holding.wait()
         else:
             group.create_task(churn(args.url, args.every_s, tally, stop))
         say({"event": "ready"})
@@ -246,7 +280,7 @@ async def run(args: argparse.Namespace) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("url")
-    parser.add_argument("mode", choices=("readers", "churn"))
+    parser.add_argument("mode", choices=("readers", "churn", "driver"))
     parser.add_argument("clients", type=int, nargs="?", default=0)
     parser.add_argument("--stalled", type=int, default=0)
     parser.add_argument("--every-s", type=float, default=0.2)

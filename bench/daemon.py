@@ -34,7 +34,12 @@ every stream, never reading). Per row, over the window (``--seconds``):
   when a stream fell short of its rate, its skipped and missed cycles with the bus's
   timeouts and deadline drops.
 
-Then the ratio of the daemon's CPU with 50 readers to its CPU with none.
+Then command → wire through the daemon, alone and beside 50 readers: a teleop-like
+driver in the clients' process holds the control lease and sends a new open-loop PWM
+(``drive_pwm``) every 50–150 ms; a tap under the Robot's port (``bench/robot.py``'s
+``WheelTap``) notes when the first wheel packet carrying each value is written (p50/p99
+against one 20 ms control period). And the ratio of the daemon's CPU with 50 readers to
+its CPU with none.
 
 The memory soak (``--soak-seconds``) runs first, in this still fresh process: the daemon
 serves while the clients' process opens a connection every 0.2 s that subscribes to two
@@ -80,7 +85,11 @@ from ohmni_tb.transport import Transport, open_transport
 sys.path.insert(0, str(Path(__file__).parent))
 from _daemon_clients import TOPICS
 from _pty import simulator_on_pty
+from robot import WheelTap, latencies
 from schedule import machine
+
+#: One control period: a command must reach the wire within it (the Robot's own target).
+CONTROL_PERIOD_MS = 20.0
 
 T = TypeVar("T")
 
@@ -161,20 +170,51 @@ async def serving(
         yield Daemon(robot, server, transport)
 
 
-# -- command → wire latency through the daemon: A ROW TO COME ---------------------------------
-#
-# Not measured yet, and no figure is made up for it: the daemon has no control lease and no
-# motion commands (docs/daemon.md, "Coming next"). When it has them, add here
-#
-#     async def command_latency_row(port: str, seconds: float) -> LatencyRow:
-#
-# that opens ``serving(port, wrap=WheelTap)`` (``bench/robot.py``: it notes when each wheel
-# packet is written and decodes them after the run), has the clients' process take the lease
-# on one connection and send ``drive_pwm`` every 50–150 ms (a new ``_daemon_clients.py``
-# mode, printing each command's send time), and pairs the commands with
-# ``tap.wheel_writes()`` through ``bench/robot.py``'s ``latencies``. Both processes stamp
-# with ``time.monotonic`` (the event loop's clock), one clock on Linux. ``main`` has the
-# place where the row is run and printed.
+# -- command → wire latency through the daemon ------------------------------------------------
+
+
+@dataclass
+class LatencyRow:
+    name: str
+    latencies_ms: list[float]
+    commands: int
+
+
+async def command_latency_row(name: str, port: str, seconds: float, readers: int) -> LatencyRow:
+    """A teleop-like driver in the clients' process (lease held, a new ``drive_pwm`` every
+    50–150 ms), ``readers`` readers of every stream beside it: from the driver's call to
+    the first wheel packet carrying the value written to the port (``bench/robot.py``'s
+    ``WheelTap`` under the Robot). Both processes stamp with ``time.monotonic``, which is
+    the event loop's clock: one clock on Linux."""
+    taps: list[WheelTap] = []
+
+    def tap(transport: Transport) -> Transport:
+        taps.append(WheelTap(transport))
+        return taps[-1]
+
+    async with (
+        serving(port, wrap=tap) as daemon,
+        ClientProcess.start(daemon.server.url, "driver", str(readers)) as process,
+    ):
+        await asyncio.sleep(seconds)
+        done = await process.finish()
+    commands = [(float(t), (int(pwm[0]), int(pwm[1]))) for t, pwm in done["commands"]]
+    return LatencyRow(name, latencies(commands, taps[0].wheel_writes()), len(commands))
+
+
+def show_latency(row: LatencyRow) -> None:
+    ordered = sorted(row.latencies_ms)
+    if not ordered:
+        print(f"{row.name:<20} | no command reached the wire")
+        return
+    p50 = ordered[len(ordered) // 2]
+    p99 = ordered[min(len(ordered) - 1, round(0.99 * (len(ordered) - 1)))]
+    verdict = "within" if p99 <= CONTROL_PERIOD_MS else "NOT within"
+    print(
+        f"{row.name:<20} | command → wheel packet on the wire p50 {p50:5.1f} ms, p99 "
+        f"{p99:5.1f} ms, max {ordered[-1]:5.1f} ms ({len(ordered)} of {row.commands} "
+        f"commands seen; p99 {verdict} one {CONTROL_PERIOD_MS:g} ms control period)"
+    )
 
 
 # -- the clients' process ----------------------------------------------------------------------
@@ -713,10 +753,10 @@ def run_rows(seconds: float) -> None:
             row = run(clients_row(name, port, seconds, clients, stalled))
         show(row, rows[0] if rows else None)
         rows.append(row)
-    # -- command → wire latency through the daemon: ITS ROW GOES HERE ------------------------
-    # Run `command_latency_row(port, seconds)` (see the note above `ClientProcess`) in its
-    # own `simulator()`, and print its p50/p99 against one 20 ms control period here, under
-    # the table. Nothing is printed for it until the daemon takes commands.
+    for name, readers in (("driver alone", 0), ("driver + 50 readers", 50)):
+        with simulator() as (port, on_pty):
+            in_process |= not on_pty
+            show_latency(run(command_latency_row(name, port, seconds, readers)))
     base, fifty = rows[0], rows[2]
     print(
         f"daemon CPU, 50 clients / 0 clients: {fifty.cpu / base.cpu:.1f}x "
