@@ -51,6 +51,7 @@ TEXT_PARAMS = frozenset(
         "listen",
         "allow_origin",
         "token_file",
+        "foxglove",
     }
 )
 

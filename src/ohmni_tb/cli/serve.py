@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import sys
 import time
@@ -16,6 +17,7 @@ from ohmni_tb.errors import ConfigError
 
 __all__ = ["serve"]
 
+_log = logging.getLogger("ohmni_tb.daemon")
 #: ``--listen``'s default: the daemon's loopback address (ohmni_tb.daemon.server).
 _DEFAULT_LISTEN = "127.0.0.1:8766"
 
@@ -51,6 +53,18 @@ def serve(
             "--allow-origin",
             help="A browser origin allowed to connect (repeat for more), e.g. "
             "http://localhost:8080. Browsers from other origins are refused.",
+        ),
+    ] = None,
+    foxglove: Annotated[
+        str | None,
+        typer.Option(
+            "--foxglove",
+            metavar="[HOST:]PORT",
+            help="Also serve every stream to the Foxglove app (its WebSocket protocol; "
+            "default host 127.0.0.1, the app's default port is 8765; 0 picks a free one). "
+            "Its URL is the second line of stdout. Needs the foxglove extra. The protocol "
+            "has no authentication: keep it on loopback (ssh -L to reach it).",
+            show_default=False,
         ),
     ] = None,
     handoff: Annotated[
@@ -98,10 +112,21 @@ def serve(
         return
     if foreground:
         _log_to_stderr()
+    view = _parse_foxglove(foxglove) if foxglove is not None else None
     token = _token(host, token_file)
     url = resolve_port(port)
     origins = tuple(allow_origin or ())
-    run(lambda: _serve(url, host, tcp_port, read_only=read_only, token=token, origins=origins))
+    run(
+        lambda: _serve(
+            url,
+            host,
+            tcp_port,
+            read_only=read_only,
+            token=token,
+            origins=origins,
+            foxglove=view,
+        )
+    )
 
 
 async def _serve(
@@ -112,6 +137,7 @@ async def _serve(
     read_only: bool,
     token: str | None,
     origins: tuple[str, ...],
+    foxglove: tuple[str, int] | None = None,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
@@ -122,9 +148,44 @@ async def _serve(
         RobotServer(
             robot, host=host, port=tcp_port, read_only=read_only, token=token, origins=origins
         ) as server,
+        contextlib.AsyncExitStack() as stack,
     ):
         write_line(server.url)
+        if foxglove is not None:
+            from ohmni_tb.foxglove import FoxgloveBridge  # noqa: PLC0415  # the extra
+
+            bridge = await stack.enter_async_context(
+                FoxgloveBridge(robot, host=foxglove[0], port=foxglove[1])
+            )
+            write_line(bridge.url)
+            _log.info("serving the Foxglove app on %s", bridge.url)
         await asyncio.Event().wait()  # until a signal cancels it
+
+
+def _parse_foxglove(text: str) -> tuple[str, int]:
+    """``--foxglove [HOST:]PORT``; the extra must be installed."""
+    import importlib.util  # noqa: PLC0415
+
+    host, sep, port_text = text.rpartition(":")
+    host = (host.removeprefix("[").removesuffix("]") if sep else "") or "127.0.0.1"
+    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+        raise typer.BadParameter(
+            f"--foxglove must be [HOST:]PORT with a port 0..65535, not {text!r}",
+            param_hint="--foxglove",
+        )
+    if importlib.util.find_spec("foxglove") is None:
+        raise typer.BadParameter(
+            "needs the foxglove extra: pip install 'ohmni_tb[foxglove]'", param_hint="--foxglove"
+        )
+    from ohmni_tb.daemon.server import is_loopback  # noqa: PLC0415
+
+    if not is_loopback(host):
+        typer.echo(
+            f"warning: the Foxglove view on {host} has no authentication: anyone who reaches "
+            "it can watch the robot (prefer loopback and ssh -L)",
+            err=True,
+        )
+    return host, int(port_text)
 
 
 def _hand_off(
