@@ -118,7 +118,8 @@ PUBLIC = {
          "channel_schema", "channels_of", "encoder_for", "json_schema_of",
     ],
     "ohmni_tb.foxglove.bridge": [
-         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "FoxgloveBridge",
+         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "TELEOP_TOPICS", "FoxgloveBridge",
+         "Teleop", "parse_twist",
     ],
     "ohmni_tb.foxglove.record": [
          "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "McapRecorder",

@@ -6,14 +6,17 @@ import asyncio
 import json
 import os
 import select
+import struct
 import time
 from subprocess import Popen
 
+import pytest
 from typer.testing import CliRunner
 
 from daemon_api._serving import free_port, start_serving, stop_serving
 from ohmni_tb.cli import app
 from ohmni_tb.client import RobotClient
+from ohmni_tb.foxglove.bridge import parse_twist
 
 from ._wire import FoxgloveClient
 
@@ -72,3 +75,111 @@ def test_a_bad_foxglove_address_is_refused_before_the_port_opens() -> None:
     assert "--foxglove must be [HOST:]PORT with a port 0..65535, not 'localhost:99999'" in (
         " ".join(result.output.replace("│", " ").split())
     )
+
+
+async def publish_twists(view: str, linear: float, seconds: float) -> None:
+    """As the Foxglove Teleop panel does: advertise a Twist channel, publish at 10 Hz."""
+    foxglove = await FoxgloveClient.connect(view)
+    try:
+        await foxglove.ws.send(
+            json.dumps(
+                {
+                    "op": "advertise",
+                    "channels": [
+                        {
+                            "id": 1,
+                            "topic": "/tb_cmd_vel",
+                            "encoding": "json",
+                            "schemaName": "geometry_msgs/Twist",
+                        }
+                    ],
+                }
+            )
+        )
+        twist = json.dumps(
+            {"linear": {"x": linear, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": 0}}
+        ).encode()
+        for _ in range(round(seconds * 10)):
+            await foxglove.ws.send(struct.pack("<BI", 1, 1) + twist)
+            await asyncio.sleep(0.1)
+    finally:
+        await foxglove.close()
+
+
+async def travelled(url: str) -> float:
+    async with RobotClient.connect(url) as client:
+        odom = await client.latest("wheel_odom")
+        assert odom is not None
+        return float(odom.x_m)
+
+
+def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
+    proc, url = start_serving(
+        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}",
+        "--foxglove-control",
+    )  # fmt: skip
+    try:
+        view = next_line(proc)
+
+        async def drive() -> None:
+            # Another client holds the lease: the panel's Twists move nothing.
+            async with RobotClient.connect(url) as holder:
+                await holder.acquire()
+                await publish_twists(view, 0.3, 1.0)
+                assert await travelled(url) == pytest.approx(0.0, abs=0.002)
+            # Free: the panel takes the lease and drives; the wheels follow.
+            await publish_twists(view, 0.3, 1.5)
+            assert await travelled(url) > 0.2
+            # It gives the lease back after its last Twist: another client may drive.
+            await asyncio.sleep(1.5)
+            async with RobotClient.connect(url) as after:
+                await after.acquire()
+
+        asyncio.run(drive())
+    finally:
+        log = stop_serving(proc)
+    assert "foxglove teleop refused" in log
+
+
+def test_without_control_the_panel_cannot_publish() -> None:
+    proc, url = start_serving(
+        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}"
+    )
+    try:
+        view = next_line(proc)
+
+        async def drive() -> None:
+            foxglove = await FoxgloveClient.connect(view)
+            capabilities = foxglove.server_info.get("capabilities", [])
+            await foxglove.close()
+            assert "clientPublish" not in capabilities
+            await publish_twists(view, 0.3, 1.0)
+            assert await travelled(url) == pytest.approx(0.0, abs=0.002)
+
+        asyncio.run(drive())
+    finally:
+        stop_serving(proc)
+
+
+def test_control_without_a_view_is_refused() -> None:
+    result = CliRunner().invoke(
+        app, ["serve", "--port", "sim://", "--foxglove-control"], env={"COLUMNS": "300"}
+    )
+    assert result.exit_code == 2
+    assert "--foxglove-control needs --foxglove" in result.output
+
+
+@pytest.mark.parametrize(
+    ("data", "said"),
+    [
+        (b"not json", "Expecting value"),
+        (b'{"linear": {"x": 1}}', "not a geometry_msgs/Twist"),
+        (b'{"linear": {"x": "fast"}, "angular": {"z": 0}}', "linear.x must be a finite number"),
+        (b'{"linear": {"x": 1e999}, "angular": {"z": 0}}', "linear.x must be a finite number"),
+        (b'{"linear": {"x": 0}, "angular": {"z": NaN}}', "angular.z must be a finite number"),
+    ],
+)
+def test_a_twist_that_is_not_one_is_refused(data: bytes, said: str) -> None:
+    with pytest.raises(ValueError, match=said):
+        parse_twist(data)
+    assert parse_twist(b'{"linear": {"x": 0.2}, "angular": {"z": -0.5}}') == (0.2, -0.5)

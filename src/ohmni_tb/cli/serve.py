@@ -8,16 +8,21 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from ohmni_tb.cli.common import PortOption, open_robot, resolve_port, run, write_line
 from ohmni_tb.errors import ConfigError
 
+if TYPE_CHECKING:
+    from ohmni_tb.client import RobotClient
+
 __all__ = ["serve"]
 
 _log = logging.getLogger("ohmni_tb.daemon")
+#: The Foxglove Teleop panel gives the control lease back this long after its last Twist.
+_TELEOP_IDLE_S = 1.0
 #: ``--listen``'s default: the daemon's loopback address (ohmni_tb.daemon.server).
 _DEFAULT_LISTEN = "127.0.0.1:8766"
 
@@ -67,6 +72,15 @@ def serve(
             show_default=False,
         ),
     ] = None,
+    foxglove_control: Annotated[
+        bool,
+        typer.Option(
+            "--foxglove-control",
+            help="With --foxglove: the Foxglove Teleop panel drives the robot (Twist on "
+            "/tb_cmd_vel or /cmd_vel), through the daemon's control lease like any client "
+            "and under the Robot's watchdog.",
+        ),
+    ] = False,
     handoff: Annotated[
         float | None,
         typer.Option(
@@ -112,6 +126,10 @@ def serve(
         return
     if foreground:
         _log_to_stderr()
+    if foxglove_control and foxglove is None:
+        raise typer.BadParameter(
+            "--foxglove-control needs --foxglove [HOST:]PORT", param_hint="--foxglove-control"
+        )
     view = _parse_foxglove(foxglove) if foxglove is not None else None
     token = _token(host, token_file)
     url = resolve_port(port)
@@ -125,6 +143,7 @@ def serve(
             token=token,
             origins=origins,
             foxglove=view,
+            foxglove_control=foxglove_control,
         )
     )
 
@@ -138,6 +157,7 @@ async def _serve(
     token: str | None,
     origins: tuple[str, ...],
     foxglove: tuple[str, int] | None = None,
+    foxglove_control: bool = False,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
@@ -152,14 +172,84 @@ async def _serve(
     ):
         write_line(server.url)
         if foxglove is not None:
+            from ohmni_tb.client import RobotClient  # noqa: PLC0415
             from ohmni_tb.foxglove import FoxgloveBridge  # noqa: PLC0415  # the extra
 
+            teleop = None
+            if foxglove_control:
+                # The panel is one more client of the daemon: the same lease as any other.
+                operator = await stack.enter_async_context(
+                    RobotClient.connect(server.url, token=token)
+                )
+                teleop = _FoxgloveTeleop(operator)
+                stack.push_async_callback(teleop.aclose)
             bridge = await stack.enter_async_context(
-                FoxgloveBridge(robot, host=foxglove[0], port=foxglove[1])
+                FoxgloveBridge(robot, host=foxglove[0], port=foxglove[1], teleop=teleop)
             )
             write_line(bridge.url)
             _log.info("serving the Foxglove app on %s", bridge.url)
         await asyncio.Event().wait()  # until a signal cancels it
+
+
+class _FoxgloveTeleop:
+    """Twists from the Foxglove Teleop panel, driven through the daemon's control lease.
+
+    The first Twist takes the lease when nobody holds it (never steals: while another
+    client drives, the panel's Twists are refused and logged); it is given back, which
+    stops the robot, :data:`_TELEOP_IDLE_S` after the last Twist. The Robot's watchdog
+    stops the wheels sooner when the panel goes quiet.
+    """
+
+    def __init__(self, client: RobotClient) -> None:
+        self._client = client
+        self._acquiring: asyncio.Task[None] | None = None
+        self._idle: asyncio.TimerHandle | None = None
+        self._refused_by: str | None = None
+        self._releasing: asyncio.Task[None] | None = None
+
+    def __call__(self, linear_mps: float, angular_radps: float) -> None:
+        if self._client.has_lease:
+            self._drive(linear_mps, angular_radps)
+        elif self._acquiring is None or self._acquiring.done():
+            self._acquiring = asyncio.get_running_loop().create_task(
+                self._acquire_then(linear_mps, angular_radps)
+            )
+
+    async def _acquire_then(self, linear_mps: float, angular_radps: float) -> None:
+        from ohmni_tb.errors import OhmniError  # noqa: PLC0415
+
+        try:
+            await self._client.acquire()
+        except OhmniError as exc:
+            holder = getattr(exc, "holder", None)
+            if holder != self._refused_by:  # once per holder, not once per Twist
+                _log.warning("foxglove teleop refused: %s", exc)
+                self._refused_by = holder
+            return
+        self._refused_by = None
+        _log.info("foxglove teleop took the control lease")
+        self._drive(linear_mps, angular_radps)
+
+    def _drive(self, linear_mps: float, angular_radps: float) -> None:
+        from ohmni_tb.errors import OhmniError  # noqa: PLC0415
+
+        try:
+            self._client.drive(linear_mps, angular_radps)
+        except OhmniError as exc:
+            _log.warning("foxglove teleop: %s", exc)
+        if self._idle is not None:
+            self._idle.cancel()
+        self._idle = asyncio.get_running_loop().call_later(_TELEOP_IDLE_S, self._give_back)
+
+    def _give_back(self) -> None:
+        self._idle = None
+        self._releasing = asyncio.get_running_loop().create_task(self._client.release())
+
+    async def aclose(self) -> None:
+        if self._idle is not None:
+            self._idle.cancel()
+        if self._acquiring is not None:
+            self._acquiring.cancel()
 
 
 def _parse_foxglove(text: str) -> tuple[str, int]:

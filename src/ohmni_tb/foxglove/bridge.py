@@ -17,16 +17,101 @@ that client's oldest messages when it reads too slowly; nothing waits for a clie
 
 from __future__ import annotations
 
+import asyncio
+import json
+import logging
+import math
+from collections.abc import Callable
 from typing import Final
 
 import foxglove
-from foxglove.websocket import WebSocketServer
+from foxglove.websocket import (
+    Capability,
+    Client,
+    ClientChannel,
+    ServerListener,
+    StatusLevel,
+    WebSocketServer,
+)
 
 from ohmni_tb._checks import integer
 from ohmni_tb.errors import TransportError
 from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
 
-__all__ = ["DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "FoxgloveBridge"]
+__all__ = [
+    "DEFAULT_BACKLOG",
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "TELEOP_TOPICS",
+    "FoxgloveBridge",
+    "Teleop",
+    "parse_twist",
+]
+
+_log = logging.getLogger("ohmni_tb.foxglove")
+
+#: Topics the Foxglove Teleop panel publishes ``geometry_msgs/Twist`` on (JSON).
+TELEOP_TOPICS: Final = ("/tb_cmd_vel", "/cmd_vel")
+#: What the bridge calls, on the event loop, with each Twist: (linear m/s, angular rad/s).
+Teleop = Callable[[float, float], None]
+
+
+def parse_twist(data: bytes) -> tuple[float, float]:
+    """``linear.x`` and ``angular.z`` of a ``geometry_msgs/Twist`` in JSON.
+
+    Raises:
+        ValueError: Not JSON, not a Twist, or a value that is not a finite number.
+    """
+    twist = json.loads(data)
+    try:
+        linear, angular = twist["linear"]["x"], twist["angular"]["z"]
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"not a geometry_msgs/Twist: {data[:80]!r}") from exc
+    for name, value in (("linear.x", linear), ("angular.z", angular)):
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+        ):
+            raise ValueError(f"{name} must be a finite number, not {value!r}")
+    return float(linear), float(angular)
+
+
+class _TeleopListener(ServerListener):
+    """Twists published by Foxglove clients on :data:`TELEOP_TOPICS`, handed to the event
+    loop (the SDK calls this from its own threads)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, teleop: Teleop) -> None:
+        self._loop = loop
+        self._teleop = teleop
+        self._channels: set[tuple[int, int]] = set()
+        self.server: WebSocketServer | None = None
+
+    def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
+        if channel.topic in TELEOP_TOPICS:
+            if channel.encoding != "json":
+                self._status(f"{channel.topic}: only JSON Twists are taken, not {channel.encoding}")
+                return
+            self._channels.add((client.id, channel.id))
+
+    def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
+        self._channels.discard((client.id, client_channel_id))
+
+    def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
+        if (client.id, client_channel_id) not in self._channels:
+            return
+        try:
+            linear, angular = parse_twist(data)
+        except ValueError as exc:
+            self._status(f"twist refused: {exc}")
+            return
+        self._loop.call_soon_threadsafe(self._teleop, linear, angular)
+
+    def _status(self, message: str) -> None:
+        _log.warning("foxglove: %s", message)
+        if self.server is not None:
+            self.server.publish_status(message, StatusLevel.Warning)
+
 
 #: Loopback: the Foxglove protocol has no authentication, so the default is this machine.
 DEFAULT_HOST: Final = "127.0.0.1"
@@ -50,6 +135,11 @@ class FoxgloveBridge:
         name: The server's name, shown by the app.
         message_backlog: Messages queued per client before its oldest are dropped.
         queue: Samples each stream's subscription holds before its oldest are dropped.
+        teleop: Take ``geometry_msgs/Twist`` (JSON) that Foxglove clients publish on
+            :data:`TELEOP_TOPICS` (the Teleop panel) and call this with ``linear.x`` and
+            ``angular.z`` on the event loop; ``None`` (default): read-only, clients may not
+            publish. It is the caller's to decide what a Twist may move (``ohmni serve
+            --foxglove-control`` goes through the daemon's control lease).
 
     Raises:
         OutOfRangeError: ``port`` not 0..65535, or ``message_backlog`` / ``queue`` not
@@ -65,6 +155,7 @@ class FoxgloveBridge:
         name: str = "ohmni_tb",
         message_backlog: int = DEFAULT_BACKLOG,
         queue: int = DEFAULT_QUEUE,
+        teleop: Teleop | None = None,
     ) -> None:
         self._robot = robot
         self._host = host
@@ -72,6 +163,7 @@ class FoxgloveBridge:
         self._name = name
         self._backlog = integer("message_backlog", message_backlog, 1, 100_000)
         self._queue = integer("queue", queue, 1, 100_000)
+        self._teleop = teleop
         self._context = foxglove.Context()
         self._pump: Pump | None = None
         self._server: WebSocketServer | None = None
@@ -115,6 +207,9 @@ class FoxgloveBridge:
         """
         # The channels exist before the server, so a client sees them all at once.
         self._pump = Pump(self._robot, self._context, queue=self._queue)
+        listener = None
+        if self._teleop is not None:
+            listener = _TeleopListener(asyncio.get_running_loop(), self._teleop)
         try:
             self._server = foxglove.start_server(
                 name=self._name,
@@ -122,12 +217,17 @@ class FoxgloveBridge:
                 port=self._port,
                 context=self._context,
                 message_backlog_size=self._backlog,
+                capabilities=[Capability.ClientPublish] if listener is not None else None,
+                supported_encodings=["json"] if listener is not None else None,
+                server_listener=listener,
             )
         except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
             reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
             await self._pump.aclose()
             raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
         self._port = self._server.port
+        if listener is not None:
+            listener.server = self._server
         self._pump.start()
 
     async def aclose(self) -> None:
