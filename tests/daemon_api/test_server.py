@@ -20,6 +20,7 @@ from ohmni_tb.client import ClientSubscription, RobotClient
 from ohmni_tb.daemon.protocol import PROTOCOL_VERSION
 from ohmni_tb.daemon.server import MAX_MESSAGE_BYTES, RobotServer
 from ohmni_tb.errors import ConfigError, TransportClosedError
+from ohmni_tb.robot import Subscription
 
 #: Samples a stream's rate is judged over (seconds of real time).
 WINDOW_S = 3.0
@@ -75,9 +76,13 @@ async def drain(subscription: ClientSubscription[Any]) -> None:
         pass
 
 
-async def test_twenty_readers_each_get_odometry_and_battery_at_their_rates(
-    server: RobotServer,
+async def test_twenty_readers_each_get_every_odometry_and_battery_sample(
+    robot: Robot, server: RobotServer
 ) -> None:
+    # What the Robot itself published meanwhile, taken beside the daemon's readers.
+    truth_odom = robot.subscribe("wheel_odom", maxlen=10_000)
+    truth_core = robot.subscribe("tbcore_status", maxlen=10_000)
+
     async def reader() -> tuple[list[float], list[float]]:
         async with RobotClient.connect(server.url) as client:
             odom, core = await asyncio.gather(
@@ -86,11 +91,29 @@ async def test_twenty_readers_each_get_odometry_and_battery_at_their_rates(
             return [s.stamp_s for s in odom], [s.stamp_s for s in core]
 
     results = await asyncio.gather(*(reader() for _ in range(20)))
+    published = {
+        "wheel_odom": [s.stamp_s for s in _queued(truth_odom)],
+        "tbcore_status": [s.stamp_s for s in _queued(truth_core)],
+    }
+    assert truth_odom.dropped == truth_core.dropped == 0
     for odom, core in results:
-        assert 48.0 <= rate_hz(odom) <= 52.0
-        assert len(odom) >= 0.9 * 50 * WINDOW_S
-        assert 9.0 <= rate_hz(core) <= 11.0
-        assert len(core) >= 0.9 * 10 * WINDOW_S - 1
+        for name, got in (("wheel_odom", odom), ("tbcore_status", core)):
+            # Every sample the Robot published while the reader was subscribed, each
+            # once and in order: the fan-out loses nothing and invents nothing.
+            expected = [t for t in published[name] if got[0] <= t <= got[-1]]
+            assert got == expected, name
+        # The streams flowed all along (their rate targets are bench/daemon.py's: real
+        # time on a shared machine).
+        assert len(odom) >= 0.6 * 50 * WINDOW_S
+        assert len(core) >= 0.6 * 10 * WINDOW_S
+
+
+def _queued(subscription: Subscription[Any]) -> list[Any]:
+    """What a subscription holds now, oldest first."""
+    samples = []
+    while (sample := subscription.get_nowait()) is not None:
+        samples.append(sample)
+    return samples
 
 
 async def test_a_stalled_client_loses_its_oldest_samples_and_slows_nothing(
@@ -112,10 +135,11 @@ async def test_a_stalled_client_loses_its_oldest_samples_and_slows_nothing(
         # The Robot's rate window is 5 s: all of it with the client stalled.
         odom = await collect(other, "wheel_odom", 5.5)
         encoder = robot.stats().streams["wheel_encoder"]
-    # Not slowed: a blocked loop would show a fraction of the rate. (Real time on a shared
-    # machine: the rate targets themselves are bench/daemon.py's, not a unit test's.)
-    assert 47.0 <= encoder.achieved_hz <= 51.0, encoder
-    assert 47.0 <= rate_hz([s.stamp_s for s in odom]) <= 51.0
+    # Not slowed: a send blocked on the stalled client would stop the loop and show a
+    # fraction of the rate. (Real time on a shared machine: the ±1 % target itself is
+    # bench/daemon.py's, not a unit test's.)
+    assert 40.0 <= encoder.achieved_hz <= 51.0, encoder
+    assert 40.0 <= rate_hz([s.stamp_s for s in odom]) <= 51.0
     figures = max(server.clients, key=lambda c: c.dropped)
     assert figures.topics == ("wheel_encoder", "wheel_odom", "servo_neck", "servo_ext1")
     assert figures.dropped > 100  # ~3 s of samples across four topics, at least
