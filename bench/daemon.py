@@ -77,6 +77,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+import ohmni_tb
 from ohmni_tb.daemon.server import RobotServer
 from ohmni_tb.robot import Robot
 from ohmni_tb.robot.streams import StreamStats
@@ -701,7 +702,8 @@ class TerminatedError(Exception):
 
 
 def run(main: Coroutine[Any, Any, T]) -> T:
-    """``asyncio.run``, with SIGTERM cancelling ``main`` as Ctrl-C does, so its cleanup runs.
+    """``ohmni_tb.run`` (the loop ``ohmni serve`` runs on), with SIGTERM cancelling ``main``
+    as Ctrl-C does, so its cleanup runs.
 
     A signal handler that raised instead would raise wherever the loop happens to be, even
     inside a transport's callback that swallows it.
@@ -726,7 +728,7 @@ def run(main: Coroutine[Any, Any, T]) -> T:
             raise
 
     try:
-        return asyncio.run(guarded())
+        return ohmni_tb.run(guarded())
     finally:
         # Between the loops (starting the simulator, printing) SIGTERM stops at once; the
         # loop's handler is gone with the loop.

@@ -18,12 +18,15 @@ under the bus notes when each wheel packet is written. Printed per row:
   cost model's share for the schedule;
 * CPU share of one core of the whole process over the window (``time.process_time``).
 
-Rows: ``sim://`` in this process at USB latency 0 and 16 ms and with one external servo
-silent (the simulator's CPU is then in the figure: ``bench/sim_cpu.py`` measures it
-alone), and ``pty``: ``ohmni sim --pty`` in its own process, so the CPU is the driver's
-alone, as on the robot. The last row runs the same schedule the simple way beside it —
-one asyncio task per stream looping on ``await bus.transact(...)`` (``bench/schedule.py``'s
-loops) on the pty — and the CPU ratio is printed.
+Every row runs on ``ohmni_tb.run`` (timers to the tenth of a millisecond, as the CLI and
+the daemon), and the 16 ms row also on ``asyncio.run``'s loop, whose timers fire up to a
+millisecond late (``ohmni_tb.eventloop``). Rows: ``sim://`` in this process at USB
+latency 0 and 16 ms and with one external servo silent (the simulator's CPU is then in
+the figure: ``bench/sim_cpu.py`` measures it alone), and ``pty``: ``ohmni sim --pty`` in
+its own process, so the CPU is the driver's alone, as on the robot. The last row runs
+the same schedule the simple way beside it — one asyncio task per stream looping on
+``await bus.transact(...)`` (``bench/schedule.py``'s loops) on the pty — and the CPU
+ratio is printed.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ohmni_tb.bus import Bus
+from ohmni_tb.eventloop import run
 from ohmni_tb.protocol import Command, PacketDecoder
 from ohmni_tb.protocol.drive import decode_wheel_command
 from ohmni_tb.robot import Robot
@@ -232,24 +236,33 @@ def main() -> int:
     print(header)
     print("-" * len(header))
     rows = [
-        asyncio.run(run_robot("robot usb0", "sim://", seconds)),
+        run(run_robot("robot usb0", "sim://", seconds)),
+        run(run_robot("robot usb16", "sim://?usb_latency_ms=16", seconds, usb_latency_ms=16)),
+        # The same row on asyncio's own loop (epoll: timers in whole milliseconds).
         asyncio.run(
-            run_robot("robot usb16", "sim://?usb_latency_ms=16", seconds, usb_latency_ms=16)
+            run_robot("usb16 asyncio", "sim://?usb_latency_ms=16", seconds, usb_latency_ms=16)
         ),
-        asyncio.run(run_robot("robot silent 11", "sim://?silent=11", seconds)),
+        run(run_robot("robot silent 11", "sim://?silent=11", seconds)),
     ]
     for row in rows:
         show(row)
     with simulator_on_pty() as path:
-        pty_row = asyncio.run(run_robot("robot pty", path, seconds))
+        pty_row = run(run_robot("robot pty", path, seconds))
     show(pty_row)
     with simulator_on_pty() as path:
-        tasks_row = asyncio.run(run_tasks("tasks pty", path, seconds))
+        tasks_row = run(run_tasks("tasks pty", path, seconds))
     show(tasks_row)
     print(
         f"CPU, driver alone on the pty: Robot {pty_row.cpu:.1%} (with teleop commands and "
         f"control) vs one task per stream {tasks_row.cpu:.1%} (polling only): "
         f"ratio {pty_row.cpu / tasks_row.cpu:.2f}"
+    )
+    precise, coarse = rows[1], rows[2]
+    worst = min(POLLED, key=lambda s: coarse.rates[s] / coarse.requested[s])
+    print(
+        f"usb16, ohmni_tb.run vs asyncio.run: slowest stream {worst} "
+        f"{precise.rates[worst]:.2f} vs {coarse.rates[worst]:.2f} Hz, control jitter p99 "
+        f"{precise.jitter_p99_ms:.1f} vs {coarse.jitter_p99_ms:.1f} ms"
     )
     print("units: Hz | ms | ms | share of the line | share of one core")
     return 0

@@ -77,7 +77,10 @@ PUBLIC = {
     "ohmni_tb.sim.url": ["build_line", "open_sim"],
     "ohmni_tb.sim.robot": ["NECK_CHOICES", "SimRobot"],
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
-    "ohmni_tb": ["OhmniError", "Robot", "RobotConfig", "__version__"],
+    "ohmni_tb": ["OhmniError", "Robot", "RobotConfig", "__version__", "run"],
+    "ohmni_tb.eventloop": [
+        "PreciseEpollSelector", "new_event_loop", "run", "timer_resolution_s",
+    ],
     "ohmni_tb.config": [
          "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
          "user_config_dir",

@@ -1,8 +1,9 @@
 """ohmni_tb: drive the OhmniLabs Ohmni robot over its serial bus, without ROS.
 
-``from ohmni_tb import Robot, RobotConfig`` gives the asyncio Robot and its settings;
-they are imported on first use, so ``import ohmni_tb`` (and the CLI's start-up) stays
-light.
+``from ohmni_tb import Robot, RobotConfig`` gives the asyncio Robot and its settings, and
+``ohmni_tb.run(main())`` runs a program's coroutine as :func:`asyncio.run` does, on a
+loop whose timers keep sub-millisecond time (:mod:`ohmni_tb.eventloop`). They are
+imported on first use, so ``import ohmni_tb`` (and the CLI's start-up) stays light.
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from ohmni_tb.errors import OhmniError
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
+    from ohmni_tb.eventloop import run
     from ohmni_tb.robot import Robot
 
-__all__ = ["OhmniError", "Robot", "RobotConfig", "__version__"]
+__all__ = ["OhmniError", "Robot", "RobotConfig", "__version__", "run"]
 
 __version__ = "0.1.0"
 
-_LAZY = {"Robot": "ohmni_tb.robot", "RobotConfig": "ohmni_tb.config"}
+_LAZY = {"Robot": "ohmni_tb.robot", "RobotConfig": "ohmni_tb.config", "run": "ohmni_tb.eventloop"}
 
 
 def __getattr__(name: str) -> Any:

@@ -20,6 +20,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from ohmni_tb import eventloop
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 
 if TYPE_CHECKING:
@@ -231,7 +232,8 @@ def run(
     if not _options["debug"]:
         logger.addHandler(shown)
     try:
-        return asyncio.run(_guarded(main, signals))
+        # Timers to the tenth of a millisecond: the bus's schedule needs them.
+        return eventloop.run(_guarded(main, signals))
     except OhmniError as exc:
         if _options["debug"]:
             traceback.print_exc()

@@ -58,6 +58,7 @@ from ohmni_tb.errors import (
     StopNotConfirmedError,
     TransportError,
 )
+from ohmni_tb.eventloop import MILLISECOND_S, timer_resolution_s
 from ohmni_tb.herkulex import TorqueControl, stat
 from ohmni_tb.herkulex.units import angle_rad_from_raw, voltage_v_from_raw
 from ohmni_tb.protocol import Memory, Packet, ReadReply, read_request
@@ -81,7 +82,7 @@ from ohmni_tb.robot.samples import (
 from ohmni_tb.robot.schedule import CycleResult, Periodic
 from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE, StreamStats, Subscription, Topic
 from ohmni_tb.safety import stop_wheels
-from ohmni_tb.transport import Transport, open_transport
+from ohmni_tb.transport import SerialTransport, Transport, open_transport
 
 __all__ = ["BusFigures", "Robot", "RobotStats"]
 
@@ -335,6 +336,7 @@ class Robot:
             transport = await open_transport(url)
             reopen = _reopener(url, transport)
         sim = getattr(transport, "robot", None)
+        _warn_if_coarse_timers(transport)
         bus = Bus(transport, timeout_s=config.bus_timeout_s(), reopen=reopen)
         bus.start()
         robot: Robot | None = None
@@ -1792,6 +1794,29 @@ class Robot:
         from ohmni_tb.transport.ports import list_ports  # noqa: PLC0415  # slow: when asked
 
         return [port.as_dict() for port in list_ports()]
+
+
+_coarse_timers_told = False
+
+
+def _warn_if_coarse_timers(transport: Transport) -> None:
+    """Tell once per process when a serial port runs on a loop with millisecond timers.
+
+    Behind an adapter that holds replies, every request of the schedule goes out on a
+    timer, and each one late by up to a millisecond does not fit a line booked to 81 %
+    (ohmni_tb.eventloop). The simulator in this process delivers at once: not told.
+    """
+    global _coarse_timers_told  # noqa: PLW0603  # once per process, not per Robot
+    if _coarse_timers_told or not isinstance(transport, SerialTransport):
+        return
+    if timer_resolution_s() < MILLISECOND_S:
+        return
+    _coarse_timers_told = True
+    _log.warning(
+        "this event loop's timers fire up to 1 ms late (asyncio's epoll waits in whole "
+        "milliseconds): behind a USB adapter that holds replies the servo streams can miss "
+        "their rates; run the program with ohmni_tb.run(main()) instead of asyncio.run"
+    )
 
 
 def _number(name: str, value: float) -> float:

@@ -33,6 +33,9 @@ T = TypeVar("T")
 class _JumpingSelector(selectors.DefaultSelector):
     """Polls without blocking; a wait for a timer becomes a jump of the virtual clock."""
 
+    #: Timers fire exactly when due (ohmni_tb.eventloop.timer_resolution_s).
+    precise = True
+
     def __init__(self) -> None:
         super().__init__()
         self.loop: VirtualClockLoop | None = None

@@ -1,0 +1,166 @@
+"""``ohmni_tb.eventloop``: a loop whose waits keep sub-millisecond time, and what the Robot
+says on a loop whose waits do not.
+
+The waits are checked by what the selector asks the kernel for, not by timing them (a
+shared machine's timers are the benchmark's business: ``bench/robot.py`` runs the
+schedule on both loops); the one timed check is a lower bound that load cannot break.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import select
+import selectors
+import socket
+import sys
+from typing import Any
+
+import pytest
+
+import ohmni_tb
+from cli._helpers import needs_pty, sim_on_pty
+from ohmni_tb import Robot, eventloop
+from ohmni_tb.eventloop import (
+    MILLISECOND_S,
+    PreciseEpollSelector,
+    new_event_loop,
+    timer_resolution_s,
+)
+from ohmni_tb.robot import core
+from ohmni_tb.sim.clock import run_virtual
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="epoll is Linux's")
+
+
+class _Waits:
+    """Records the timeouts ``select.select`` is called with, and passes them on."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.timeouts: list[float | None] = []
+        real = select.select
+
+        def spy(r: Any, w: Any, x: Any, timeout: float | None = None) -> Any:
+            self.timeouts.append(timeout)
+            return real(r, w, x, timeout)
+
+        monkeypatch.setattr(select, "select", spy)
+
+
+def test_a_wait_asks_for_the_timeout_to_the_microsecond_and_events_still_come(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    waits = _Waits(monkeypatch)
+    left, right = socket.socketpair()
+    with PreciseEpollSelector() as selector, left, right:
+        assert selector.precise
+        key = selector.register(left, selectors.EVENT_READ, "left")
+        assert selector.select(0.0003) == []  # nothing to read: the wait ran out
+        right.send(b"x")
+        assert selector.select(0.0003) == [(key, selectors.EVENT_READ)]
+        assert selector.select(0) == [(key, selectors.EVENT_READ)]  # a poll: no wait
+    # The timeouts as given, not rounded up to whole milliseconds as epoll would.
+    assert waits.timeouts == [0.0003, 0.0003]
+
+
+def test_an_epoll_descriptor_beyond_select_waits_in_milliseconds_as_epoll_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(eventloop, "_FD_SETSIZE", 0)  # as if numbered beyond select(2)
+    waits = _Waits(monkeypatch)
+    with PreciseEpollSelector() as selector:
+        assert not selector.precise
+        assert selector.select(0.0003) == []
+    assert waits.timeouts == []
+    loop = asyncio.SelectorEventLoop(PreciseEpollSelector())
+    try:
+        assert timer_resolution_s(loop) == MILLISECOND_S
+    finally:
+        loop.close()
+
+
+def test_timer_resolution_tells_the_loops_apart() -> None:
+    async def resolution() -> float:
+        return timer_resolution_s()
+
+    assert asyncio.run(resolution()) == MILLISECOND_S  # asyncio's default: epoll
+    assert ohmni_tb.run(resolution()) == 0.0
+    assert run_virtual(resolution()) == 0.0  # virtual time: timers fire when due
+    poll_loop = asyncio.SelectorEventLoop(selectors.PollSelector())
+    select_loop = asyncio.SelectorEventLoop(selectors.SelectSelector())
+    try:
+        assert timer_resolution_s(poll_loop) == MILLISECOND_S
+        assert timer_resolution_s(select_loop) == 0.0
+    finally:
+        poll_loop.close()
+        select_loop.close()
+
+
+def test_run_returns_the_result_on_a_precise_loop_and_closes_it() -> None:
+    loops: list[asyncio.AbstractEventLoop] = []
+
+    async def main() -> str:
+        loop = asyncio.get_running_loop()
+        loops.append(loop)
+        await asyncio.sleep(0.001)
+        return "done"
+
+    assert ohmni_tb.run(main()) == "done"
+    assert isinstance(loops[0], asyncio.SelectorEventLoop)
+    assert loops[0].is_closed()
+    fresh = new_event_loop()
+    try:
+        assert timer_resolution_s(fresh) == 0.0
+    finally:
+        fresh.close()
+
+
+def test_asyncio_default_loop_fires_a_sub_millisecond_timer_a_whole_millisecond_late() -> None:
+    # Why the module exists. A lower bound: a busier machine only makes it later.
+    async def lateness() -> float:
+        loop = asyncio.get_running_loop()
+        await asyncio.sleep(0)
+        due = loop.time() + 0.0002
+        fired = loop.create_future()
+        loop.call_at(due, lambda: fired.set_result(loop.time()))
+        at: float = await fired
+        return at - due
+
+    assert asyncio.run(lateness()) >= 0.0007
+
+
+@needs_pty
+@pytest.mark.parametrize("runner", ["asyncio.run", "ohmni_tb.run"])
+def test_the_robot_on_a_serial_port_warns_once_of_millisecond_timers(
+    runner: str, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(core, "_coarse_timers_told", False)
+
+    async def open_twice(path: str) -> None:
+        for _ in range(2):
+            async with Robot.open(path, on_exit_neck="keep"):
+                pass
+
+    with sim_on_pty() as (path, _), caplog.at_level(logging.WARNING, "ohmni_tb"):
+        (asyncio.run if runner == "asyncio.run" else ohmni_tb.run)(open_twice(path))
+    told = [r.getMessage() for r in caplog.records if "1 ms late" in r.getMessage()]
+    if runner == "asyncio.run":
+        assert len(told) == 1  # once per process, however many Robots
+        assert "ohmni_tb.run(main())" in told[0]
+    else:
+        assert told == []
+
+
+def test_the_robot_on_the_simulator_in_process_does_not_warn(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # sim:// hands each reply over at once: the sends do not wait on timers.
+    monkeypatch.setattr(core, "_coarse_timers_told", False)
+
+    async def main() -> None:
+        async with Robot.open("sim://"):
+            pass
+
+    with caplog.at_level(logging.WARNING, "ohmni_tb"):
+        asyncio.run(main())
+    assert not [r for r in caplog.records if "1 ms late" in r.getMessage()]
