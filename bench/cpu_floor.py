@@ -10,6 +10,11 @@ pairing, no Robot: the floor under ``bench/robot.py``'s CPU figure (which is the
 of one core of the process, like these rows). Two rows: counting the reply bytes only,
 and feeding them to the project's :class:`~ohmni_tb.protocol.PacketDecoder`.
 
+Then the wake-ups alone: an asyncio loop whose only work is a timer that re-arms itself,
+at 100, 400 (about what the Robot's loop wakes for: ~200 replies, ~150 stream timers and
+the bus's own) and 1,000 a second, no I/O. On a virtual machine a wake-up from idle costs
+far more than the few microseconds of Python it runs; this row shows how much.
+
 The requests are not paced to the line, so some collide with replies on the simulated
 half-duplex line: the reply count is lower than the schedule's 200 a second. The figure
 is the loop's and the system calls' cost, which that does not change much.
@@ -77,6 +82,21 @@ async def floor(path: str, seconds: float, *, decode: bool) -> tuple[float, int]
     return share, got[0]
 
 
+async def wakeups(rate_hz: float, seconds: float) -> float:
+    """CPU share of a loop that only wakes ``rate_hz`` times a second on a timer."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time() + 0.05
+
+    def fire(k: int) -> None:
+        loop.call_at(t0 + (k + 1) / rate_hz, fire, k + 1)
+
+    loop.call_at(t0, fire, 0)
+    await asyncio.sleep(0.05)
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    await asyncio.sleep(seconds)
+    return (time.process_time() - cpu0) / (time.perf_counter() - wall0)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--seconds", type=float, default=15.0)
@@ -88,6 +108,10 @@ def main() -> int:
             what = f"{got / args.seconds:6.0f} replies/s" if decode else f"{got} bytes in"
             label = "raw loop + decoder" if decode else "raw loop"
             print(f"{label:<20} CPU {share:6.2%} of a core   ({what})")
+    for rate in (100, 400, 1000):
+        share = asyncio.run(wakeups(rate, args.seconds))
+        label = f"timers {rate}/s"
+        print(f"{label:<20} CPU {share:6.2%} of a core   ({share / rate * 1e6:.0f} µs a wake-up)")
     return 0
 
 

@@ -18,6 +18,7 @@ import math
 import sys
 from typing import Any
 
+import ohmni_tb
 from ohmni_tb import Robot
 from ohmni_tb.client import RobotClient
 
@@ -55,4 +56,5 @@ async def main(daemon: str | None) -> int:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--daemon", metavar="URL", help="use ohmni serve at URL")
-    sys.exit(asyncio.run(main(parser.parse_args().daemon)))
+    # ohmni_tb.run: asyncio.run on a loop whose timers keep the bus's schedule (robot.md).
+    sys.exit(ohmni_tb.run(main(parser.parse_args().daemon)))

@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import ohmni_tb
 from ohmni_tb import Robot, RobotConfig
 from ohmni_tb.errors import StateError
 from ohmni_tb.robot import Subscription, WheelOdomSample
@@ -236,7 +237,8 @@ def main() -> int:
         parser.error(f"this drives a real robot around a {args.side:g} m square: add --yes")
     if not 0.1 <= args.side <= 5.0 or not 0.05 <= args.speed <= 0.5:
         parser.error("--side must be 0.1..5 m and --speed 0.05..0.5 m/s")
-    return asyncio.run(run(args.port, side_m=args.side, speed_mps=args.speed, png=args.png))
+    # ohmni_tb.run: asyncio.run on a loop whose timers keep the bus's schedule (robot.md).
+    return ohmni_tb.run(run(args.port, side_m=args.side, speed_mps=args.speed, png=args.png))
 
 
 if __name__ == "__main__":
