@@ -21,6 +21,9 @@ from websockets.asyncio.client import ClientConnection, connect
 SUBPROTOCOL = "foxglove.sdk.v1"
 #: Server → client binary opcode of a message on a subscribed channel.
 MESSAGE_DATA = 0x01
+#: Client → server binary opcode of a service call, and server → client of its response.
+SERVICE_CALL_REQUEST = 0x02
+SERVICE_CALL_RESPONSE = 0x03
 
 # -- protobuf's wire format -----------------------------------------------------------------
 
@@ -184,6 +187,10 @@ class FoxgloveClient:
         self.ws = ws
         self.server_info: dict[str, Any] = {}
         self.channels: dict[str, Advertised] = {}
+        #: Advertised services by name: their id and request/response schemas.
+        self.services: dict[str, dict[str, Any]] = {}
+        #: Status messages the server sent (warnings, errors), in order.
+        self.statuses: list[dict[str, Any]] = []
         self._topics: dict[int, str] = {}
 
     @classmethod
@@ -203,6 +210,9 @@ class FoxgloveClient:
             except TimeoutError:
                 break
             message = json.loads(frame)
+            if message["op"] == "advertiseServices":
+                for service in message["services"]:
+                    client.services[service["name"]] = service
             if message["op"] == "advertise":
                 for channel in message["channels"]:
                     schema = channel["schema"]
@@ -241,6 +251,72 @@ class FoxgloveClient:
                 subscription, log_time = struct.unpack_from("<IQ", frame, 1)
                 out.append(Message(self._topics[subscription], log_time, frame[13:]))
         return out
+
+    async def _next(self, want: Any, seconds: float = 10.0) -> Any:
+        """The next frame ``want(frame)`` accepts; status messages are kept on the way."""
+        async with asyncio.timeout(seconds):
+            while True:
+                frame = await self.ws.recv()
+                if isinstance(frame, str):
+                    message = json.loads(frame)
+                    if message.get("op") == "status":
+                        self.statuses.append(message)
+                    if want(message):
+                        return message
+                elif want(frame):
+                    return frame
+
+    async def get_parameters(self, *names: str, request_id: str = "get") -> dict[str, Any]:
+        """``getParameters``: the values the server answers, by name (no names: all)."""
+        await self.ws.send(
+            json.dumps({"op": "getParameters", "parameterNames": list(names), "id": request_id})
+        )
+        return await self._parameter_values(request_id)
+
+    async def set_parameters(
+        self, values: dict[str, float], *, request_id: str = "set"
+    ) -> dict[str, Any]:
+        """``setParameters`` as the app's Parameters panel sends them; the values answered."""
+        parameters = [{"name": n, "value": v, "type": "float64"} for n, v in values.items()]
+        await self.ws.send(
+            json.dumps({"op": "setParameters", "parameters": parameters, "id": request_id})
+        )
+        return await self._parameter_values(request_id)
+
+    async def _parameter_values(self, request_id: str) -> dict[str, Any]:
+        message = await self._next(
+            lambda m: (
+                isinstance(m, dict)
+                and m.get("op") == "parameterValues"
+                and m.get("id") == request_id
+            )
+        )
+        return {p["name"]: p.get("value") for p in message["parameters"]}
+
+    async def call_service(self, name: str, request: dict[str, Any], call_id: int = 1) -> Any:
+        """Call service ``name`` with a JSON request: the decoded JSON response, or the
+        failure message as ``{"failure": text}``."""
+        service_id = self.services[name]["id"]
+        encoding = b"json"
+        await self.ws.send(
+            struct.pack("<BIII", SERVICE_CALL_REQUEST, service_id, call_id, len(encoding))
+            + encoding
+            + json.dumps(request).encode()
+        )
+
+        def answer(frame: Any) -> bool:
+            if isinstance(frame, bytes):
+                return (
+                    frame[0] == SERVICE_CALL_RESPONSE
+                    and struct.unpack_from("<I", frame, 5)[0] == call_id
+                )
+            return bool(frame.get("op") == "serviceCallFailure" and frame.get("callId") == call_id)
+
+        frame = await self._next(answer)
+        if isinstance(frame, dict):
+            return {"failure": frame["message"]}
+        (size,) = struct.unpack_from("<I", frame, 9)
+        return json.loads(frame[13 + size :])
 
     async def close(self) -> None:
         await self.ws.close()

@@ -141,6 +141,62 @@ def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
     assert "foxglove teleop refused" in log
 
 
+def test_parameters_and_services_change_the_robot_only_through_the_lease() -> None:
+    proc, url = start_serving(
+        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}",
+        "--foxglove-control",
+    )  # fmt: skip
+    try:
+        view = next_line(proc)
+
+        async def change() -> None:
+            foxglove = await FoxgloveClient.connect(view)
+            try:
+                assert set(foxglove.services) == {
+                    "/tb_control/reset_odom",
+                    "/tb_control/neck_move",
+                }
+                # Another client holds the lease: refused, named, nothing changed.
+                async with RobotClient.connect(url) as holder:
+                    await holder.acquire()
+                    refused = await foxglove.call_service(
+                        "/tb_control/reset_odom", {"x_m": 2.0}, call_id=1
+                    )
+                    assert "lease" in refused["failure"], refused
+                    kp = (await holder.get_pid()).kp
+                    await foxglove.set_parameters({"/tb_control/pid_kp": kp + 100})
+                    assert (await holder.get_pid()).kp == kp
+                # Free: the app takes the lease for the call, and the daemon's Robot changes.
+                pose = await foxglove.call_service(
+                    "/tb_control/reset_odom", {"x_m": 2.0, "yaw_rad": 0.25}, call_id=2
+                )
+                assert pose == {"x_m": 2.0, "y_m": 0.0, "yaw_rad": 0.25}
+                values = await foxglove.set_parameters(
+                    {"/tb_control/pid_kp": kp + 100, "/tb_control/rate/tbcore_status": 5.0}
+                )
+                assert values["/tb_control/pid_kp"] == kp + 100
+                assert values["/tb_control/rate/tbcore_status"] == 5.0
+            finally:
+                await foxglove.close()
+            await asyncio.sleep(0.2)
+            async with RobotClient.connect(url) as reader:
+                odom = await reader.latest("wheel_odom")
+                assert odom is not None
+                assert (odom.x_m, odom.yaw_rad) == pytest.approx((2.0, 0.25), abs=1e-3)
+                assert (await reader.get_pid()).kp == kp + 100
+                stats = await reader.stats()
+                assert stats.streams["tbcore_status"].requested_hz == 5.0
+            # Given back a second after the last change: another client may drive.
+            await asyncio.sleep(1.5)
+            async with RobotClient.connect(url) as after:
+                await after.acquire()
+
+        asyncio.run(change())
+    finally:
+        log = stop_serving(proc)
+    assert "Traceback" not in log
+
+
 def test_without_control_the_panel_cannot_publish() -> None:
     proc, url = start_serving(
         "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}"

@@ -78,8 +78,9 @@ def serve(
         typer.Option(
             "--foxglove-control",
             help="With --foxglove: the Foxglove Teleop panel drives the robot (Twist on "
-            "/tb_cmd_vel or /cmd_vel), through the daemon's control lease like any client "
-            "and under the Robot's watchdog.",
+            "/tb_cmd_vel or /cmd_vel), the Parameters panel sets PID gains and stream rates, "
+            "and the reset_odom and neck_move services answer — through the daemon's control "
+            "lease like any client and under the Robot's watchdog.",
         ),
     ] = False,
     handoff: Annotated[
@@ -175,17 +176,27 @@ async def _serve(
         if foxglove is not None:
             from ohmni_tb.client import RobotClient  # noqa: PLC0415
             from ohmni_tb.foxglove import FoxgloveBridge  # noqa: PLC0415  # the extra
+            from ohmni_tb.foxglove.control import RobotControl  # noqa: PLC0415
 
             teleop = None
+            control = None
             if foxglove_control:
-                # The panel is one more client of the daemon: the same lease as any other.
+                # The panel is one more client of the daemon: the same lease as any other,
+                # for its Twists, its parameter changes and its service calls.
                 operator = await stack.enter_async_context(
                     RobotClient.connect(server.url, token=token)
                 )
                 teleop = _FoxgloveTeleop(operator)
                 stack.push_async_callback(teleop.aclose)
+                control = RobotControl(operator, writable=True, before_change=teleop.hold)
             bridge = await stack.enter_async_context(
-                FoxgloveBridge(robot, host=foxglove[0], port=foxglove[1], teleop=teleop)
+                FoxgloveBridge(
+                    robot,
+                    host=foxglove[0],
+                    port=foxglove[1],
+                    teleop=teleop,
+                    control=control,
+                )
             )
             write_line(bridge.url)
             _log.info("serving the Foxglove app on %s", bridge.url)
@@ -236,6 +247,23 @@ class _FoxgloveTeleop:
         _log.info("foxglove teleop took the control lease")
         self._drive(linear_mps, angular_radps)
 
+    async def hold(self) -> None:
+        """Hold the lease for a parameter change or a service call: take it when nobody
+        holds it (never steals), and give it back a second after the last use.
+
+        Raises:
+            LeaseError: Another client holds it (the message names it).
+        """
+        if not self._client.has_lease:
+            await self._client.acquire()
+            _log.info("foxglove took the control lease")
+        self._rearm()
+
+    def _rearm(self) -> None:
+        if self._idle is not None:
+            self._idle.cancel()
+        self._idle = asyncio.get_running_loop().call_later(_TELEOP_IDLE_S, self._give_back)
+
     def _drive(self, linear_mps: float, angular_radps: float) -> None:
         from ohmni_tb.errors import OhmniError  # noqa: PLC0415
 
@@ -243,9 +271,7 @@ class _FoxgloveTeleop:
             self._client.drive(linear_mps, angular_radps)
         except OhmniError as exc:
             _log.warning("foxglove teleop: %s", exc)
-        if self._idle is not None:
-            self._idle.cancel()
-        self._idle = asyncio.get_running_loop().call_later(_TELEOP_IDLE_S, self._give_back)
+        self._rearm()
 
     def _give_back(self) -> None:
         self._idle = None

@@ -18,25 +18,33 @@ that client's oldest messages when it reads too slowly; nothing waits for a clie
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import logging
 import math
-from collections.abc import Callable
-from typing import Final
+from collections.abc import Callable, Coroutine
+from typing import Any, Final, TypeVar
 
 import foxglove
 from foxglove.websocket import (
     Capability,
     Client,
     ClientChannel,
+    MessageSchema,
+    Parameter,
+    ParameterType,
     ServerListener,
+    Service,
+    ServiceRequest,
+    ServiceSchema,
     StatusLevel,
     WebSocketServer,
 )
 
 from ohmni_tb._checks import integer
-from ohmni_tb.errors import TransportError
+from ohmni_tb.errors import OhmniError, TransportError
 from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
+from ohmni_tb.foxglove.control import SERVICE_SCHEMAS, RobotControl
 
 __all__ = [
     "DEFAULT_BACKLOG",
@@ -49,6 +57,7 @@ __all__ = [
 ]
 
 _log = logging.getLogger("ohmni_tb.foxglove")
+_T = TypeVar("_T")
 
 #: Topics the Foxglove Teleop panel publishes ``geometry_msgs/Twist`` on (JSON).
 TELEOP_TOPICS: Final = ("/tb_cmd_vel", "/cmd_vel")
@@ -77,18 +86,26 @@ def parse_twist(data: bytes) -> tuple[float, float]:
     return float(linear), float(angular)
 
 
-class _TeleopListener(ServerListener):
-    """Twists published by Foxglove clients on :data:`TELEOP_TOPICS`, handed to the event
-    loop (the SDK calls this from its own threads)."""
+class _Listener(ServerListener):
+    """What Foxglove clients send: Twists on :data:`TELEOP_TOPICS` (with a teleop),
+    parameter reads and writes (with a control). The SDK calls this from its own threads:
+    a Twist is handed to the event loop; a parameter request waits for the loop's answer
+    (at most :data:`_CALL_TIMEOUT_S`)."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, teleop: Teleop) -> None:
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        teleop: Teleop | None,
+        control: RobotControl,
+    ) -> None:
         self._loop = loop
         self._teleop = teleop
+        self._control = control
         self._channels: set[tuple[int, int]] = set()
         self.server: WebSocketServer | None = None
 
     def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
-        if channel.topic in TELEOP_TOPICS:
+        if self._teleop is not None and channel.topic in TELEOP_TOPICS:
             if channel.encoding != "json":
                 self._status(f"{channel.topic}: only JSON Twists are taken, not {channel.encoding}")
                 return
@@ -98,7 +115,7 @@ class _TeleopListener(ServerListener):
         self._channels.discard((client.id, client_channel_id))
 
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
-        if (client.id, client_channel_id) not in self._channels:
+        if self._teleop is None or (client.id, client_channel_id) not in self._channels:
             return
         try:
             linear, angular = parse_twist(data)
@@ -107,10 +124,80 @@ class _TeleopListener(ServerListener):
             return
         self._loop.call_soon_threadsafe(self._teleop, linear, angular)
 
-    def _status(self, message: str) -> None:
+    def on_get_parameters(
+        self, client: Client, param_names: list[str], request_id: str | None = None
+    ) -> list[Parameter]:
+        try:
+            values = _on_loop(self._loop, self._control.parameters())
+        except Exception as exc:  # told to the client, never raised into the SDK
+            self._status(f"parameters unavailable: {exc}")
+            return []
+        wanted = set(param_names) or set(values)
+        return [
+            Parameter(name, value=value, type=ParameterType.Float64)
+            for name, value in values.items()
+            if name in wanted
+        ]
+
+    def on_set_parameters(
+        self, client: Client, parameters: list[Parameter], request_id: str | None = None
+    ) -> list[Parameter]:
+        values = {parameter.name: parameter.get_value() for parameter in parameters}
+        try:
+            _on_loop(self._loop, self._control.set_parameters(values))
+        except Exception as exc:  # told to the client, never raised into the SDK
+            self._status(f"parameters not set: {exc}", StatusLevel.Error)
+        # The values now, set or not: the app shows what the robot runs with.
+        return self.on_get_parameters(client, [parameter.name for parameter in parameters])
+
+    def service(self, name: str) -> Service:
+        """The SDK's service ``name``, answered by the control on the event loop."""
+        request, response = SERVICE_SCHEMAS[name]
+
+        def schema(part: str, body: dict[str, object]) -> MessageSchema:
+            return MessageSchema(
+                encoding="json",
+                schema=foxglove.Schema(
+                    name=f"{name}/{part}", encoding="jsonschema", data=json.dumps(body).encode()
+                ),
+            )
+
+        def handle(call: ServiceRequest) -> bytes:
+            try:
+                return _on_loop(self._loop, self._control.call(name, call.payload))
+            except OhmniError as exc:
+                _log.warning("foxglove service %s refused: %s", name, exc)
+                raise  # the SDK answers the client with the message
+            except TimeoutError as exc:
+                raise TimeoutError(f"{name}: the robot did not answer in time") from exc
+
+        return Service(
+            name,
+            schema=ServiceSchema(
+                name, request=schema("Request", request), response=schema("Response", response)
+            ),
+            handler=handle,
+        )
+
+    def _status(self, message: str, level: StatusLevel = StatusLevel.Warning) -> None:
         _log.warning("foxglove: %s", message)
         if self.server is not None:
-            self.server.publish_status(message, StatusLevel.Warning)
+            self.server.publish_status(message, level)
+
+
+#: How long an SDK thread waits for the event loop to answer a parameter request or a
+#: service call.
+_CALL_TIMEOUT_S: Final = 5.0
+
+
+def _on_loop(loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, _T]) -> _T:
+    """Run ``coro`` on ``loop`` from another thread and wait for its result."""
+    future = asyncio.run_coroutine_threadsafe(coro, loop)
+    try:
+        return future.result(_CALL_TIMEOUT_S)
+    except concurrent.futures.TimeoutError:
+        future.cancel()
+        raise TimeoutError(f"no answer within {_CALL_TIMEOUT_S:g} s") from None
 
 
 #: Loopback: the Foxglove protocol has no authentication, so the default is this machine.
@@ -140,6 +227,10 @@ class FoxgloveBridge:
             ``angular.z`` on the event loop; ``None`` (default): read-only, clients may not
             publish. It is the caller's to decide what a Twist may move (``ohmni serve
             --foxglove-control`` goes through the daemon's control lease).
+        control: The parameters and services (:mod:`ohmni_tb.foxglove.control`): a
+            writable :class:`~ohmni_tb.foxglove.control.RobotControl` lets clients set
+            parameters and call the services; ``None`` (default): the parameters can be
+            read, not set, and no service is offered.
 
     Raises:
         OutOfRangeError: ``port`` not 0..65535, or ``message_backlog`` / ``queue`` not
@@ -156,8 +247,10 @@ class FoxgloveBridge:
         message_backlog: int = DEFAULT_BACKLOG,
         queue: int = DEFAULT_QUEUE,
         teleop: Teleop | None = None,
+        control: RobotControl | None = None,
     ) -> None:
         self._robot = robot
+        self._control = control if control is not None else RobotControl(robot)
         self._host = host
         self._port = integer("port", port, 0, 65535)
         self._name = name
@@ -207,9 +300,13 @@ class FoxgloveBridge:
         """
         # The channels exist before the server, so a client sees them all at once.
         self._pump = Pump(self._robot, self._context, queue=self._queue)
-        listener = None
+        listener = _Listener(asyncio.get_running_loop(), self._teleop, self._control)
+        capabilities = [Capability.Parameters]
         if self._teleop is not None:
-            listener = _TeleopListener(asyncio.get_running_loop(), self._teleop)
+            capabilities.append(Capability.ClientPublish)
+        services = [listener.service(name) for name in self._control.services]
+        if services:
+            capabilities.append(Capability.Services)
         try:
             self._server = foxglove.start_server(
                 name=self._name,
@@ -217,17 +314,17 @@ class FoxgloveBridge:
                 port=self._port,
                 context=self._context,
                 message_backlog_size=self._backlog,
-                capabilities=[Capability.ClientPublish] if listener is not None else None,
-                supported_encodings=["json"] if listener is not None else None,
+                capabilities=capabilities,
+                supported_encodings=["json"],
                 server_listener=listener,
+                services=services or None,
             )
         except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
             reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
             await self._pump.aclose()
             raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
         self._port = self._server.port
-        if listener is not None:
-            listener.server = self._server
+        listener.server = self._server
         self._pump.start()
 
     async def aclose(self) -> None:
@@ -238,8 +335,9 @@ class FoxgloveBridge:
         if self._pump is not None:
             await self._pump.aclose()
         if self._server is not None:
-            self._server.stop()
-            self._server = None
+            # Off the loop: an SDK thread may be waiting for the loop to answer a call.
+            server, self._server = self._server, None
+            await asyncio.to_thread(server.stop)
 
     async def __aenter__(self) -> FoxgloveBridge:
         await self.start()

@@ -1,0 +1,221 @@
+"""Foxglove services and parameters of a Robot: what the app's panels may read and change.
+
+Parameters (the app's Parameters panel), named after tb_control's node:
+
+- ``/tb_control/pid_kp`` … ``pid_ff_offset``: the wheel PIDs' gains (:class:`PidGains`),
+  changed bumplessly for both wheels;
+- ``/tb_control/rate/<stream>``: a polled stream's rate in Hz (``wheel_encoder`` is the
+  control tick, ``servo_neck`` …), 0.1..100;
+- ``/tb_control/max_linear_mps``, ``max_angular_radps``, ``max_wheel_mps``,
+  ``watchdog_s``: the limits, read only (they are the Robot's configuration: a client on
+  an unauthenticated port does not raise them).
+
+Services (JSON requests and responses, schemas advertised):
+
+- ``/tb_control/reset_odom``: ``{"x_m": 0, "y_m": 0, "yaw_rad": 0}`` (each optional) →
+  the pose odometry now starts from;
+- ``/tb_control/neck_move``: ``{"raw": 400}`` or ``{"rad": 0.1}``, with ``playtime_s``
+  (HerkuleX neck; a worm-gear neck takes ``raw`` alone) → ``{"moved": true}``.
+
+Reading is always allowed; changing only through a :class:`RobotControl` made with
+``writable=True`` (``FoxgloveBridge(..., control=...)``, ``ohmni serve
+--foxglove-control``). A refused change names the value and the allowed range, as every
+command does, and reaches the client; nothing reaches the wire.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+from collections.abc import Awaitable, Callable
+from typing import Any, Final
+
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.errors import InvalidArgumentError, StateError
+
+__all__ = [
+    "LIMIT_PARAMETERS",
+    "NECK_MOVE_SERVICE",
+    "PARAMETER_PREFIX",
+    "PID_PARAMETERS",
+    "RATE_STREAMS",
+    "RESET_ODOM_SERVICE",
+    "SERVICE_SCHEMAS",
+    "RobotControl",
+]
+
+#: Every parameter's name starts with this (tb_control's node).
+PARAMETER_PREFIX: Final = "/tb_control/"
+#: ``/tb_control/pid_<gain>``: the PidGains field each one is.
+PID_PARAMETERS: Final = {
+    "pid_kp": "kp",
+    "pid_ki": "ki",
+    "pid_kd": "kd",
+    "pid_kff": "kff",
+    "pid_ff_offset": "ff_offset",
+}
+#: ``/tb_control/rate/<stream>``: the polled streams whose rate can be read and set.
+RATE_STREAMS: Final = (
+    "wheel_encoder",
+    "servo_neck",
+    "servo_ext1",
+    "servo_ext2",
+    "tbcore_status",
+    "new_neck",
+)
+#: Read-only limits: the RobotConfig fields shown.
+LIMIT_PARAMETERS: Final = ("max_linear_mps", "max_angular_radps", "max_wheel_mps", "watchdog_s")
+
+RESET_ODOM_SERVICE: Final = "/tb_control/reset_odom"
+NECK_MOVE_SERVICE: Final = "/tb_control/neck_move"
+
+
+def _object(properties: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    return {"type": "object", "properties": properties, "additionalProperties": False, **extra}
+
+
+_NUMBER: Final = {"type": "number"}
+_POSE: Final = _object({"x_m": _NUMBER, "y_m": _NUMBER, "yaw_rad": _NUMBER})
+#: Each service's (request, response) JSON Schema.
+SERVICE_SCHEMAS: Final[dict[str, tuple[dict[str, Any], dict[str, Any]]]] = {
+    RESET_ODOM_SERVICE: (_POSE, _POSE),
+    NECK_MOVE_SERVICE: (
+        _object({"raw": {"type": "integer"}, "rad": _NUMBER, "playtime_s": _NUMBER}),
+        _object({"moved": {"type": "boolean"}}),
+    ),
+}
+
+
+async def _value(result: Any) -> Any:
+    """A Robot answers at once, a daemon's RobotClient with a coroutine: either."""
+    return await result if inspect.isawaitable(result) else result
+
+
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise InvalidArgumentError(f"{name} must be a finite number, not {value!r}")
+    return float(value)
+
+
+class RobotControl:
+    """The parameters and services of ``robot`` (module docstring).
+
+    Args:
+        robot: An open :class:`~ohmni_tb.Robot`, or a daemon's
+            :class:`~ohmni_tb.client.RobotClient`.
+        writable: Whether parameters may be set and services called.
+        before_change: Awaited before each change (``ohmni serve`` takes the daemon's
+            control lease there, and raises when another client holds it).
+    """
+
+    def __init__(
+        self,
+        robot: Any,
+        *,
+        writable: bool = False,
+        before_change: Callable[[], Awaitable[None]] | None = None,
+    ) -> None:
+        self._robot = robot
+        self.writable = writable
+        self._before_change = before_change
+
+    @property
+    def services(self) -> tuple[str, ...]:
+        """The services offered: none unless writable."""
+        return tuple(SERVICE_SCHEMAS) if self.writable else ()
+
+    async def parameters(self) -> dict[str, float]:
+        """Every parameter's value now, by full name (a stream the robot does not poll is
+        left out)."""
+        robot = self._robot
+        gains: PidGains = await _value(robot.get_pid())
+        stats = await _value(robot.stats())
+        config = await _value(robot.config()) if callable(robot.config) else robot.config
+        values: dict[str, float] = {}
+        for name, field in PID_PARAMETERS.items():
+            values[PARAMETER_PREFIX + name] = float(getattr(gains, field))
+        for stream in RATE_STREAMS:
+            figures = stats.streams.get(stream)
+            if figures is not None and figures.requested_hz > 0:
+                values[f"{PARAMETER_PREFIX}rate/{stream}"] = float(figures.requested_hz)
+        for name in LIMIT_PARAMETERS:
+            values[PARAMETER_PREFIX + name] = float(getattr(config, name))
+        return values
+
+    async def set_parameters(self, values: dict[str, Any]) -> None:
+        """Set parameters by full name; the PID gains in one bumpless change.
+
+        Raises:
+            StateError: Not writable, or a read-only limit.
+            InvalidArgumentError: An unknown name, or a value that is not a finite number.
+            OutOfRangeError: A value outside its range (the Robot's own check).
+        """
+        self._check_writable()
+        gains: dict[str, float] = {}
+        rates: dict[str, float] = {}
+        for full, value in values.items():
+            name = full.removeprefix(PARAMETER_PREFIX)
+            if name in PID_PARAMETERS:
+                gains[PID_PARAMETERS[name]] = _number(full, value)
+            elif name.startswith("rate/") and name[5:] in RATE_STREAMS:
+                rates[name[5:]] = _number(full, value)
+            elif name in LIMIT_PARAMETERS:
+                raise StateError(f"{full} is read only: set it in the Robot's configuration")
+            else:
+                raise InvalidArgumentError(f"no parameter {full!r}")
+        if self._before_change is not None:
+            await self._before_change()
+        if gains:
+            current: PidGains = await _value(self._robot.get_pid())
+            self._robot.set_pid(dataclasses.replace(current, **gains))
+        for stream, hz in rates.items():
+            self._robot.set_rate(stream, hz)
+
+    async def call(self, service: str, request: bytes) -> bytes:
+        """Answer a service call (JSON in, JSON out).
+
+        Raises:
+            StateError: Not writable.
+            InvalidArgumentError: Unknown service, not a JSON object, or unknown fields.
+            OhmniError: What the Robot refused (a value out of range …); nothing sent.
+        """
+        self._check_writable()
+        try:
+            args = json.loads(request or b"{}")
+        except ValueError as exc:
+            raise InvalidArgumentError(f"{service}: the request is not JSON: {exc}") from exc
+        schema = SERVICE_SCHEMAS.get(service)
+        if schema is None:
+            raise InvalidArgumentError(f"no service {service!r}")
+        allowed = schema[0]["properties"]
+        if not isinstance(args, dict) or set(args) - set(allowed):
+            raise InvalidArgumentError(
+                f"{service} takes a JSON object with {', '.join(allowed)}, not {request[:80]!r}"
+            )
+        if service == RESET_ODOM_SERVICE:
+            pose = {key: _number(key, args.get(key, 0.0)) for key in allowed}
+            if self._before_change is not None:
+                await self._before_change()
+            self._robot.reset_odometry(**pose)
+            return json.dumps(pose).encode()
+        raw, rad = args.get("raw"), args.get("rad")
+        if (raw is None) == (rad is None):
+            raise InvalidArgumentError(f"{service} takes raw or rad, one of them")
+        options: dict[str, Any] = {}
+        if rad is not None:
+            options["rad"] = _number("rad", rad)
+        if "playtime_s" in args:
+            options["playtime_s"] = _number("playtime_s", args["playtime_s"])
+        if self._before_change is not None:
+            await self._before_change()
+        await self._robot.neck.move(raw, **options)
+        return json.dumps({"moved": True}).encode()
+
+    def _check_writable(self) -> None:
+        if not self.writable:
+            raise StateError(
+                "this Foxglove server is read only: start it with control "
+                "(ohmni serve --foxglove-control)"
+            )

@@ -1,0 +1,182 @@
+"""Parameters and services in the Foxglove app: read always, changed only with control,
+and a refused change is a message to the client with nothing sent — judged on the Robot
+(its PIDs, rates, odometry) and on the simulator's neck, with the Robot on ``sim://`` in
+real time (the SDK's server runs in its own threads)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import pytest
+
+from ohmni_tb import Robot
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.foxglove import FoxgloveBridge
+from ohmni_tb.foxglove.control import (
+    LIMIT_PARAMETERS,
+    NECK_MOVE_SERVICE,
+    PID_PARAMETERS,
+    RESET_ODOM_SERVICE,
+    RobotControl,
+)
+
+from ._wire import FoxgloveClient
+
+P = "/tb_control/"
+
+
+@pytest.fixture
+async def robot() -> AsyncIterator[Robot]:
+    async with Robot.open("sim://", on_exit_neck="keep") as opened:
+        yield opened
+
+
+async def connected(robot: Robot, *, writable: bool) -> tuple[FoxgloveBridge, FoxgloveClient]:
+    bridge = FoxgloveBridge(robot, port=0, control=RobotControl(robot, writable=writable))
+    await bridge.start()
+    return bridge, await FoxgloveClient.connect(bridge.url)
+
+
+async def test_every_parameter_reads_what_the_robot_runs_with(robot: Robot) -> None:
+    bridge, client = await connected(robot, writable=False)
+    try:
+        values = await client.get_parameters()
+        assert "parameters" in client.server_info["capabilities"]
+        assert "services" not in client.server_info["capabilities"]  # read only: none
+        assert client.services == {}
+        gains = robot.get_pid()
+        for name, field in PID_PARAMETERS.items():
+            assert values[P + name] == pytest.approx(getattr(gains, field))
+        for stream in ("wheel_encoder", "servo_neck", "servo_ext1", "servo_ext2"):
+            assert values[f"{P}rate/{stream}"] == robot.stats().streams[stream].requested_hz
+        assert values[P + "rate/tbcore_status"] == 10.0
+        assert f"{P}rate/new_neck" not in values  # a HerkuleX neck here: not polled
+        for name in LIMIT_PARAMETERS:
+            assert values[P + name] == pytest.approx(getattr(robot.config, name))
+        # Asked by name: those alone.
+        assert await client.get_parameters(P + "pid_kp", request_id="one") == {
+            P + "pid_kp": pytest.approx(gains.kp)
+        }
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+async def test_a_read_only_server_refuses_a_change_and_says_why(robot: Robot) -> None:
+    before = robot.get_pid()
+    bridge, client = await connected(robot, writable=False)
+    try:
+        answered = await client.set_parameters({P + "pid_kp": 1.0})
+        assert answered[P + "pid_kp"] == pytest.approx(before.kp)  # unchanged
+        assert robot.get_pid() == before
+        assert any("read only" in s["message"] for s in client.statuses)
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+async def test_with_control_the_pid_gains_and_a_rate_change_on_the_robot(robot: Robot) -> None:
+    bridge, client = await connected(robot, writable=True)
+    try:
+        answered = await client.set_parameters(
+            {P + "pid_kp": 450.0, P + "pid_ki": 120.0, P + "rate/servo_neck": 15.0}
+        )
+        assert robot.get_pid() == PidGains(
+            kp=450.0,
+            ki=120.0,
+            kd=robot.config.pid_kd,
+            kff=robot.config.pid_kff,
+            ff_offset=robot.config.pid_ff_offset,
+        )
+        assert robot.stats().streams["servo_neck"].requested_hz == 15.0
+        assert answered[P + "pid_kp"] == 450.0
+        assert answered[P + "rate/servo_neck"] == 15.0
+        await asyncio.sleep(2.5)  # the neck's figures over a window at the new rate
+        assert robot.stats().streams["servo_neck"].achieved_hz < 20.0
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "words"),
+    [
+        (P + "rate/servo_neck", 500.0, "0.1"),  # the range is named
+        (P + "max_linear_mps", 3.0, "read only"),
+        (P + "no_such_thing", 1.0, "no parameter"),
+        (P + "pid_kp", -1.0, "kp"),
+    ],
+)
+async def test_a_refused_value_is_told_and_changes_nothing(
+    robot: Robot, name: str, value: float, words: str
+) -> None:
+    gains, rates = robot.get_pid(), robot.schedule()
+    bridge, client = await connected(robot, writable=True)
+    try:
+        await client.set_parameters({name: value})
+        messages = [s["message"] for s in client.statuses]
+        assert any(words in m for m in messages), messages
+        assert robot.get_pid() == gains
+        assert robot.schedule() == rates
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+async def test_the_services_reset_odometry_and_move_the_neck(robot: Robot) -> None:
+    assert robot.sim is not None
+    bridge, client = await connected(robot, writable=True)
+    try:
+        assert "services" in client.server_info["capabilities"]
+        assert set(client.services) == {RESET_ODOM_SERVICE, NECK_MOVE_SERVICE}
+        request_schema = client.services[RESET_ODOM_SERVICE]["request"]
+        assert request_schema["encoding"] == "json"
+        assert request_schema["schemaEncoding"] == "jsonschema"
+
+        pose = {"x_m": 1.5, "y_m": -0.25, "yaw_rad": 0.5}
+        assert await client.call_service(RESET_ODOM_SERVICE, pose) == pose
+        await asyncio.sleep(0.1)
+        odom = robot.latest("wheel_odom")
+        assert odom is not None
+        assert (odom.x_m, odom.y_m, odom.yaw_rad) == pytest.approx((1.5, -0.25, 0.5), abs=1e-3)
+
+        answer = await client.call_service(
+            NECK_MOVE_SERVICE, {"raw": 420, "playtime_s": 0.2}, call_id=2
+        )
+        assert answer == {"moved": True}
+        await asyncio.sleep(0.6)
+        neck = robot.latest("servo_neck")
+        assert neck is not None
+        assert neck.position_raw == pytest.approx(420, abs=3)
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+@pytest.mark.parametrize(
+    ("request_json", "words"),
+    [
+        ({"raw": 9000}, "650"),  # beyond the neck's range: the range is named
+        ({"raw": 400, "rad": 0.1}, "one of them"),
+        ({"angle": 3}, "takes a JSON object"),
+    ],
+)
+async def test_a_refused_service_call_fails_with_the_reason_and_sends_nothing(
+    robot: Robot, request_json: dict[str, float], words: str
+) -> None:
+    bridge, client = await connected(robot, writable=True)
+    try:
+        await asyncio.sleep(0.1)
+        before = robot.latest("servo_neck")
+        assert before is not None
+        answer = await client.call_service(NECK_MOVE_SERVICE, request_json)
+        assert words in answer["failure"]
+        await asyncio.sleep(0.5)  # a move sent would show by now
+        after = robot.latest("servo_neck")
+        assert after is not None
+        assert after.position_raw == before.position_raw
+        assert after.torque == before.torque
+    finally:
+        await client.close()
+        await bridge.aclose()
