@@ -24,7 +24,8 @@ the left-count request after its due time, p50/p99), the line's measured utilisa
 beside the cost model's share for the schedule, and the CPU share of one core of the
 whole process (the simulator runs in it too: ``bench/sim_cpu.py`` measures its part).
 ``usb`` is the simulated adapter's latency timer (``sim://?usb_latency_ms=N``);
-``silent`` lists servos that never answer.
+``silent`` lists servos that never answer. Every row runs on ``ohmni_tb.run``'s loop
+(timers to the tenth of a millisecond, as the CLI and the daemon; ``ohmni_tb.eventloop``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ohmni_tb import eventloop
 from ohmni_tb.bus import Bus
 from ohmni_tb.errors import BusTimeoutError, DeadlineMissedError, OhmniError
 from ohmni_tb.protocol import Packet, encode_packet, read_request
@@ -278,7 +280,7 @@ def run_on_pty(engine: str, seconds: float) -> Row:
     """One row against ``ohmni sim --pty`` in its own process: this process's CPU is then
     the driver's alone, as on the robot."""
     with simulator_on_pty() as path:
-        return asyncio.run(run(engine, seconds, 0, (), port=path))
+        return eventloop.run(run(engine, seconds, 0, (), port=path))
 
 
 async def _run(
@@ -402,7 +404,7 @@ def main() -> int:
             if pty:
                 row = run_on_pty(engine, seconds)
             else:
-                row = asyncio.run(run(engine, seconds, usb_ms, silent))
+                row = eventloop.run(run(engine, seconds, usb_ms, silent))
         except OhmniError as exc:  # a baseline that fails outright is a figure too
             where = f"{engine}/pty" if pty else engine
             print(f"{where:>8} {usb_ms:4d} {','.join(map(str, silent)) or '-':>7} | failed: {exc}")

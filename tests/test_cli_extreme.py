@@ -81,6 +81,12 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
         "duration": "0.2",
         "overwrite": True,
     },
+    # No such file: a valid speed and linger end in its one error line (exit 1).
+    ("replay",): {
+        "file": str(Path(tempfile.gettempdir(), "ohmni-extreme-no-such-recording.mcap")),
+        "foxglove": "127.0.0.1:0",
+        "linger": "0",
+    },
     # Never the developer's own config file: the fuzz writes where --file points.
     ("pid", "set"): {
         "kp": "600",

@@ -114,8 +114,14 @@ PUBLIC = {
     ],
     "ohmni_tb.foxglove": [
          "CHANNELS", "DEFAULT_HOST", "DEFAULT_PORT", "ChannelSpec", "ChannelStats",
-         "FoxgloveBridge", "McapRecorder", "RecordingError",
+         "FoxgloveBridge", "McapRecorder", "McapReplay", "RecordingError", "ReplayError",
+         "RobotControl",
     ],
+    "ohmni_tb.foxglove.control": [
+         "LIMIT_PARAMETERS", "NECK_MOVE_SERVICE", "PARAMETER_PREFIX", "PID_PARAMETERS",
+         "RATE_STREAMS", "RESET_ODOM_SERVICE", "SERVICE_SCHEMAS", "RobotControl",
+    ],
+    "ohmni_tb.foxglove.replay": ["MAX_SPEED", "McapReplay", "ReplayError"],
     "ohmni_tb.foxglove.channels": [
          "BASE_FRAME", "CHANNELS", "ODOM_FRAME", "ChannelSpec", "Encoder", "WallClock",
          "channel_schema", "channels_of", "encoder_for", "json_schema_of",

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosedOK
 
 #: The subprotocol foxglove-sdk's server requires (it refuses foxglove.websocket.v1).
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -237,7 +238,8 @@ class FoxgloveClient:
         await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
 
     async def messages(self, seconds: float) -> list[Message]:
-        """Every message on the subscribed channels for ``seconds``."""
+        """Every message on the subscribed channels for ``seconds``, or until the server
+        closes the connection."""
         out: list[Message] = []
         loop = asyncio.get_running_loop()
         end = loop.time() + seconds
@@ -245,7 +247,7 @@ class FoxgloveClient:
             try:
                 async with asyncio.timeout(left):
                     frame = await self.ws.recv()
-            except TimeoutError:
+            except (TimeoutError, ConnectionClosedOK):
                 break
             if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA:
                 subscription, log_time = struct.unpack_from("<IQ", frame, 1)

@@ -51,12 +51,17 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "serve": (
         "ohmni_tb.cli.serve",
         "serve",
-        "Serve the robot to many local clients over WebSocket (read-only in this version).",
+        "Serve the robot to many local clients over WebSocket: readers, one driver.",
     ),
     "record": (
         "ohmni_tb.cli.record",
         "record",
         "Record every stream to an MCAP file for Foxglove (--duration S, or until Ctrl-C).",
+    ),
+    "replay": (
+        "ohmni_tb.cli.replay",
+        "replay",
+        "Serve an MCAP recording to the Foxglove app as if it were live (--speed X).",
     ),
 }
 

@@ -19,7 +19,7 @@ from ohmni_tb.errors import ConfigError
 if TYPE_CHECKING:
     from ohmni_tb.client import RobotClient
 
-__all__ = ["serve"]
+__all__ = ["parse_foxglove", "serve"]
 
 _log = logging.getLogger("ohmni_tb.daemon")
 #: The Foxglove Teleop panel gives the control lease back this long after its last Twist.
@@ -132,7 +132,7 @@ def serve(
         raise typer.BadParameter(
             "--foxglove-control needs --foxglove [HOST:]PORT", param_hint="--foxglove-control"
         )
-    view = _parse_foxglove(foxglove) if foxglove is not None else None
+    view = parse_foxglove(foxglove) if foxglove is not None else None
     token = _token(host, token_file)
     url = resolve_port(port)
     origins = tuple(allow_origin or ())
@@ -284,7 +284,7 @@ class _FoxgloveTeleop:
             self._acquiring.cancel()
 
 
-def _parse_foxglove(text: str) -> tuple[str, int]:
+def parse_foxglove(text: str) -> tuple[str, int]:
     """``--foxglove [HOST:]PORT``; the extra must be installed."""
     import importlib.util  # noqa: PLC0415
 

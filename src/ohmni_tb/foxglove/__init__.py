@@ -1,7 +1,9 @@
 """See and record the robot with Foxglove and MCAP, through the official foxglove-sdk.
 
 :class:`FoxgloveBridge` serves an open Robot's streams to the Foxglove app (WebSocket,
-``ws://127.0.0.1:8765`` by default); :class:`McapRecorder` writes them to an MCAP file.
+``ws://127.0.0.1:8765`` by default), with its parameters and services
+(:class:`RobotControl`); :class:`McapRecorder` writes them to an MCAP file, and
+:class:`McapReplay` serves such a file to the app as if live.
 Both publish the channels of :data:`CHANNELS` (:mod:`ohmni_tb.foxglove.channels`): the
 odometry as ``foxglove.FrameTransform`` and ``foxglove.PoseInFrame`` for the 3D panel,
 and every stream's samples as JSON, named like tb_control's topics. See docs/foxglove.md.
@@ -21,7 +23,9 @@ except ImportError as exc:  # pragma: no cover - depends on what is installed
 from ohmni_tb.foxglove._pump import ChannelStats
 from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT, FoxgloveBridge
 from ohmni_tb.foxglove.channels import CHANNELS, ChannelSpec
+from ohmni_tb.foxglove.control import RobotControl
 from ohmni_tb.foxglove.record import McapRecorder, RecordingError
+from ohmni_tb.foxglove.replay import McapReplay, ReplayError
 
 __all__ = [
     "CHANNELS",
@@ -31,7 +35,10 @@ __all__ = [
     "ChannelStats",
     "FoxgloveBridge",
     "McapRecorder",
+    "McapReplay",
     "RecordingError",
+    "ReplayError",
+    "RobotControl",
 ]
 
 del _sdk

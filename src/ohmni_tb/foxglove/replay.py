@@ -1,0 +1,185 @@
+"""Serve a recording to the Foxglove app as if it were live: ``ohmni replay FILE.mcap``.
+
+::
+
+    async with McapReplay("run.mcap", port=0, speed=2.0) as replay:
+        print(replay.url)                             # ws://127.0.0.1:…
+        sent = await replay.run()                     # every message, on its recorded time
+
+The file's channels are advertised as they were recorded (topic, message encoding,
+schema), so the app shows a replay exactly as the live view: the 3D view's transforms,
+the plots, the battery. Each message goes out with its recorded log time, paced by the
+recorded gaps (divided by ``speed``); a client that connects late sees the rest. The
+file is read on the event loop as the messages are due, a chunk at a time: this process
+drives no robot, and a chunk (about a second of the streams) reads in a millisecond or
+two.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+from typing import IO, Any, Final
+
+import foxglove
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from ohmni_tb._checks import bounded, integer
+from ohmni_tb.errors import OhmniError, TransportError
+from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT
+
+__all__ = ["MAX_SPEED", "McapReplay", "ReplayError"]
+
+_log = logging.getLogger("ohmni_tb.foxglove")
+
+#: The fastest replay: a minute of recording in a second and a half.
+MAX_SPEED: Final = 40.0
+
+
+class ReplayError(OhmniError):
+    """A recording that cannot be replayed: not found, not MCAP, or cut short inside."""
+
+
+class McapReplay:
+    """A Foxglove WebSocket server playing an MCAP recording (module docstring).
+
+    Args:
+        path: The ``.mcap`` file.
+        host: Address to listen on (loopback by default; the protocol has no
+            authentication).
+        port: TCP port; 0 picks a free one (see :attr:`port`).
+        speed: Playback speed, 0.01..:data:`MAX_SPEED` (1: as recorded).
+        name: The server's name, shown by the app.
+
+    Raises:
+        OutOfRangeError: ``port`` not 0..65535, or ``speed`` not 0.01..40.
+        InvalidArgumentError: ``speed`` not a number.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        speed: float = 1.0,
+        name: str = "ohmni_tb replay",
+    ) -> None:
+        self._speed = bounded("speed", speed, 0.01, MAX_SPEED)
+        self._path = Path(path)
+        self._host = host
+        self._port = integer("port", port, 0, 65535)
+        self._name = name
+        self._context = foxglove.Context()
+        self._channels: dict[int, foxglove.Channel] = {}
+        self._server: Any = None
+        self._file: IO[bytes] | None = None
+        #: Messages sent so far, by topic.
+        self.sent: dict[str, int] = {}
+
+    @property
+    def port(self) -> int:
+        """The TCP port (the one chosen, when 0 was asked)."""
+        return self._port
+
+    @property
+    def url(self) -> str:
+        """``ws://host:port``: the Foxglove app's "Foxglove WebSocket" connection."""
+        host = f"[{self._host}]" if ":" in self._host else self._host
+        return f"ws://{host}:{self._port}"
+
+    @property
+    def topics(self) -> list[str]:
+        """The recording's topics, as advertised."""
+        return sorted(channel.topic() for channel in self._channels.values())
+
+    async def start(self) -> None:
+        """Open the file, advertise its channels, listen.
+
+        Raises:
+            ReplayError: No such file, or not an MCAP file.
+            TransportError: The address cannot be bound.
+        """
+        try:
+            self._file = self._path.open("rb")
+        except OSError as exc:
+            raise ReplayError(f"cannot open {self._path}: {exc.strerror or exc}") from exc
+        try:
+            summary = make_reader(self._file).get_summary()
+        except (McapError, ValueError, EOFError) as exc:
+            self._file.close()
+            raise ReplayError(f"{self._path} is not an MCAP recording: {exc}") from exc
+        if summary is not None:  # without one (a cut file) channels come as they appear
+            for channel in summary.channels.values():
+                self._channel(channel, summary.schemas.get(channel.schema_id))
+        try:
+            self._server = foxglove.start_server(
+                name=self._name, host=self._host, port=self._port, context=self._context
+            )
+        except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
+            self._file.close()
+            reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
+            raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
+        self._port = self._server.port
+
+    def _channel(self, channel: Any, schema: Any) -> foxglove.Channel:
+        made = self._channels.get(channel.id)
+        if made is None:
+            made = foxglove.Channel(
+                channel.topic,
+                message_encoding=channel.message_encoding,
+                schema=None
+                if schema is None
+                else foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
+                context=self._context,
+                metadata=dict(channel.metadata) or None,
+            )
+            self._channels[channel.id] = made
+        return made
+
+    async def run(self) -> int:
+        """Send every message on its recorded time (scaled by ``speed``); the count sent.
+
+        Raises:
+            ReplayError: The file ends inside a record (what came before was sent).
+        """
+        if self._file is None:
+            raise ReplayError("start() the replay first")
+        self._file.seek(0)
+        loop = asyncio.get_running_loop()
+        start_at: float | None = None
+        first_ns = 0
+        count = 0
+        try:
+            for schema, channel, message in make_reader(self._file).iter_messages(
+                log_time_order=True
+            ):
+                if start_at is None:
+                    start_at, first_ns = loop.time(), message.log_time
+                due = start_at + (message.log_time - first_ns) / 1e9 / self._speed
+                if (wait := due - loop.time()) > 0:
+                    await asyncio.sleep(wait)
+                self._channel(channel, schema).log(message.data, log_time=message.log_time)
+                self.sent[channel.topic] = self.sent.get(channel.topic, 0) + 1
+                count += 1
+        except (McapError, ValueError, EOFError) as exc:
+            raise ReplayError(f"{self._path} ends inside a record after {count} messages") from exc
+        return count
+
+    async def aclose(self) -> None:
+        """Stop listening and close the file. Idempotent."""
+        server, self._server = self._server, None
+        if server is not None:
+            await asyncio.to_thread(server.stop)
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    async def __aenter__(self) -> McapReplay:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
