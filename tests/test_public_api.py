@@ -60,7 +60,7 @@ PUBLIC = {
     "ohmni_tb.bus": [
         "DEFAULT_CLOSE_TIMEOUT_S", "DEFAULT_GUARD_S", "DEFAULT_MAX_WAIT_S", "DEFAULT_RETRIES",
         "DEFAULT_STALL_S", "DEFAULT_TIMEOUT_S", "DEFAULT_TURNAROUND_S", "BreakerState", "Bus",
-        "BusStats", "DeviceStats", "ReplyPacket", "Slot", "transaction_cost_s",
+        "BusStats", "DeviceStats", "ReplyPacket", "Slot", "Tap", "transaction_cost_s",
     ],
     "ohmni_tb.herkulex.servo": ["Requester", "Servo", "ServoStatus", "move_group"],
     "ohmni_tb.safety": [
@@ -121,7 +121,7 @@ PUBLIC = {
          "LIMIT_PARAMETERS", "NECK_MOVE_SERVICE", "PARAMETER_PREFIX", "PID_PARAMETERS",
          "RATE_STREAMS", "RESET_ODOM_SERVICE", "SERVICE_SCHEMAS", "RobotControl",
     ],
-    "ohmni_tb.foxglove.replay": ["MAX_SPEED", "McapReplay", "ReplayError"],
+    "ohmni_tb.foxglove.replay": ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"],
     "ohmni_tb.foxglove.channels": [
          "BASE_FRAME", "CHANNELS", "ODOM_FRAME", "ChannelSpec", "Encoder", "WallClock",
          "channel_schema", "channels_of", "encoder_for", "json_schema_of",
@@ -131,8 +131,8 @@ PUBLIC = {
          "Teleop", "parse_twist",
     ],
     "ohmni_tb.foxglove.record": [
-         "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "McapRecorder",
-         "RecordingError",
+         "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "RAW_SCHEMA_NAME",
+         "RAW_TOPICS", "McapRecorder", "RecordingError",
     ],
     "ohmni_tb.daemon.auth": [
          "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token", "default_token_path",

@@ -41,6 +41,7 @@ What it promises:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from collections import deque
@@ -113,10 +114,14 @@ __all__ = [
     "DeviceStats",
     "ReplyPacket",
     "Slot",
+    "Tap",
     "transaction_cost_s",
 ]
 
 _log = logging.getLogger(__name__)
+
+#: A bus tap (:meth:`Bus.add_tap`): (sent, the bytes, loop time).
+Tap = Callable[[bool, bytes, float], None]
 
 #: Extra attempts for reads and STAT; writes are never repeated blindly.
 DEFAULT_RETRIES = 2
@@ -398,6 +403,7 @@ class Bus:
         self._closed = False
         self._failure: TransportError | None = None
         self._lost: asyncio.Event | None = None
+        self._taps: list[Tap] = []
         self._stall_since: float | None = None
         self._waits: deque[float] = deque(maxlen=_WAIT_WINDOW)
         self._slots = 0
@@ -1076,11 +1082,38 @@ class Bus:
 
     # -- the engine ------------------------------------------------------------------
 
+    def add_tap(self, tap: Tap) -> Callable[[], None]:
+        """Call ``tap(sent, data, t_s)`` with every chunk of bytes written to the port
+        (``sent`` true) or read from it, as it happens, with the loop's time; across
+        reconnections. Returns the function that removes it. A tap that raises is
+        logged and removed; it never disturbs the bus.
+
+        The bytes a ``ohmni record --raw`` recording keeps, for ``ohmni bus monitor``.
+        """
+        self._taps.append(tap)
+
+        def remove() -> None:
+            with contextlib.suppress(ValueError):
+                self._taps.remove(tap)
+
+        return remove
+
+    def _tapped(self, sent: bool, data: bytes, t_s: float) -> None:
+        for tap in list(self._taps):
+            try:
+                tap(sent, data, t_s)
+            except Exception:
+                _log.exception("a bus tap failed: removed")
+                self._taps.remove(tap)
+
     def _on_data(self, data: bytes) -> None:
         loop = self._loop
         if loop is None or self._closed:
             return
-        self._handle(self._conn.receive_data(data, loop.time()))
+        now = loop.time()
+        if self._taps:
+            self._tapped(False, data, now)
+        self._handle(self._conn.receive_data(data, now))
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:
@@ -1357,7 +1390,10 @@ class Bus:
         except TransportError as exc:
             self._on_lost(exc)
             return False
-        self._conn.written(exchange, loop.time())
+        now = loop.time()
+        self._conn.written(exchange, now)
+        if self._taps:
+            self._tapped(True, exchange.frame, now)
         return True
 
     def _handle(self, events: list[Event]) -> None:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -17,12 +19,13 @@ from ohmni_tb.cli.common import (
     TimeoutOption,
     console,
     emit_json,
+    error_line,
     open_bus,
     parse_int,
     resolve_port,
     run,
 )
-from ohmni_tb.errors import MalformedReplyError
+from ohmni_tb.errors import MalformedReplyError, OhmniError
 from ohmni_tb.monitor import BusMonitor, MonitorEvent
 from ohmni_tb.protocol import (
     BROADCAST_ID,
@@ -132,7 +135,11 @@ def monitor(
     ] = None,
     capture: Annotated[
         Path | None,
-        typer.Option("--capture", help="Decode a file of raw captured bytes instead."),
+        typer.Option(
+            "--capture",
+            help="Decode a file of raw captured bytes instead, or an MCAP recording made "
+            "with ohmni record --raw (with the bytes' times).",
+        ),
     ] = None,
     duration: Annotated[
         float | None,
@@ -169,11 +176,14 @@ def monitor(
                 console.print(f"{t}{ev.device:>9} {ev.text}{lat}", highlight=False)
 
     if capture is not None:
-        try:
-            data = capture.read_bytes()
-        except OSError as exc:
-            raise typer.BadParameter(f"cannot read capture {capture}: {exc}") from None
-        show(mon.feed(data))
+        if _is_mcap(capture):
+            _feed_recording(mon, capture, show)
+        else:
+            try:
+                data = capture.read_bytes()
+            except OSError as exc:
+                raise typer.BadParameter(f"cannot read capture {capture}: {exc}") from None
+            show(mon.feed(data))
     else:
         assert port is not None
 
@@ -194,6 +204,36 @@ def monitor(
         # Ctrl-C ends a live session: the summary still comes, then exit code 130.
         run(listen, on_interrupt=lambda: _summary(mon, as_json))
     _summary(mon, as_json)
+
+
+#: The first bytes of an MCAP file.
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _is_mcap(path: Path) -> bool:
+    try:
+        with path.open("rb") as file:
+            return file.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC
+    except OSError:
+        return False  # read_bytes says why, as for any capture
+
+
+def _feed_recording(
+    mon: BusMonitor, path: Path, show: Callable[[list[MonitorEvent]], None]
+) -> None:
+    """The bytes of an ``ohmni record --raw`` recording, written and read, in the order
+    they happened, with their times (seconds from the first)."""
+    if importlib.util.find_spec("mcap") is None:
+        error_line("an MCAP capture needs the mcap reader: pip install 'ohmni_tb[foxglove]'")
+        raise typer.Exit(1)
+    from ohmni_tb.foxglove.replay import raw_bus_bytes  # noqa: PLC0415  # the extra
+
+    try:
+        for t_s, _sent, data in raw_bus_bytes(path):
+            show(mon.feed(data, t_s))
+    except OhmniError as exc:
+        error_line(str(exc))
+        raise typer.Exit(1) from None
 
 
 def _check_packet(packet: Packet) -> None:

@@ -59,6 +59,14 @@ def record(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Replace FILE if it exists.")
     ] = False,
+    raw: Annotated[
+        bool,
+        typer.Option(
+            "--raw",
+            help="Also record the bus's bytes as written and read, for ohmni bus monitor "
+            "--capture (needs the port itself: not through ohmni serve).",
+        ),
+    ] = False,
     as_json: JsonOption = False,
     port: PortOption = None,
     direct: DirectOption = False,
@@ -71,7 +79,8 @@ def record(
     object. Nothing moves, and the neck is left as it was.
 
     Examples: ohmni record run.mcap --port sim:// --duration 10 ;
-    ohmni record drive-test.mcap   (Ctrl-C to stop)
+    ohmni record drive-test.mcap   (Ctrl-C to stop) ;
+    ohmni record bus.mcap --raw --duration 5 then ohmni bus monitor --capture bus.mcap
     """
     if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_DURATION_S):
         raise typer.BadParameter(
@@ -81,10 +90,16 @@ def record(
         error_line("ohmni record needs foxglove-sdk and mcap: pip install 'ohmni_tb[foxglove]'")
         raise typer.Exit(1)
     via = daemon_for(port, direct)
+    if raw and via is not None:
+        raise typer.BadParameter(
+            f"--raw needs the serial port, and ohmni serve holds it ({via}): stop it, or lend "
+            "the port with ohmni serve --handoff S and record with --direct",
+            param_hint="--raw",
+        )
     where = via or resolve_port(port)
     outcome = _Outcome(duration_s=duration)
     try:
-        run(lambda: _record(where, via, file, duration, overwrite, as_json, outcome))
+        run(lambda: _record(where, via, file, duration, overwrite, as_json, outcome, raw))
     except typer.Exit as exc:
         if exc.exit_code not in _STOPPED or outcome.recorder is None:
             raise
@@ -115,13 +130,14 @@ async def _record(
     overwrite: bool,
     as_json: bool,
     outcome: _Outcome,
+    raw: bool = False,
 ) -> None:
     from ohmni_tb.foxglove import McapRecorder  # noqa: PLC0415  # the SDK loads here
 
     loop = asyncio.get_running_loop()
     # A read-only command: the neck stays as it is on exit (no rest, no free).
     async with open_robot(port, via=via, on_exit_neck="keep") as robot:
-        recorder = McapRecorder(robot, path, overwrite=overwrite, duration_s=duration_s)
+        recorder = McapRecorder(robot, path, overwrite=overwrite, duration_s=duration_s, raw=raw)
         outcome.recorder = recorder
         try:
             async with recorder:

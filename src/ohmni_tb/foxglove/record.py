@@ -33,6 +33,7 @@ import contextlib
 import datetime
 import errno
 import io
+import json
 import logging
 import os
 import threading
@@ -46,13 +47,17 @@ from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
 
 from ohmni_tb import __version__
 from ohmni_tb._checks import bounded, integer, positive
-from ohmni_tb.errors import OhmniError
+from ohmni_tb.bus import Bus
+from ohmni_tb.errors import InvalidArgumentError, OhmniError
 from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
+from ohmni_tb.foxglove.channels import WallClock
 
 __all__ = [
     "DEFAULT_FLUSH_INTERVAL_S",
     "MAX_BACKLOG_BYTES",
     "MAX_DURATION_S",
+    "RAW_SCHEMA_NAME",
+    "RAW_TOPICS",
     "McapRecorder",
     "RecordingError",
 ]
@@ -106,10 +111,14 @@ class McapRecorder:
             (0 < s ≤ a week); :meth:`wait` returns when they are in. ``None``: until closed.
         flush_interval_s: Finish a chunk this often (0.05..60 s).
         queue: Samples each stream's subscription holds before its oldest are dropped.
+        raw: Also record the bus's bytes as they are written and read
+            (:data:`RAW_TOPICS`: JSON ``{"data": "ff ff 09 …"}``, one message a chunk,
+            stamped when the port took or gave it), for ``ohmni bus monitor --capture``.
+            Needs the Robot itself: a daemon's client has no port.
 
     Raises:
         InvalidArgumentError: ``duration_s`` or ``flush_interval_s`` not a finite positive
-            number in range.
+            number in range; ``raw`` with something that is not a Robot.
     """
 
     def __init__(
@@ -121,7 +130,17 @@ class McapRecorder:
         duration_s: float | None = None,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
         queue: int = DEFAULT_QUEUE,
+        raw: bool = False,
     ) -> None:
+        bus = getattr(robot, "bus", None) if raw else None
+        if raw and not isinstance(bus, Bus):
+            raise InvalidArgumentError(
+                "raw bus bytes need the Robot that owns the port, not a daemon's client "
+                "(ohmni record --raw --direct, after ohmni serve --handoff)"
+            )
+        self._bus = bus
+        self._raw: dict[bool, _RawChannel] = {}
+        self._untap: Callable[[], None] | None = None
         self._robot = robot
         self._path = os.fspath(path)
         self._overwrite = overwrite
@@ -163,7 +182,10 @@ class McapRecorder:
 
     def stats(self) -> dict[str, ChannelStats]:
         """Every channel's figures, by topic: messages recorded, samples dropped."""
-        return {} if self._pump is None else self._pump.stats()
+        figures = {} if self._pump is None else self._pump.stats()
+        for raw in self._raw.values():
+            figures[raw.topic] = ChannelStats(raw.topic, RAW_SCHEMA_NAME, raw.messages, raw.dropped)
+        return figures
 
     async def start(self) -> None:
         """Create the file and start recording.
@@ -210,6 +232,8 @@ class McapRecorder:
         )
         self._pump.start()
         assert self._pump.clock is not None
+        if self._bus is not None:
+            self._tap_bus(self._bus, self._pump.clock, self._sink)
         started = datetime.datetime.fromtimestamp(
             self._pump.clock.ns(self._start_s) / 1e9, datetime.UTC
         )
@@ -278,7 +302,31 @@ class McapRecorder:
         if exc is None and self.error is not None:
             raise self.error
 
+    def _tap_bus(self, bus: Bus, clock: WallClock, sink: _FileSink) -> None:
+        """Record every chunk the bus writes and reads, inside the window."""
+        for sent, topic in ((True, RAW_TOPICS[0]), (False, RAW_TOPICS[1])):
+            self._raw[sent] = _RawChannel(topic, self._context)
+        start, end = self._start_s, self._end_s if self._end_s is not None else float("inf")
+        raw = self._raw
+
+        def tap(sent: bool, data: bytes, t_s: float) -> None:
+            if not start <= t_s < end:
+                return
+            channel = raw[sent]
+            if not sink.accepting():
+                channel.dropped += 1
+                return
+            channel.channel.log(
+                b'{"data":"' + data.hex(" ").encode() + b'"}', log_time=clock.ns(t_s)
+            )
+            channel.messages += 1
+
+        self._untap = bus.add_tap(tap)
+
     async def _close(self) -> None:
+        if self._untap is not None:
+            self._untap()
+            self._untap = None
         loop = asyncio.get_running_loop()
         if self._flusher is not None:
             self._flusher.cancel()
@@ -331,6 +379,36 @@ class McapRecorder:
             return f"{text}; the file is a valid, empty recording"
         kept_s = max(0.0, (kept - start) / 1e9)
         return f"{text}; the file is closed and readable, with the first {kept_s:.1f} s"
+
+
+#: The raw recording's channels: bytes the host wrote, bytes it read.
+RAW_TOPICS: Final = ("/ohmni/bus/tx", "/ohmni/bus/rx")
+#: Their schema: one chunk of bytes as hex.
+RAW_SCHEMA_NAME: Final = "ohmni_tb.BusBytes"
+_RAW_SCHEMA: Final = {
+    "title": RAW_SCHEMA_NAME,
+    "type": "object",
+    "properties": {
+        "data": {"type": "string", "description": "the bytes, two hex digits each, spaced"}
+    },
+}
+
+
+class _RawChannel:
+    """One direction of the bus's bytes, on its channel, with its counts."""
+
+    def __init__(self, topic: str, context: foxglove.Context) -> None:
+        self.topic = topic
+        self.channel = foxglove.Channel(
+            topic,
+            message_encoding="json",
+            schema=foxglove.Schema(
+                name=RAW_SCHEMA_NAME, encoding="jsonschema", data=json.dumps(_RAW_SCHEMA).encode()
+            ),
+            context=context,
+        )
+        self.messages = 0
+        self.dropped = 0
 
 
 def _create(path: str, *, overwrite: bool) -> int:

@@ -18,7 +18,9 @@ two.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any, Final
 
@@ -29,8 +31,9 @@ from mcap.reader import make_reader
 from ohmni_tb._checks import bounded, integer
 from ohmni_tb.errors import OhmniError, TransportError
 from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT
+from ohmni_tb.foxglove.record import RAW_TOPICS
 
-__all__ = ["MAX_SPEED", "McapReplay", "ReplayError"]
+__all__ = ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"]
 
 _log = logging.getLogger("ohmni_tb.foxglove")
 
@@ -40,6 +43,47 @@ MAX_SPEED: Final = 40.0
 
 class ReplayError(OhmniError):
     """A recording that cannot be replayed: not found, not MCAP, or cut short inside."""
+
+
+def raw_bus_bytes(path: str | Path) -> Iterator[tuple[float, bool, bytes]]:
+    """The bus bytes of a ``ohmni record --raw`` recording, in the order they happened:
+    (seconds since the first chunk, whether the host wrote them, the bytes).
+
+    Raises:
+        ReplayError: No such file, not MCAP, no raw bus bytes in it, or a chunk that is
+            not one (the message names the file).
+    """
+    try:
+        file = Path(path).open("rb")  # noqa: SIM115  # closed by the with below: the open's error is ours
+    except OSError as exc:
+        raise ReplayError(f"cannot open {path}: {exc.strerror or exc}") from exc
+    with file:
+        try:
+            reader = make_reader(file)
+            first_ns: int | None = None
+            found = False
+            for _, channel, message in reader.iter_messages(
+                topics=list(RAW_TOPICS), log_time_order=True
+            ):
+                found = True
+                if first_ns is None:
+                    first_ns = message.log_time
+                try:
+                    data = bytes.fromhex(json.loads(message.data)["data"])
+                except (ValueError, KeyError, TypeError) as exc:
+                    raise ReplayError(
+                        f"{path}: a {channel.topic} message is not bus bytes: {message.data[:60]!r}"
+                    ) from exc
+                yield (message.log_time - first_ns) / 1e9, channel.topic == RAW_TOPICS[0], data
+        except (McapError, EOFError) as exc:
+            raise ReplayError(
+                f"{path} is not an MCAP recording (or ends inside a record): {exc}"
+            ) from exc
+        if not found:
+            raise ReplayError(
+                f"{path} has no raw bus bytes ({', '.join(RAW_TOPICS)}): record them with "
+                "ohmni record --raw"
+            )
 
 
 class McapReplay:
