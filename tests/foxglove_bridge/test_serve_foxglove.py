@@ -35,6 +35,18 @@ def next_line(proc: Popen[bytes], timeout_s: float = 20.0) -> str:
     return line.decode().strip()
 
 
+def serving_with_view(*args: str) -> tuple[Popen[bytes], str, str]:
+    """``ohmni serve --foxglove`` on free ports: the process, its URL and the view's."""
+    proc, url = start_serving(
+        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}", *args
+    )
+    try:
+        return proc, url, next_line(proc)
+    except BaseException:
+        stop_serving(proc)
+        raise
+
+
 def test_the_daemon_serves_the_foxglove_app_and_its_clients_at_once() -> None:
     proc, url = start_serving(
         "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}"
@@ -113,13 +125,16 @@ async def travelled(url: str) -> float:
         return float(odom.x_m)
 
 
+async def lease_is_free_again(url: str) -> None:
+    """The app gives the lease back a second after its last use: another client takes it."""
+    await asyncio.sleep(1.5)
+    async with RobotClient.connect(url) as after:
+        await after.acquire()
+
+
 def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
-    proc, url = start_serving(
-        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}",
-        "--foxglove-control",
-    )  # fmt: skip
+    proc, url, view = serving_with_view("--foxglove-control")
     try:
-        view = next_line(proc)
 
         async def drive() -> None:
             # Another client holds the lease: the panel's Twists move nothing.
@@ -131,9 +146,7 @@ def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
             await publish_twists(view, 0.3, 1.5)
             assert await travelled(url) > 0.2
             # It gives the lease back after its last Twist: another client may drive.
-            await asyncio.sleep(1.5)
-            async with RobotClient.connect(url) as after:
-                await after.acquire()
+            await lease_is_free_again(url)
 
         asyncio.run(drive())
     finally:
@@ -142,12 +155,8 @@ def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
 
 
 def test_parameters_and_services_change_the_robot_only_through_the_lease() -> None:
-    proc, url = start_serving(
-        "--listen", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}",
-        "--foxglove-control",
-    )  # fmt: skip
+    proc, url, view = serving_with_view("--foxglove-control")
     try:
-        view = next_line(proc)
 
         async def change() -> None:
             foxglove = await FoxgloveClient.connect(view)
@@ -187,9 +196,7 @@ def test_parameters_and_services_change_the_robot_only_through_the_lease() -> No
                 stats = await reader.stats()
                 assert stats.streams["tbcore_status"].requested_hz == 5.0
             # Given back a second after the last change: another client may drive.
-            await asyncio.sleep(1.5)
-            async with RobotClient.connect(url) as after:
-                await after.acquire()
+            await lease_is_free_again(url)
 
         asyncio.run(change())
     finally:

@@ -209,7 +209,39 @@ DEFAULT_PORT: Final = 8765
 DEFAULT_BACKLOG: Final = 1024
 
 
-class FoxgloveBridge:
+class _Served:
+    """A Foxglove server's address (the bridge's and the replay's)."""
+
+    _host: str
+    _port: int
+
+    @property
+    def port(self) -> int:
+        """The TCP port (the one chosen, when 0 was asked)."""
+        return self._port
+
+    @property
+    def url(self) -> str:
+        """``ws://host:port``: the Foxglove app's "Foxglove WebSocket" connection."""
+        host = f"[{self._host}]" if ":" in self._host else self._host
+        return f"ws://{host}:{self._port}"
+
+    def _listen(self, **options: Any) -> WebSocketServer:
+        """``foxglove.start_server`` on this address; the port it got is kept.
+
+        Raises:
+            TransportError: The address cannot be bound (in use, not this machine's).
+        """
+        try:
+            server = foxglove.start_server(host=self._host, port=self._port, **options)
+        except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
+            reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
+            raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
+        self._port = server.port
+        return server
+
+
+class FoxgloveBridge(_Served):
     """Serves an open Robot's streams to the Foxglove app (an async context manager).
 
     Args:
@@ -268,17 +300,6 @@ class FoxgloveBridge:
         return self._host
 
     @property
-    def port(self) -> int:
-        """The TCP port (the one chosen, when 0 was asked)."""
-        return self._port
-
-    @property
-    def url(self) -> str:
-        """``ws://host:port``: the Foxglove app's "Foxglove WebSocket" connection."""
-        host = f"[{self._host}]" if ":" in self._host else self._host
-        return f"ws://{host}:{self._port}"
-
-    @property
     def app_url(self) -> str | None:
         """A link that opens this server in the Foxglove web app (``None`` once closed)."""
         return None if self._server is None else self._server.app_url()
@@ -308,10 +329,8 @@ class FoxgloveBridge:
         if services:
             capabilities.append(Capability.Services)
         try:
-            self._server = foxglove.start_server(
+            self._server = self._listen(
                 name=self._name,
-                host=self._host,
-                port=self._port,
                 context=self._context,
                 message_backlog_size=self._backlog,
                 capabilities=capabilities,
@@ -319,11 +338,9 @@ class FoxgloveBridge:
                 server_listener=listener,
                 services=services or None,
             )
-        except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
-            reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
+        except TransportError:
             await self._pump.aclose()
-            raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
-        self._port = self._server.port
+            raise
         listener.server = self._server
         self._pump.start()
 

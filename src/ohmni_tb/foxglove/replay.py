@@ -30,7 +30,7 @@ from mcap.reader import make_reader
 
 from ohmni_tb._checks import bounded, integer
 from ohmni_tb.errors import OhmniError, TransportError
-from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT
+from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT, _Served
 from ohmni_tb.foxglove.record import RAW_TOPICS
 
 __all__ = ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"]
@@ -86,7 +86,7 @@ def raw_bus_bytes(path: str | Path) -> Iterator[tuple[float, bool, bytes]]:
             )
 
 
-class McapReplay:
+class McapReplay(_Served):
     """A Foxglove WebSocket server playing an MCAP recording (module docstring).
 
     Args:
@@ -124,17 +124,6 @@ class McapReplay:
         self.sent: dict[str, int] = {}
 
     @property
-    def port(self) -> int:
-        """The TCP port (the one chosen, when 0 was asked)."""
-        return self._port
-
-    @property
-    def url(self) -> str:
-        """``ws://host:port``: the Foxglove app's "Foxglove WebSocket" connection."""
-        host = f"[{self._host}]" if ":" in self._host else self._host
-        return f"ws://{host}:{self._port}"
-
-    @property
     def topics(self) -> list[str]:
         """The recording's topics, as advertised."""
         return sorted(channel.topic() for channel in self._channels.values())
@@ -159,14 +148,10 @@ class McapReplay:
             for channel in summary.channels.values():
                 self._channel(channel, summary.schemas.get(channel.schema_id))
         try:
-            self._server = foxglove.start_server(
-                name=self._name, host=self._host, port=self._port, context=self._context
-            )
-        except RuntimeError as exc:  # the SDK's FoxgloveError: "Failed to bind port: …"
+            self._server = self._listen(name=self._name, context=self._context)
+        except TransportError:
             self._file.close()
-            reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
-            raise TransportError(f"cannot listen on {self.url}: {reason}") from exc
-        self._port = self._server.port
+            raise
 
     def _channel(self, channel: Any, schema: Any) -> foxglove.Channel:
         made = self._channels.get(channel.id)
