@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosedOK
+from websockets.exceptions import ConnectionClosed
 
 #: The subprotocol foxglove-sdk's server requires (it refuses foxglove.websocket.v1).
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -247,7 +247,7 @@ class FoxgloveClient:
             try:
                 async with asyncio.timeout(left):
                     frame = await self.ws.recv()
-            except (TimeoutError, ConnectionClosedOK):
+            except (TimeoutError, ConnectionClosed):
                 break
             if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA:
                 subscription, log_time = struct.unpack_from("<IQ", frame, 1)
