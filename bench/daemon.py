@@ -60,7 +60,9 @@ counts the garbled bytes and turns cautious for a while, ``cautions``). A USB ad
 driver submits the write in the system call, so the robot's line does not have that
 jitter; in-process, the simulated line keeps time with the daemon's own loop and the
 rows show what the fan-out does to the control tick. Its CPU figure includes the
-simulator (~7 % of a core).
+simulator (~7 % of a core). ``--clients-nice 19`` runs the clients' process at the
+lowest priority: on two cores it competes with the daemon for them, and this shows how
+much of the control tick's jitter is that contention rather than the daemon's own work.
 """
 
 from __future__ import annotations
@@ -149,6 +151,8 @@ class Daemon:
 
 #: ``--sim in-process``: sim:// in the daemon's process instead of ``ohmni sim --pty``.
 SIM_IN_PROCESS = False
+#: ``--clients-nice N``: the clients' process runs at this niceness (0: as the daemon).
+CLIENTS_NICE = 0
 
 
 @contextmanager
@@ -246,7 +250,11 @@ class ClientProcess:
     @asynccontextmanager
     async def start(cls, url: str, *args: str) -> AsyncIterator[ClientProcess]:
         """Start it and wait until every client is subscribed."""
+        # --clients-nice: the clients yield the cores to the daemon (and the simulator),
+        # to tell the daemon's own cost from the two processes' contention.
+        nice = ["nice", "-n", str(CLIENTS_NICE)] if CLIENTS_NICE else []
         process = await asyncio.create_subprocess_exec(
+            *nice,
             sys.executable,
             str(CLIENTS_SCRIPT),
             url,
@@ -808,9 +816,18 @@ def main() -> int:
     parser.add_argument(
         "--sim", choices=("pty", "in-process"), default="pty", help="where the simulator runs"
     )
+    parser.add_argument(
+        "--clients-nice",
+        type=int,
+        default=0,
+        choices=range(20),
+        metavar="N",
+        help="run the clients' process at niceness N (0..19; default 0)",
+    )
     args = parser.parse_args()
-    global SIM_IN_PROCESS  # noqa: PLW0603  # one setting for the whole run, read by simulator()
+    global SIM_IN_PROCESS, CLIENTS_NICE  # noqa: PLW0603  # settings for the whole run
     SIM_IN_PROCESS = args.sim == "in-process"
+    CLIENTS_NICE = args.clients_nice
     seconds = 5.0 if args.quick else args.seconds
     soak_seconds = 20.0 if args.quick else args.soak_seconds
     # SIGTERM as Ctrl-C: the finally blocks stop the clients' process and the simulator.
