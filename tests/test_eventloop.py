@@ -164,3 +164,13 @@ def test_the_robot_on_the_simulator_in_process_does_not_warn(
     with caplog.at_level(logging.WARNING, "ohmni_tb"):
         asyncio.run(main())
     assert not [r for r in caplog.records if "1 ms late" in r.getMessage()]
+
+
+def test_the_commands_run_on_the_precise_loop() -> None:
+    from ohmni_tb.cli import common
+
+    async def resolution() -> float:
+        return timer_resolution_s()
+
+    # What every `ohmni` command (and `ohmni serve`) runs its work with.
+    assert common.run(resolution) == 0.0
