@@ -39,8 +39,10 @@ def _counts_within(counts: dict[str, int], seconds: float, *, pid_debug: bool = 
             assert counts.get(topic, 0) == 0
             continue
         expected = hz * seconds
-        # A 1 Hz stream over a few seconds cannot be within 2 %: one sample is 33 %.
-        allowed = max(TOLERANCE * expected, 1.0 if hz == 1 else 0.0)
+        # In real time a sample stamped within a few milliseconds of the window's start or
+        # end falls either side of it with the jitter: one sample more or less than rate ×
+        # duration is the window's edge, not a loss (20 or 21 of a 10 Hz stream in 2 s).
+        allowed = max(TOLERANCE * expected, 1.0)
         assert abs(counts.get(topic, 0) - expected) <= allowed, (topic, counts.get(topic), expected)
 
 
