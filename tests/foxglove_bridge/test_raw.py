@@ -105,7 +105,7 @@ def test_ohmni_record_raw_then_bus_monitor_decodes_it(tmp_path: Path) -> None:
     assert all(e["t_s"] is not None for e in events)
     replies = [e for e in events if e["latency_ms"] is not None]
     assert replies
-    assert all(0 < e["latency_ms"] < 25 for e in replies)
+    assert all(0 < e["latency_ms"] < 100 for e in replies)  # times kept: replies after requests
 
 
 def test_a_recording_without_raw_bytes_is_refused_by_the_monitor(tmp_path: Path) -> None:
