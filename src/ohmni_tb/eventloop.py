@@ -78,6 +78,7 @@ if hasattr(selectors, "EpollSelector"):
         return asyncio.SelectorEventLoop(PreciseEpollSelector())
 
 else:  # pragma: no cover  # macOS, the BSDs, Windows: no epoll to make precise
+    __all__.remove("PreciseEpollSelector")
 
     def new_event_loop() -> asyncio.AbstractEventLoop:
         """asyncio's default loop (its timers are as precise as that platform's)."""
