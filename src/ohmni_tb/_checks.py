@@ -127,3 +127,19 @@ def check_seconds(name: str, value: float, low: float, high: float) -> None:
         or not low <= value <= high
     ):
         raise OutOfRangeError(name, value, low, high, "s")
+
+
+def host_port(text: str, *, default_host: str | None = None) -> tuple[str, int] | None:
+    """``HOST:PORT`` (an IPv6 host in brackets) as (host, port), or ``None`` when it is
+    not one; with ``default_host``, ``PORT`` or ``:PORT`` alone stands for that host.
+    The port is 0..65535."""
+    raw_host, sep, port = text.rpartition(":")
+    host = raw_host.removeprefix("[").removesuffix("]")
+    if default_host is None:
+        if not sep or not raw_host:
+            return None
+    else:
+        host = host or default_host
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        return None
+    return host, int(port)

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from ohmni_tb._checks import host_port
 from ohmni_tb.cli.common import PortOption, open_robot, resolve_port, run, write_line
 from ohmni_tb.errors import ConfigError
 
@@ -288,13 +289,13 @@ def parse_foxglove(text: str) -> tuple[str, int]:
     """``--foxglove [HOST:]PORT``; the extra must be installed."""
     import importlib.util  # noqa: PLC0415
 
-    host, sep, port_text = text.rpartition(":")
-    host = (host.removeprefix("[").removesuffix("]") if sep else "") or "127.0.0.1"
-    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+    address = host_port(text, default_host="127.0.0.1")
+    if address is None:
         raise typer.BadParameter(
             f"--foxglove must be [HOST:]PORT with a port 0..65535, not {text!r}",
             param_hint="--foxglove",
         )
+    host, port = address
     if importlib.util.find_spec("foxglove") is None:
         raise typer.BadParameter(
             "needs the foxglove extra: pip install 'ohmni_tb[foxglove]'", param_hint="--foxglove"
@@ -307,7 +308,7 @@ def parse_foxglove(text: str) -> tuple[str, int]:
             "it can watch the robot (prefer loopback and ssh -L)",
             err=True,
         )
-    return host, int(port_text)
+    return host, port
 
 
 def _hand_off(
@@ -373,14 +374,13 @@ def _token(host: str, token_file: Path | None) -> str | None:
 
 
 def _parse_listen(listen: str) -> tuple[str, int]:
-    host, sep, port_text = listen.rpartition(":")
-    if not sep or not host or not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+    address = host_port(listen)
+    if address is None:
         raise typer.BadParameter(
             f"--listen must be HOST:PORT with a port 0..65535, not {listen!r}",
             param_hint="--listen",
         )
-    host = host.removeprefix("[").removesuffix("]")
-    return host, int(port_text)
+    return address
 
 
 class _Structured(logging.Formatter):

@@ -34,7 +34,7 @@ from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 
-from ohmni_tb._checks import check_seconds, finite, show
+from ohmni_tb._checks import check_seconds, finite, host_port, show
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
@@ -1827,13 +1827,10 @@ def _foxglove_address(value: str | int) -> tuple[str, int]:
         ConfigError: Not such an address, or a port outside 0..65535.
     """
     text = str(value) if isinstance(value, int) and not isinstance(value, bool) else value
-    if not isinstance(text, str):
+    address = host_port(text, default_host="127.0.0.1") if isinstance(text, str) else None
+    if address is None:
         raise ConfigError(f"foxglove must be 'HOST:PORT' or a port 0..65535, not {value!r}")
-    host, _, port = text.rpartition(":")
-    host = host.removeprefix("[").removesuffix("]") or "127.0.0.1"
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ConfigError(f"foxglove must be 'HOST:PORT' or a port 0..65535, not {value!r}")
-    return host, int(port)
+    return address
 
 
 async def _serve_foxglove(robot: Robot, host: str, port: int) -> FoxgloveBridge:
