@@ -36,6 +36,14 @@ def finite(name: str, value: float, unit: str = "") -> float:
     return number
 
 
+def number(name: str, value: float, unit: str = "") -> float:
+    """:func:`finite`, naming a value of the wrong type itself (``'fast'``), not its type:
+    for values that come from a user's message or call rather than from code."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidArgumentError(f"{name} must be a number, not {show(value)}")
+    return finite(name, value, unit)
+
+
 def positive(name: str, value: float, unit: str = "") -> float:
     """Return ``value`` as a float, or raise unless it is finite and > 0."""
     number = finite(name, value, unit)

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Final, Generic, Literal, TypeVar, overloa
 
 from pydantic import ValidationError
 
-from ohmni_tb._checks import finite
+from ohmni_tb._checks import number
 from ohmni_tb.control.kinematics import (
     DiffDrive,
     LimitedTwist,
@@ -424,7 +424,7 @@ class RobotClient:
             LeaseError: This connection does not hold the control lease; nothing sent.
             OhmniError: An earlier command the daemon refused (see :meth:`confirm`).
         """
-        twist = Twist(_number("linear_mps", linear_mps), _number("angular_radps", angular_radps))
+        twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
         limited = limit_twist(twist, self._limits, self._drive)
         self._command(
             "drive", {"linear_mps": twist.linear_mps, "angular_radps": twist.angular_radps}
@@ -437,7 +437,7 @@ class RobotClient:
         Raises:
             The same as :meth:`drive`.
         """
-        asked = WheelSpeeds(_number("left_mps", left_mps), _number("right_mps", right_mps))
+        asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
         wheels = saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
         self._command("drive_wheels", {"left_mps": asked.left_mps, "right_mps": asked.right_mps})
         return wheels
@@ -487,9 +487,9 @@ class RobotClient:
     def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
         """:meth:`Robot.reset_odometry`, for every client (needs the lease)."""
         pose = {
-            "x_m": _number("x_m", x_m),
-            "y_m": _number("y_m", y_m),
-            "yaw_rad": _number("yaw_rad", yaw_rad),
+            "x_m": number("x_m", x_m),
+            "y_m": number("y_m", y_m),
+            "yaw_rad": number("yaw_rad", yaw_rad),
         }
         self._command("reset_odometry", pose)
 
@@ -503,7 +503,7 @@ class RobotClient:
     def set_rate(self, name: str, hz: float) -> None:
         """:meth:`Robot.set_rate`, for every client (needs the lease; 0.1..100 Hz)."""
         _check_topic(name)
-        self._command("set_rate", {"topic": name, "hz": _number("hz", hz)})
+        self._command("set_rate", {"topic": name, "hz": number("hz", hz)})
 
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """:meth:`Robot.light_ring` (needs the lease).
@@ -1005,12 +1005,6 @@ class RemoteServo:
     async def rest(self, *, free: bool = True) -> None:
         """Move to the rest position, then (by default) free it; returns when done."""
         await self._client._call("rest", {"target": self.target, "free": free})
-
-
-def _number(name: str, value: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InvalidArgumentError(f"{name} must be a number, not {value!r}")
-    return finite(name, value)
 
 
 def _unlimited(limit: float | None) -> float:

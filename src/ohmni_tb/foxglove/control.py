@@ -28,10 +28,10 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
-import math
 from collections.abc import Awaitable, Callable
 from typing import Any, Final
 
+from ohmni_tb._checks import number
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, StateError
 
@@ -93,12 +93,6 @@ async def _value(result: Any) -> Any:
     return await result if inspect.isawaitable(result) else result
 
 
-def _number(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise InvalidArgumentError(f"{name} must be a finite number, not {value!r}")
-    return float(value)
-
-
 class RobotControl:
     """The parameters and services of ``robot`` (module docstring).
 
@@ -158,15 +152,14 @@ class RobotControl:
         for full, value in values.items():
             name = full.removeprefix(PARAMETER_PREFIX)
             if name in PID_PARAMETERS:
-                gains[PID_PARAMETERS[name]] = _number(full, value)
+                gains[PID_PARAMETERS[name]] = number(full, value)
             elif name.startswith("rate/") and name[5:] in RATE_STREAMS:
-                rates[name[5:]] = _number(full, value)
+                rates[name[5:]] = number(full, value)
             elif name in LIMIT_PARAMETERS:
                 raise StateError(f"{full} is read only: set it in the Robot's configuration")
             else:
                 raise InvalidArgumentError(f"no parameter {full!r}")
-        if self._before_change is not None:
-            await self._before_change()
+        await self._change()
         if gains:
             current: PidGains = await _value(self._robot.get_pid())
             self._robot.set_pid(dataclasses.replace(current, **gains))
@@ -195,9 +188,8 @@ class RobotControl:
                 f"{service} takes a JSON object with {', '.join(allowed)}, not {request[:80]!r}"
             )
         if service == RESET_ODOM_SERVICE:
-            pose = {key: _number(key, args.get(key, 0.0)) for key in allowed}
-            if self._before_change is not None:
-                await self._before_change()
+            pose = {key: number(key, args.get(key, 0.0)) for key in allowed}
+            await self._change()
             self._robot.reset_odometry(**pose)
             return json.dumps(pose).encode()
         raw, rad = args.get("raw"), args.get("rad")
@@ -205,13 +197,17 @@ class RobotControl:
             raise InvalidArgumentError(f"{service} takes raw or rad, one of them")
         options: dict[str, Any] = {}
         if rad is not None:
-            options["rad"] = _number("rad", rad)
+            options["rad"] = number("rad", rad)
         if "playtime_s" in args:
-            options["playtime_s"] = _number("playtime_s", args["playtime_s"])
-        if self._before_change is not None:
-            await self._before_change()
+            options["playtime_s"] = number("playtime_s", args["playtime_s"])
+        await self._change()
         await self._robot.neck.move(raw, **options)
         return json.dumps({"moved": True}).encode()
+
+    async def _change(self) -> None:
+        """Just before a change reaches the Robot (the daemon's lease is taken here)."""
+        if self._before_change is not None:
+            await self._before_change()
 
     def _check_writable(self) -> None:
         if not self.writable:

@@ -34,7 +34,7 @@ from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 
-from ohmni_tb._checks import check_seconds, finite, host_port, show
+from ohmni_tb._checks import check_seconds, host_port, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
@@ -1504,7 +1504,7 @@ class Robot:
             OutOfRangeError: ``hz`` is not 0.1..100.
         """
         self._topic(name)
-        if not 0.1 <= _number("hz", hz) <= 100.0:
+        if not 0.1 <= number("hz", hz) <= 100.0:
             raise OutOfRangeError(f"{name} rate", hz, 0.1, 100.0, "Hz")
         periodic = self._periodic.get(name)
         if periodic is None:
@@ -1573,7 +1573,7 @@ class Robot:
             StateError: An emergency stop is latched, the port is released
                 (:meth:`release_port`), or the robot is closed.
         """
-        twist = Twist(_number("linear_mps", linear_mps), _number("angular_radps", angular_radps))
+        twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
         self._check_can_drive()
         limited = limit_twist(twist, self._limits, self._drive)
         if limited.limited:
@@ -1601,7 +1601,7 @@ class Robot:
             StateError: An emergency stop is latched, the port is released
                 (:meth:`release_port`), or the robot is closed.
         """
-        asked = WheelSpeeds(_number("left_mps", left_mps), _number("right_mps", right_mps))
+        asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
         self._check_can_drive()
         wheels = saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
         if wheels != asked:
@@ -1737,7 +1737,7 @@ class Robot:
         Raises:
             InvalidArgumentError: A value is not finite.
         """
-        self._odometry.reset(_number("x_m", x_m), _number("y_m", y_m), _number("yaw_rad", yaw_rad))
+        self._odometry.reset(number("x_m", x_m), number("y_m", y_m), number("yaw_rad", yaw_rad))
 
     # -- devices (public) --------------------------------------------------------------------
 
@@ -1867,14 +1867,6 @@ def _warn_if_coarse_timers(transport: Transport) -> None:
         "milliseconds): behind a USB adapter that holds replies the servo streams can miss "
         "their rates; run the program with ohmni_tb.run(main()) instead of asyncio.run"
     )
-
-
-def _number(name: str, value: float) -> float:
-    """``value`` as a float; a wrong type is named with its value, the rest as
-    :func:`~ohmni_tb._checks.finite` does (NaN, infinity, an int too large for a float)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise InvalidArgumentError(f"{name} must be a number, not {show(value)}")
-    return finite(name, value)
 
 
 def sample_ok(sample: ServoSample | None) -> bool:
