@@ -22,7 +22,7 @@ waits in milliseconds) :func:`new_event_loop` is asyncio's default.
 :class:`~ohmni_tb.robot.Robot` gets it with ``ohmni_tb.run(main())`` in place of
 ``asyncio.run(main())`` (or ``asyncio.Runner(loop_factory=new_event_loop)``). The Robot
 works on any loop; :func:`timer_resolution_s` says what its timers get, and the Robot
-logs a warning when an adapter latency is configured on a millisecond loop.
+logs a warning, once, when it opens a serial port on a millisecond loop.
 """
 
 from __future__ import annotations

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import asyncio
 import json
-import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any, Final
 
 import foxglove
+from foxglove.websocket import WebSocketServer
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
@@ -34,8 +34,6 @@ from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT, _Served
 from ohmni_tb.foxglove.record import RAW_TOPICS
 
 __all__ = ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"]
-
-_log = logging.getLogger("ohmni_tb.foxglove")
 
 #: The fastest replay: a minute of recording in a second and a half.
 MAX_SPEED: Final = 40.0
@@ -53,11 +51,7 @@ def raw_bus_bytes(path: str | Path) -> Iterator[tuple[float, bool, bytes]]:
         ReplayError: No such file, not MCAP, no raw bus bytes in it, or a chunk that is
             not one (the message names the file).
     """
-    try:
-        file = Path(path).open("rb")  # noqa: SIM115  # closed by the with below: the open's error is ours
-    except OSError as exc:
-        raise ReplayError(f"cannot open {path}: {exc.strerror or exc}") from exc
-    with file:
+    with _open(path) as file:
         try:
             reader = make_reader(file)
             first_ns: int | None = None
@@ -84,6 +78,18 @@ def raw_bus_bytes(path: str | Path) -> Iterator[tuple[float, bool, bytes]]:
                 f"{path} has no raw bus bytes ({', '.join(RAW_TOPICS)}): record them with "
                 "ohmni record --raw"
             )
+
+
+def _open(path: str | Path) -> IO[bytes]:
+    """The recording, open for reading.
+
+    Raises:
+        ReplayError: It cannot be opened; the message names it and why.
+    """
+    try:
+        return Path(path).open("rb")
+    except OSError as exc:
+        raise ReplayError(f"cannot open {path}: {exc.strerror or exc}") from exc
 
 
 class McapReplay(_Served):
@@ -118,7 +124,7 @@ class McapReplay(_Served):
         self._name = name
         self._context = foxglove.Context()
         self._channels: dict[int, foxglove.Channel] = {}
-        self._server: Any = None
+        self._server: WebSocketServer | None = None
         self._file: IO[bytes] | None = None
         #: Messages sent so far, by topic.
         self.sent: dict[str, int] = {}
@@ -135,10 +141,7 @@ class McapReplay(_Served):
             ReplayError: No such file, or not an MCAP file.
             TransportError: The address cannot be bound.
         """
-        try:
-            self._file = self._path.open("rb")
-        except OSError as exc:
-            raise ReplayError(f"cannot open {self._path}: {exc.strerror or exc}") from exc
+        self._file = _open(self._path)
         try:
             summary = make_reader(self._file).get_summary()
         except (McapError, ValueError, EOFError) as exc:
