@@ -63,6 +63,10 @@ rows show what the fan-out does to the control tick. Its CPU figure includes the
 simulator (~7 % of a core). ``--clients-nice 19`` runs the clients' process at the
 lowest priority: on two cores it competes with the daemon for them, and this shows how
 much of the control tick's jitter is that contention rather than the daemon's own work.
+``--daemon-rt N`` runs the daemon as ``ohmni serve --rt-priority N`` does (its event loop
+under SCHED_FIFO at N), the deployment docs/hardware.md describes; the clients stay
+time-shared, and the pty's simulator runs at N too: it stands in for the robot's boards,
+whose processors the clients cannot delay.
 """
 
 from __future__ import annotations
@@ -88,13 +92,14 @@ from typing import Any, TypeVar
 
 import ohmni_tb
 from ohmni_tb.daemon.server import RobotServer
+from ohmni_tb.eventloop import set_realtime
 from ohmni_tb.robot import Robot
 from ohmni_tb.robot.streams import StreamStats
 from ohmni_tb.transport import Transport, open_transport
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _daemon_clients import TOPICS
-from _pty import simulator_on_pty
+from _pty import simulator_on_pty, time_shared
 from robot import WheelTap, latencies
 from schedule import machine
 
@@ -153,6 +158,8 @@ class Daemon:
 SIM_IN_PROCESS = False
 #: ``--clients-nice N``: the clients' process runs at this niceness (0: as the daemon).
 CLIENTS_NICE = 0
+#: ``--daemon-rt N``: the daemon's SCHED_FIFO priority (0: time-shared).
+DAEMON_RT = 0
 
 
 @contextmanager
@@ -163,7 +170,7 @@ def simulator() -> Iterator[tuple[str, bool]]:
         return
     with contextlib.ExitStack() as stack:
         try:
-            path = stack.enter_context(simulator_on_pty())
+            path = stack.enter_context(simulator_on_pty(DAEMON_RT))
         except OSError:
             path = ""
         if path and Path(path).exists():
@@ -261,6 +268,8 @@ class ClientProcess:
             *args,
             stdin=asyncio.subprocess.PIPE,
             stdout=asyncio.subprocess.PIPE,
+            # Time-shared whatever the daemon runs in: only the daemon is measured there.
+            preexec_fn=time_shared,
         )
         clients = cls(process)
         try:
@@ -824,15 +833,39 @@ def main() -> int:
         metavar="N",
         help="run the clients' process at niceness N (0..19; default 0)",
     )
+    parser.add_argument(
+        "--daemon-rt",
+        type=int,
+        default=0,
+        choices=range(100),
+        metavar="N",
+        help="run the daemon under SCHED_FIFO at N, as ohmni serve --rt-priority N (default 0: "
+        "time-shared)",
+    )
     args = parser.parse_args()
-    global SIM_IN_PROCESS, CLIENTS_NICE  # noqa: PLW0603  # settings for the whole run
+    global SIM_IN_PROCESS, CLIENTS_NICE, DAEMON_RT  # noqa: PLW0603  # settings for the whole run
     SIM_IN_PROCESS = args.sim == "in-process"
     CLIENTS_NICE = args.clients_nice
+    DAEMON_RT = args.daemon_rt
+    if DAEMON_RT:
+        set_realtime(DAEMON_RT)  # this thread runs every row's event loop
     seconds = 5.0 if args.quick else args.seconds
     soak_seconds = 20.0 if args.quick else args.soak_seconds
     # SIGTERM as Ctrl-C: the finally blocks stop the clients' process and the simulator.
     signal.signal(signal.SIGTERM, _raise_terminated)
     print(machine())
+    print(
+        f"daemon: SCHED_FIFO at {DAEMON_RT}" if DAEMON_RT else "daemon: time-shared",
+        f"| clients: nice {CLIENTS_NICE}, time-shared",
+        "| simulator: "
+        + (
+            "in the daemon's process"
+            if SIM_IN_PROCESS
+            else f"pty, SCHED_FIFO at {DAEMON_RT}"
+            if DAEMON_RT
+            else "pty, time-shared"
+        ),
+    )
     try:
         if args.only != "rows" and soak_seconds > 0:
             with simulator() as (port, on_pty):

@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import resource
 import select
 import selectors
 import socket
+import subprocess
 import sys
 from typing import Any
 
@@ -21,6 +24,7 @@ import pytest
 import ohmni_tb
 from cli._helpers import needs_pty, sim_on_pty
 from ohmni_tb import Robot, eventloop
+from ohmni_tb.errors import ConfigError, OutOfRangeError
 from ohmni_tb.eventloop import (
     MILLISECOND_S,
     PreciseEpollSelector,
@@ -174,3 +178,62 @@ def test_the_commands_run_on_the_precise_loop() -> None:
 
     # What every `ohmni` command (and `ohmni serve`) runs its work with.
     assert common.run(resolution) == 0.0
+
+
+# -- real-time scheduling -------------------------------------------------------------------
+
+_REALTIME_PROBE = """
+import os
+from ohmni_tb.errors import ConfigError
+from ohmni_tb.eventloop import realtime_priority, set_realtime
+try:
+    set_realtime(10)
+except ConfigError as exc:
+    print("refused", exc)
+else:
+    fifo = os.sched_getscheduler(0) == os.SCHED_FIFO
+    print("set", fifo, realtime_priority())
+    set_realtime(0)
+    print("back", os.sched_getscheduler(0) == os.SCHED_OTHER, realtime_priority())
+"""
+
+
+def test_set_realtime_puts_the_thread_in_sched_fifo_and_back_or_says_what_it_needs() -> None:
+    # In a process of its own: the test run's own thread keeps its class.
+    out = subprocess.run(
+        [sys.executable, "-c", _REALTIME_PROBE], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    if out[0].startswith("refused"):  # not root, no CAP_SYS_NICE, no RLIMIT_RTPRIO
+        assert "RLIMIT_RTPRIO" in out[0]
+        assert "LimitRTPRIO=" in out[0]
+    else:
+        assert out == ["set True 10", "back True 0"]
+
+
+def test_a_refused_realtime_priority_names_the_limit_and_the_remedies(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def refuse(pid: int, policy: int, param: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (5, 5))
+    with pytest.raises(ConfigError) as caught:
+        eventloop.set_realtime(10)
+    message = str(caught.value)
+    assert "priority 10 refused" in message
+    assert "(its RLIMIT_RTPRIO: 5)" in message
+    assert "CAP_SYS_NICE" in message
+
+
+@pytest.mark.parametrize("priority", [-1, 100, 10.0, True, "10"])
+def test_a_realtime_priority_out_of_range_is_refused_before_the_kernel_is_asked(
+    monkeypatch: pytest.MonkeyPatch, priority: Any
+) -> None:
+    asked: list[int] = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda *args: asked.append(args[1]))
+    with pytest.raises(OutOfRangeError) as caught:
+        eventloop.set_realtime(priority)
+    assert "allowed 0..99" in str(caught.value)
+    assert repr(priority) in str(caught.value) or str(priority) in str(caught.value)
+    assert asked == []

@@ -23,18 +23,34 @@ waits in milliseconds) :func:`new_event_loop` is asyncio's default.
 ``asyncio.run(main())`` (or ``asyncio.Runner(loop_factory=new_event_loop)``). The Robot
 works on any loop; :func:`timer_resolution_s` says what its timers get, and the Robot
 logs a warning, once, when it opens a serial port on a millisecond loop.
+
+A precise timer still fires late when every core is busy with other programs: the
+kernel lets a waking time-shared process wait its turn. :func:`set_realtime` puts the
+loop's thread in the ``SCHED_FIFO`` class, which runs the moment it wakes, ahead of
+every time-shared process (``ohmni serve --rt-priority``; docs/hardware.md).
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import select
 import selectors
 import sys
 from collections.abc import Coroutine
-from typing import Any, TypeVar
+from typing import Any, Final, TypeVar
 
-__all__ = ["PreciseEpollSelector", "new_event_loop", "run", "timer_resolution_s"]
+from ohmni_tb.errors import ConfigError, OutOfRangeError
+
+__all__ = [
+    "DEFAULT_RT_PRIORITY",
+    "PreciseEpollSelector",
+    "new_event_loop",
+    "realtime_priority",
+    "run",
+    "set_realtime",
+    "timer_resolution_s",
+]
 
 _T = TypeVar("_T")
 
@@ -115,3 +131,62 @@ def timer_resolution_s(loop: asyncio.AbstractEventLoop | None = None) -> float:
     if isinstance(selector, coarse) and sys.platform != "win32":
         return MILLISECOND_S
     return 0.0
+
+
+#: ``ohmni serve --rt-priority``'s suggestion: above every time-shared process, below the
+#: kernel's own real-time threads (threaded interrupt handlers run at 50).
+DEFAULT_RT_PRIORITY: Final = 10
+
+
+def set_realtime(priority: int = DEFAULT_RT_PRIORITY) -> None:
+    """Run the calling thread under ``SCHED_FIFO`` at ``priority``; 0 puts it back.
+
+    Call it from the thread that runs the event loop, before the loop starts: on Linux
+    the class belongs to a thread, and threads started afterwards inherit it. The thread
+    then runs the moment a timer or a reply wakes it, whatever time-shared programs keep
+    the cores busy (with 50 daemon clients on the two cores of ``bench/daemon.py``'s host,
+    the control slot's start p99 grew 2.5–4.2 ms time-shared, 0.3–0.5 ms at 10). A thread in
+    this class that never sleeps would starve its core of time-shared work; the kernel
+    keeps 5 % of every second for them (``/proc/sys/kernel/sched_rt_runtime_us``), and the
+    event loop sleeps between its callbacks.
+
+    Args:
+        priority: 1..99 (higher runs first), or 0 for normal time sharing (``SCHED_OTHER``).
+
+    Raises:
+        OutOfRangeError: ``priority`` outside 0..99 (or the system's range).
+        ConfigError: the system has no ``SCHED_FIFO`` (it is Linux's), or this process may
+            not use it: that needs root, ``CAP_SYS_NICE``, or an ``RLIMIT_RTPRIO`` of at
+            least ``priority`` (systemd's ``LimitRTPRIO=``, ``rtprio`` in
+            /etc/security/limits.conf).
+    """
+    if not hasattr(os, "SCHED_FIFO") or not hasattr(os, "sched_setscheduler"):
+        raise ConfigError(
+            f"real-time scheduling (SCHED_FIFO) is Linux's; this system ({sys.platform}) "
+            "has none: run without a real-time priority"
+        )
+    high = os.sched_get_priority_max(os.SCHED_FIFO)
+    if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= high:
+        raise OutOfRangeError("priority", priority, 0, high)
+    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
+    try:
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except PermissionError:
+        import resource  # noqa: PLC0415  # Unix's; only this refusal needs it
+
+        which = getattr(resource, "RLIMIT_RTPRIO", None)  # Linux's
+        limit = "" if which is None else f" (its RLIMIT_RTPRIO: {resource.getrlimit(which)[0]})"
+        raise ConfigError(
+            f"real-time priority {priority} refused to this process{limit}: run it as root, "
+            "give it CAP_SYS_NICE, or raise RLIMIT_RTPRIO to the priority "
+            "(systemd: LimitRTPRIO=; /etc/security/limits.conf: rtprio)"
+        ) from None
+
+
+def realtime_priority() -> int:
+    """The calling thread's ``SCHED_FIFO``/``SCHED_RR`` priority; 0 when time-shared."""
+    if not hasattr(os, "sched_getscheduler"):
+        return 0
+    if os.sched_getscheduler(0) not in (os.SCHED_FIFO, os.SCHED_RR):
+        return 0
+    return int(os.sched_getparam(0).sched_priority)

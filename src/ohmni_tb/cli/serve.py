@@ -16,6 +16,7 @@ import typer
 from ohmni_tb._checks import host_port
 from ohmni_tb.cli.common import PortOption, open_robot, resolve_port, run, write_line
 from ohmni_tb.errors import ConfigError
+from ohmni_tb.eventloop import set_realtime
 
 if TYPE_CHECKING:
     from ohmni_tb.client import RobotClient
@@ -27,6 +28,8 @@ _log = logging.getLogger("ohmni_tb.daemon")
 _TELEOP_IDLE_S = 1.0
 #: ``--listen``'s default: the daemon's loopback address (ohmni_tb.daemon.server).
 _DEFAULT_LISTEN = "127.0.0.1:8766"
+#: SCHED_FIFO's highest priority on Linux.
+_MAX_RT_PRIORITY = 99
 
 
 def serve(
@@ -102,6 +105,18 @@ def serve(
             help="Do not serve: tell the daemon running at --listen to take the port back now.",
         ),
     ] = False,
+    rt_priority: Annotated[
+        int | None,
+        typer.Option(
+            "--rt-priority",
+            metavar="N",
+            help="Run the daemon under real-time scheduling (SCHED_FIFO) at priority N "
+            "(1..99; 10 suggested), so the control tick is on time however busy the other "
+            "programs keep the cores. Needs root, CAP_SYS_NICE or RLIMIT_RTPRIO >= N "
+            "(docs/hardware.md). Linux only.",
+            show_default=False,
+        ),
+    ] = None,
     foreground: Annotated[
         bool,
         typer.Option(
@@ -127,6 +142,11 @@ def serve(
     if handoff is not None or reclaim:
         _hand_off(host, tcp_port, handoff, reclaim=reclaim, token_file=token_file)
         return
+    if rt_priority is not None and not 1 <= rt_priority <= _MAX_RT_PRIORITY:
+        # 0 would mean "time-shared", which is what leaving the option out already says.
+        raise typer.BadParameter(
+            f"{rt_priority} is not in 1..{_MAX_RT_PRIORITY}", param_hint="--rt-priority"
+        )
     if foreground:
         _log_to_stderr()
     if foxglove_control and foxglove is None:
@@ -147,6 +167,7 @@ def serve(
             origins=origins,
             foxglove=view,
             foxglove_control=foxglove_control,
+            rt_priority=rt_priority,
         )
     )
 
@@ -161,11 +182,16 @@ async def _serve(
     origins: tuple[str, ...],
     foxglove: tuple[str, int] | None = None,
     foxglove_control: bool = False,
+    rt_priority: int | None = None,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
 
     check_listen(host, token)  # before the port opens: a refused address moves nothing
+    if rt_priority is not None:
+        # This thread runs the event loop: the class is a thread's (and its later threads').
+        set_realtime(rt_priority)
+        _log.info("running under SCHED_FIFO at priority %d", rt_priority)
     async with (
         open_robot(url) as robot,
         RobotServer(
