@@ -16,7 +16,9 @@ under the bus notes when each wheel packet is written. Printed per row:
   value being written to the port (p50/p99), against one control period (20 ms);
 * the line: measured utilisation (the simulator's busy time; ``-`` on a pty) beside the
   cost model's share for the schedule;
-* CPU share of one core of the whole process over the window (``time.process_time``).
+* CPU share of one core of the whole process over the window (``time.process_time``),
+  and the event loop's wake-ups a second (its waits in the selector that were not
+  already over: each costs the host a sleep and a wake-up, most of the CPU figure here).
 
 Every row runs on ``ohmni_tb.run`` (timers to the tenth of a millisecond, as the CLI and
 the daemon), and the 16 ms row also on ``asyncio.run``'s loop, whose timers fire up to a
@@ -26,7 +28,9 @@ the figure: ``bench/sim_cpu.py`` measures it alone), and ``pty``: ``ohmni sim --
 its own process, so the CPU is the driver's alone, as on the robot. The last row runs
 the same schedule the simple way beside it — one asyncio task per stream looping on
 ``await bus.transact(...)`` (``bench/schedule.py``'s loops) on the pty — and the CPU
-ratio is printed.
+ratio is printed. ``robot pty timers`` is the Robot with every stream on a timer of its
+own (the feedback reads not queued on the bus ahead of their due times, as before
+2026-11-27), beside ``robot pty``: the wake-ups and CPU the queued reads save.
 """
 
 from __future__ import annotations
@@ -39,12 +43,14 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.eventloop import run
 from ohmni_tb.protocol import Command, PacketDecoder
 from ohmni_tb.protocol.drive import decode_wheel_command
 from ohmni_tb.robot import Robot
+from ohmni_tb.robot import schedule as schedule_module
 from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import Transport, open_transport
 
@@ -98,6 +104,33 @@ class Row:
     wire: float = math.nan
     budget: float = math.nan
     cpu: float = math.nan
+    wakes: float = math.nan
+
+
+class WakeCounter:
+    """Counts the running loop's waits in its selector that could sleep (timeout not 0)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._selector = getattr(asyncio.get_running_loop(), "_selector", None)
+        self._real = None if self._selector is None else self._selector.select
+
+    def __enter__(self) -> WakeCounter:
+        if self._selector is not None and self._real is not None:
+            real = self._real
+
+            def select(timeout: float | None = None) -> list[Any]:
+                if timeout is None or timeout > 0:
+                    self.count += 1
+                events: list[Any] = real(timeout)
+                return events
+
+            self._selector.select = select
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._selector is not None:
+            del self._selector.select  # the class's own again
 
 
 def pct(values: list[float], q: float) -> float:
@@ -144,7 +177,22 @@ def latencies(
     return out
 
 
-async def run_robot(name: str, port: str, seconds: float, *, usb_latency_ms: int = 0) -> Row:
+async def run_robot(
+    name: str, port: str, seconds: float, *, usb_latency_ms: int = 0, ahead: bool = True
+) -> Row:
+    if not ahead:
+        # Every stream on a timer of its own: the feedback reads not queued ahead.
+        original = schedule_module.Periodic.__init__
+
+        def on_timers(self: schedule_module.Periodic, *args: Any, **kwargs: Any) -> None:
+            kwargs["ahead"] = False
+            original(self, *args, **kwargs)
+
+        schedule_module.Periodic.__init__ = on_timers  # type: ignore[method-assign]  # A/B row
+        try:
+            return await run_robot(name, port, seconds, usb_latency_ms=usb_latency_ms)
+        finally:
+            schedule_module.Periodic.__init__ = original  # type: ignore[method-assign]
     inner = await open_transport(port)
     tap = WheelTap(inner)
     row = Row(name, seconds)
@@ -156,7 +204,8 @@ async def run_robot(name: str, port: str, seconds: float, *, usb_latency_ms: int
         cpu0 = time.process_time()
         wall0 = time.perf_counter()
         commands: list[tuple[float, tuple[int, int]]] = []
-        await teleop(robot, loop.time() + seconds, commands)
+        with WakeCounter() as wakes:
+            await teleop(robot, loop.time() + seconds, commands)
         cpu = time.process_time() - cpu0
         wall = time.perf_counter() - wall0
         end = robot.stats()
@@ -173,6 +222,7 @@ async def run_robot(name: str, port: str, seconds: float, *, usb_latency_ms: int
     row.wire = (busy - busy0) / wall
     row.budget = end.bus.budget_share
     row.cpu = cpu / wall
+    row.wakes = wakes.count / wall
     return row
 
 
@@ -186,9 +236,10 @@ async def run_tasks(name: str, port: str, seconds: float) -> Row:
         t0 = loop.time() + 0.05
         cpu0 = time.process_time()
         wall0 = time.perf_counter()
-        async with asyncio.TaskGroup() as tg:
-            for key, body in bodies.items():
-                tg.create_task(periodic(streams[key], body, t0, t0 + seconds, PHASES_S[key]))
+        with WakeCounter() as wakes:
+            async with asyncio.TaskGroup() as tg:
+                for key, body in bodies.items():
+                    tg.create_task(periodic(streams[key], body, t0, t0 + seconds, PHASES_S[key]))
         cpu = time.process_time() - cpu0
         wall = time.perf_counter() - wall0
     names = dict(zip(("wheels", "servo 3", "servo 11", "servo 12", "core"), POLLED, strict=True))
@@ -196,6 +247,7 @@ async def run_tasks(name: str, port: str, seconds: float) -> Row:
         row.rates[names[key]] = stream.done / seconds
         row.requested[names[key]] = stream.hz
     row.cpu = cpu / wall
+    row.wakes = wakes.count / wall
     return row
 
 
@@ -216,7 +268,8 @@ def show(row: Row) -> None:
         f"{row.name:<16} | {rates} | {row.jitter_p50_ms:5.1f} {row.jitter_p99_ms:5.1f} | "
         f"{pct(latency, 0.5):5.1f} {pct(latency, 0.99):5.1f} {len(latency):5d} | "
         f"{'    -' if math.isnan(row.wire) else f'{row.wire:5.1%}'} "
-        f"{'    -' if math.isnan(row.budget) else f'{row.budget:5.1%}'} | {row.cpu:5.1%}"
+        f"{'    -' if math.isnan(row.budget) else f'{row.budget:5.1%}'} | {row.cpu:5.1%} "
+        f"{row.wakes:6.0f}"
     )
 
 
@@ -231,7 +284,7 @@ def main() -> int:
     header = (
         f"{'row':<16} | {'wheel':>6} {'neck':>6} {'ext1':>6} {'ext2':>6} {'core':>6} | "
         f"{'jit50':>5} {'jit99':>5} | {'cmd50':>5} {'cmd99':>5} {'cmds':>5} | "
-        f"{'wire':>5} {'model':>5} | {'CPU':>5}"
+        f"{'wire':>5} {'model':>5} | {'CPU':>5} {'wake/s':>6}"
     )
     print(header)
     print("-" * len(header))
@@ -250,12 +303,21 @@ def main() -> int:
         pty_row = run(run_robot("robot pty", path, seconds))
     show(pty_row)
     with simulator_on_pty() as path:
+        timers_row = run(run_robot("robot pty timers", path, seconds, ahead=False))
+    show(timers_row)
+    with simulator_on_pty() as path:
         tasks_row = run(run_tasks("tasks pty", path, seconds))
     show(tasks_row)
     print(
         f"CPU, driver alone on the pty: Robot {pty_row.cpu:.1%} (with teleop commands and "
         f"control) vs one task per stream {tasks_row.cpu:.1%} (polling only): "
         f"ratio {pty_row.cpu / tasks_row.cpu:.2f}"
+    )
+    print(
+        f"feedback reads queued ahead vs every stream on its own timer (pty): wake-ups "
+        f"{pty_row.wakes:.0f} vs {timers_row.wakes:.0f} a second "
+        f"(ratio {pty_row.wakes / timers_row.wakes:.2f}), CPU {pty_row.cpu:.1%} vs "
+        f"{timers_row.cpu:.1%} (ratio {pty_row.cpu / timers_row.cpu:.2f})"
     )
     precise, coarse = rows[1], rows[2]
     worst = min(POLLED, key=lambda s: coarse.rates[s] / coarse.requested[s])

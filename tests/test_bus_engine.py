@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import math
 import random
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
@@ -40,7 +41,7 @@ from ohmni_tb.protocol import (
 )
 from ohmni_tb.protocol.connection import BreakerState
 from ohmni_tb.protocol.drive import read_count, wheel_command
-from ohmni_tb.protocol.timing import DEFAULT_TURNAROUND_S, transaction_cost_s
+from ohmni_tb.protocol.timing import DEFAULT_GUARD_S, DEFAULT_TURNAROUND_S, transaction_cost_s
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.transport import MemoryTransport, Transport, delay
 
@@ -244,6 +245,93 @@ def test_a_slot_past_its_deadline_is_dropped_unsent() -> None:
     sent, stats = virtual(main)
     assert sent == [read_request(20, 0xF1, 0)]
     assert stats.deadline_misses == 2
+
+
+def test_a_slot_queued_ahead_starts_at_its_time_and_lets_others_use_the_line_before() -> None:
+    async def main() -> tuple[float, list[tuple[float, Packet]], Slot, Slot, BusStats]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            # High priority, but not before t0 + 10 ms: the low one takes the free line.
+            ahead = bus.submit([read_request(3, 48, 12)], priority=10, not_before=t0 + 0.010)
+            other = bus.submit([read_count(0)], priority=0)
+            await asyncio.gather(ahead.future, other.future)
+            stats = bus.stats
+        await end.aclose()
+        return t0, device.log, ahead, other, stats
+
+    t0, log, ahead, other, stats = virtual(main)
+    assert [(round(at - t0, 6), p.sid) for at, p in log] == [(0.0, 0), (0.01, 3)]
+    assert other.started_at == t0
+    assert ahead.started_at == pytest.approx(t0 + 0.010)
+    # Its waiting counts from its time, not from when it was queued.
+    assert stats.queue_wait_p99_s == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_slot_queued_ahead_whose_time_falls_on_a_busy_line_starts_as_the_line_frees() -> None:
+    async def main() -> tuple[float, float, Slot]:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            long = bus.submit([read_request(3, 48, 12)])  # ~4 ms on the line
+            ahead = bus.submit([read_count(0)], priority=10, not_before=t0 + 0.001)
+            replies = await long.future
+            freed = replies[0]
+            assert freed is not None
+            await ahead.future
+        await end.aclose()
+        return t0, freed.received_at, ahead
+
+    t0, reply_at, ahead = virtual(main)
+    assert ahead.started_at is not None
+    # Not at its own time (the line was busy), but a guard after the reply came in.
+    assert ahead.started_at > t0 + 0.001
+    assert ahead.started_at == pytest.approx(reply_at + DEFAULT_GUARD_S)
+
+
+def test_a_slot_queued_far_ahead_does_not_hold_back_the_slot_on_the_line() -> None:
+    async def main() -> tuple[float, list[tuple[float, Packet]], list[ReplyPacket | None]]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            both = bus.submit([read_count(0), read_count(1)])
+            later = bus.submit([read_request(3, 48, 2)], not_before=t0 + 0.050)
+            replies = await both.future
+            await later.future
+        await end.aclose()
+        return t0, device.log, replies
+
+    t0, log, replies = virtual(main)
+    first = replies[0]
+    assert first is not None
+    # The slot's second read goes a guard after the first reply, not at the other's time.
+    assert [p.sid for _, p in log] == [0, 1, 3]
+    assert log[1][0] == pytest.approx(first.received_at + DEFAULT_GUARD_S)
+    assert log[2][0] == pytest.approx(t0 + 0.050)
+
+
+@pytest.mark.parametrize("not_before", [math.nan, math.inf, "soon", True])
+def test_not_before_must_be_a_loop_time(not_before: Any) -> None:
+    async def main() -> tuple[str, list[Packet]]:
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            with pytest.raises(InvalidArgumentError) as info:
+                bus.submit([read_count(0)], not_before=not_before)
+            await asyncio.sleep(0.01)
+        await end.aclose()
+        return str(info.value), device.sent()
+
+    message, sent = virtual(main)
+    assert "not_before must be a loop.time() value" in message
+    assert repr(not_before) in message
+    assert sent == []
 
 
 def test_retries_stop_at_the_deadline() -> None:

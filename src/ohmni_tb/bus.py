@@ -293,14 +293,25 @@ class Slot:
 class _Part:
     """Packets of a slot to send back to back: the whole slot first, then single retries."""
 
-    __slots__ = ("indices", "pos", "seq", "slot", "submitted_at")
+    __slots__ = ("indices", "pos", "ready_at", "seq", "slot", "submitted_at")
 
-    def __init__(self, slot: Slot, indices: list[int], *, seq: int, submitted_at: float) -> None:
+    def __init__(
+        self,
+        slot: Slot,
+        indices: list[int],
+        *,
+        seq: int,
+        submitted_at: float,
+        ready_at: float = -math.inf,
+    ) -> None:
         self.slot = slot
         self.indices = indices
         self.pos = 0
         self.seq = seq
-        self.submitted_at = submitted_at
+        # Waiting (for promotion and the queue-wait figure) counts from when it may start.
+        self.submitted_at = max(submitted_at, ready_at)
+        #: It may not start before this loop time (a cycle queued ahead of its due time).
+        self.ready_at = ready_at
 
 
 class _Urgent:
@@ -716,6 +727,7 @@ class Bus:
         deadline: float | None = None,
         retries: int | None = None,
         timeout_s: float | None = None,
+        not_before: float | None = None,
     ) -> list[ReplyPacket | None]:
         """Send ``packets`` as one atomic slot and return each one's reply.
 
@@ -726,6 +738,10 @@ class Bus:
                 by then, and reads are retried only while it allows.
             retries: Extra attempts for the reads and STATs of this slot.
             timeout_s: Reply timeout for this slot.
+            not_before: An absolute ``loop.time()`` before which the slot does not start:
+                queued ahead of its due time, it goes from whatever wakes the bus then
+                (the reply in flight, the line freeing) instead of from a timer of the
+                caller's; its waiting counts from then.
 
         Returns:
             One entry per packet: its reply, or ``None`` when it gets none (no reply
@@ -746,6 +762,7 @@ class Bus:
             deadline=deadline,
             retries=retries,
             timeout_s=timeout_s,
+            not_before=not_before,
         )
         return await self._await(slot)
 
@@ -758,6 +775,7 @@ class Bus:
         retries: int | None = None,
         timeout_s: float | None = None,
         on_done: Callable[[Slot], None] | None = None,
+        not_before: float | None = None,
     ) -> Slot:
         """Queue ``packets`` as one atomic slot and return at once: :meth:`transact`
         without a task.
@@ -781,6 +799,7 @@ class Bus:
             retries=retries,
             timeout_s=timeout_s,
             on_done=on_done,
+            not_before=not_before,
         )
         if on_done is None:
             slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
@@ -963,6 +982,7 @@ class Bus:
         timeout_s: float | None,
         fail_fast: bool = False,
         on_done: Callable[[Slot], None] | None = None,
+        not_before: float | None = None,
     ) -> Slot:
         conn = self._conn
         packets = list(packets)
@@ -980,6 +1000,14 @@ class Bus:
             or not math.isfinite(deadline)
         ):
             raise InvalidArgumentError(f"deadline must be a loop.time() value, not {deadline!r}")
+        if not_before is not None and (
+            isinstance(not_before, bool)
+            or not isinstance(not_before, int | float)
+            or not math.isfinite(not_before)
+        ):
+            raise InvalidArgumentError(
+                f"not_before must be a loop.time() value, not {not_before!r}"
+            )
         wants: list[bool] = []
         keys: set[tuple[int, int, bytes]] = set()
         for i, packet in enumerate(packets):
@@ -1030,7 +1058,15 @@ class Bus:
         slot.on_done = on_done
         slot.active = self._active
         self._active.add(slot)
-        self._waiting.append(_Part(slot, list(range(len(packets))), seq=slot.seq, submitted_at=now))
+        self._waiting.append(
+            _Part(
+                slot,
+                list(range(len(packets))),
+                seq=slot.seq,
+                submitted_at=now,
+                ready_at=-math.inf if not_before is None else float(not_before),
+            )
+        )
         self._pump()
         return slot
 
@@ -1234,10 +1270,12 @@ class Bus:
                 # Choose only when the line is free: a slot that arrives meanwhile with a
                 # higher priority must still be able to go first. With nothing waiting
                 # there is nothing to wake for; a new slot pumps by itself.
+                if self._current is not None:
+                    wake = min(wake, conn.free_at)  # its next packet
                 if self._waiting:
-                    wake = min(wake, conn.free_at, self._scan(now, choose=False)[1])
-                elif self._current is not None:
-                    wake = min(wake, conn.free_at)
+                    # The scan counts the line's freeing for the parts that may go then,
+                    # not for a cycle queued ahead of its time (it has a time of its own).
+                    wake = min(wake, self._scan(now, choose=False)[1])
                 break
             part = self._current
             if part is None:
@@ -1268,6 +1306,9 @@ class Bus:
             free_at = now
         start_at = max(now, free_at)
         soon = now + _EPS
+        # When the line frees, for a part that may go then (free_at: inf while cautious,
+        # when a reply event frees it instead).
+        frees_at = conn.free_at
         max_wait = self.max_wait_s
         best: _Part | None = None
         best_key: tuple[bool, int, int] | None = None
@@ -1285,6 +1326,13 @@ class Bus:
                     self._miss_deadline(part, start_at)
                     continue
                 wake = min(wake, deadline + 2 * _EPS)
+            if part.ready_at > start_at + _EPS:
+                # Not yet due: its own time wakes the bus, unless the line is busy
+                # then (the freeing that follows starts it).
+                wake = min(wake, part.ready_at)
+                continue
+            if not choose:
+                wake = min(wake, frees_at)
             blocked = -math.inf
             expect, packets = slot.expect, slot.packets
             for i in part.indices:

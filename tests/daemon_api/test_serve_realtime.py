@@ -3,6 +3,7 @@ refusal before anything is opened."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +19,7 @@ pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="SCHED_FIFO is L
 def test_a_priority_outside_1_to_99_is_a_usage_error(priority: str) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "ohmni_tb", "serve", "--port", "sim://", "--rt-priority", priority],
+        env={**os.environ, "COLUMNS": "200"},  # the message on one line
         capture_output=True,
         text=True,
         timeout=60,

@@ -195,7 +195,9 @@ def test_stats_report_lateness_percentiles_and_the_requested_rate() -> None:
 
 
 class FakeSlot:
-    def __init__(self, future: asyncio.Future[list[ReplyPacket | None]], started: float) -> None:
+    def __init__(
+        self, future: asyncio.Future[list[ReplyPacket | None]], started: float | None
+    ) -> None:
         self.future = future
         self.started_at: float | None = started
 
@@ -221,6 +223,7 @@ class FakeBus:
         self.stall_s = stall_s
         self.fail = fail
         self.submitted: list[tuple[float, float | None, int]] = []  # (now, deadline, prio)
+        self.not_before: list[float | None] = []
 
     def submit(
         self,
@@ -229,11 +232,18 @@ class FakeBus:
         priority: int = 0,
         deadline: float | None = None,
         on_done: Callable[[FakeSlot], None] | None = None,
+        not_before: float | None = None,
     ) -> FakeSlot:
         now = self.loop.time()
         self.submitted.append((now, deadline, priority))
+        self.not_before.append(not_before)
         future: asyncio.Future[list[ReplyPacket | None]] = self.loop.create_future()
-        slot = FakeSlot(future, now)
+        start = now if not_before is None else max(now, not_before)
+        slot = FakeSlot(future, now if start == now else None)
+
+        def begin() -> None:
+            if not future.done():
+                slot.started_at = self.loop.time()
 
         def complete() -> None:
             # As the bus does: the future is done, then on_done runs at once.
@@ -246,7 +256,9 @@ class FakeBus:
             if on_done is not None:
                 on_done(slot)
 
-        self.loop.call_later(self.busy_s, complete)
+        if start > now:
+            self.loop.call_at(start, begin)
+        self.loop.call_at(start + self.busy_s, complete)
         self.loop.advance(self.stall_s(len(self.submitted)))
         return slot
 
@@ -269,7 +281,9 @@ class Recorder:
     def skip(self, n: int) -> None:
         self.skipped += n
 
-    def periodic(self, bus: FakeBus, hz: float, phase_s: float = 0.003) -> Periodic:
+    def periodic(
+        self, bus: FakeBus, hz: float, phase_s: float = 0.003, *, ahead: bool = False
+    ) -> Periodic:
         return Periodic(
             cast("Bus", bus),
             "test",
@@ -281,6 +295,7 @@ class Recorder:
             handle=self.results.append,
             fail=lambda due, exc: self.failures.append((due, exc)),
             skipped=self.skip,
+            ahead=ahead,
         )
 
 
@@ -442,3 +457,134 @@ def test_a_stopped_periodic_sends_nothing_and_its_slots_finish() -> None:
     recorder = virtual(main)
     assert len(recorder.built) == 6  # due at 0, 20, 40, 60, 80, 100 ms
     assert len(recorder.results) == 6
+
+
+# -- cycles queued on the bus ahead of their due times ---------------------------------------
+
+
+def test_cycles_queued_ahead_keep_the_grid_and_need_no_timer_between_them() -> None:
+    hz = 30.0
+    period = 1 / hz
+    cycles = 300
+
+    async def main() -> tuple[Recorder, FakeBus, float, list[bool]]:
+        loop = running_loop()
+        bus = FakeBus(loop, busy_s=0.004)
+        recorder = Recorder(loop)
+        periodic = recorder.periodic(bus, hz, ahead=True)
+        t0 = loop.time() + 0.001
+        periodic.start(t0)
+        timers: list[bool] = []
+        for _ in range(10):
+            await asyncio.sleep(cycles * period / 10)
+            timers.append(periodic._timer is not None)
+        periodic.stop()
+        await asyncio.sleep(0.1)
+        return recorder, bus, t0 + 0.003, timers
+
+    recorder, bus, first_due, timers = virtual(main)
+    dues = [due for due, _ in recorder.built]
+    assert dues == pytest.approx([first_due + k * period for k in range(len(dues))], abs=1e-9)
+    # The first cycle goes from the timer; each later one is queued as its predecessor
+    # completes, to start at its due time: no timer of the stream's own in between.
+    assert bus.not_before[0] is None
+    assert bus.not_before[1:] == pytest.approx(dues[1:], abs=1e-9)
+    assert timers == [False] * 10
+    assert all(built_at < due for due, built_at in recorder.built[1:])
+    assert [r.started_s for r in recorder.results] == pytest.approx(dues[: len(recorder.results)])
+    assert recorder.skipped == 0
+    assert len(recorder.results) >= cycles - 1
+
+
+def test_stop_withdraws_the_cycle_queued_ahead_and_start_goes_on_from_the_grid() -> None:
+    hz = 50.0
+    period = 1 / hz
+
+    async def main() -> tuple[Recorder, FakeBus, float, int]:
+        loop = running_loop()
+        bus = FakeBus(loop, busy_s=0.004)
+        recorder = Recorder(loop)
+        periodic = recorder.periodic(bus, hz, phase_s=0.0, ahead=True)
+        t0 = loop.time()
+        periodic.start(t0)
+        await asyncio.sleep(10.5 * period)  # cycles 0..10 done, 11 queued ahead
+        periodic.stop()
+        await asyncio.sleep(5 * period)
+        results_while_stopped = len(recorder.results)
+        periodic.start(t0)  # the same origin: from the next due cycle on
+        await asyncio.sleep(4.2 * period)
+        periodic.stop()
+        await asyncio.sleep(0.1)
+        return recorder, bus, t0, results_while_stopped
+
+    recorder, bus, t0, results_while_stopped = virtual(main)
+    assert results_while_stopped == 11  # the cycle queued ahead never ran
+    done = [round((r.due_s - t0) / period) for r in recorder.results]
+    # After the restart at 15.5 periods: cycles 16..19 (and 20, queued, withdrawn at 19.7).
+    assert done == [*range(11), 16, 17, 18, 19]
+    assert len(bus.submitted) == 17  # 11 and 20 were queued, and withdrawn unrun
+    assert recorder.skipped == 0
+
+
+def test_set_rate_with_a_cycle_queued_ahead_keeps_its_due_time() -> None:
+    async def main() -> tuple[list[float], float]:
+        loop = running_loop()
+        bus = FakeBus(loop, busy_s=0.002)
+        recorder = Recorder(loop)
+        periodic = recorder.periodic(bus, 10.0, phase_s=0.0, ahead=True)
+        t0 = loop.time()
+        periodic.start(t0)
+        await asyncio.sleep(0.25)  # cycles at 0, 0.1, 0.2 done; 0.3 queued
+        periodic.set_rate(20.0)
+        await asyncio.sleep(0.24)
+        periodic.stop()
+        await asyncio.sleep(0.1)
+        return [r.due_s - t0 for r in recorder.results], t0
+
+    dues, _ = virtual(main)
+    # 0.3 stays the next due time (queued anew), then every 0.05 s.
+    assert dues == pytest.approx([0.0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.45])
+
+
+def test_a_cycle_queued_ahead_that_comes_back_late_starts_the_next_at_once() -> None:
+    hz = 50.0
+    period = 1 / hz
+
+    async def main() -> tuple[Recorder, float]:
+        loop = running_loop()
+        # Each slot takes 1.55 periods: one cycle at a time, as identical reads go.
+        bus = FakeBus(loop, busy_s=1.55 * period)
+        recorder = Recorder(loop)
+        periodic = recorder.periodic(bus, hz, phase_s=0.0, ahead=True)
+        t0 = loop.time()
+        periodic.start(t0)
+        await asyncio.sleep(11.9 * period)
+        periodic.stop()
+        await asyncio.sleep(0.2)
+        return recorder, t0
+
+    recorder, t0 = virtual(main)
+    done = [round((r.due_s - t0) / period) for r in recorder.results]
+    started = [(r.started_s - r.due_s) / period for r in recorder.results]
+    # Cycle 0 comes back at 1.55: cycle 1 goes at once (0.55 of a period late) and comes
+    # back at 3.1; cycle 2 is then over a period late: skipped and counted, 3 goes at once.
+    assert done == [0, 1, 3, 4, 6, 7, 9, 10]
+    assert started == pytest.approx([0.0, 0.55, 0.1, 0.65, 0.2, 0.75, 0.3, 0.85])
+    assert recorder.skipped == 3  # 2, 5 and 8
+
+
+def test_cycles_queued_ahead_report_failures_and_go_on() -> None:
+    async def main() -> Recorder:
+        loop = running_loop()
+        broken = Recorder(loop)
+        periodic = broken.periodic(FakeBus(loop, fail=OSError("boom")), 10.0, ahead=True)
+        periodic.start(loop.time())
+        await asyncio.sleep(0.95)
+        periodic.stop()
+        await asyncio.sleep(0.1)
+        return broken
+
+    broken = virtual(main)
+    assert broken.skipped == 0
+    assert len(broken.failures) == 10
+    assert all(isinstance(exc, OSError) for _, exc in broken.failures)

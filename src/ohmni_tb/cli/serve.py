@@ -139,14 +139,14 @@ def serve(
     Example: ohmni serve --port sim:// --listen 127.0.0.1:8766 ; ohmni serve --handoff 60
     """
     host, tcp_port = _parse_listen(listen)
-    if handoff is not None or reclaim:
-        _hand_off(host, tcp_port, handoff, reclaim=reclaim, token_file=token_file)
-        return
     if rt_priority is not None and not 1 <= rt_priority <= _MAX_RT_PRIORITY:
         # 0 would mean "time-shared", which is what leaving the option out already says.
         raise typer.BadParameter(
             f"{rt_priority} is not in 1..{_MAX_RT_PRIORITY}", param_hint="--rt-priority"
         )
+    if handoff is not None or reclaim:
+        _hand_off(host, tcp_port, handoff, reclaim=reclaim, token_file=token_file)
+        return
     if foreground:
         _log_to_stderr()
     if foxglove_control and foxglove is None:

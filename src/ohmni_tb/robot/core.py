@@ -706,6 +706,7 @@ class Robot:
             handle=handle,
             fail=self._feedback_failed(stream),
             skipped=self._counter(stream, "skipped"),
+            ahead=True,  # the same reads every cycle: queued on the bus ahead of time
         )
         self._periodic[stream] = periodic
         control = self._periodic.get("wheel_encoder")

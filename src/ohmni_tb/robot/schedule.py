@@ -7,6 +7,13 @@ and arms the next due time: ``t0 + phase + k · period`` for whole ``k``, so the
 never drifts. The slot's result comes back through a done-callback. A cycle is skipped
 (and counted) when two of its predecessors are still in flight, when its slot cannot
 start before its deadline, or when the loop woke more than a period late.
+
+A cycle whose packets do not depend on when they go (``ahead=True``: the feedback
+reads) needs no timer of its own: as each cycle completes, the next one is queued on
+the bus at once with ``not_before`` its due time. The bus starts it from whatever wakes
+it by then — a reply, the line freeing — and sets a timer only when the line is idle at
+that time. On a line busy most of the time that is one wake-up of the event loop fewer
+for most cycles (``bench/robot.py`` counts them).
 """
 
 from __future__ import annotations
@@ -64,6 +71,9 @@ class Periodic:
         handle: Called with the result of a cycle whose slot ran.
         fail: Called with the due time and the error of a cycle that did not run.
         skipped: Called once per cycle skipped without a slot.
+        ahead: Queue each cycle on the bus ahead of its due time, from the previous
+            cycle's completion (module docstring); for packets that do not depend on
+            the time they go.
     """
 
     def __init__(
@@ -79,8 +89,10 @@ class Periodic:
         handle: Handle,
         fail: Fail,
         skipped: Callable[[int], None],
+        ahead: bool = False,
     ) -> None:
         self.bus = bus
+        self.ahead = ahead
         self.name = name
         self.period_s = 1.0 / hz
         self.phase_s = phase_s
@@ -94,6 +106,9 @@ class Periodic:
         self._k = 0
         self._timer: asyncio.TimerHandle | None = None
         self._in_flight: set[Slot] = set()
+        #: Cycles queued ahead: their due times.
+        self._ahead_due: dict[Slot, float] = {}
+        self._submitting = False
         self.running = False
 
     def start(self, t0: float) -> None:
@@ -108,17 +123,23 @@ class Periodic:
         self._arm()
 
     def stop(self) -> None:
-        """Stop firing; cycles in flight finish."""
+        """Stop firing; cycles in flight finish (a cycle queued ahead and not yet due is
+        withdrawn: it stands for the timer)."""
         self.running = False
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        if self._ahead_due:
+            now = asyncio.get_running_loop().time()
+            for slot, due in list(self._ahead_due.items()):
+                if slot.started_at is None and due > now:
+                    self._withdraw(slot)
 
     def set_rate(self, hz: float) -> None:
         """Change the rate, keeping the phase of the next due time."""
         was = self.running
-        next_due = self._due(self._k)
         self.stop()
+        next_due = self._due(self._k)
         self.period_s = 1.0 / hz
         self._t0 = next_due
         self._k = 0
@@ -139,14 +160,26 @@ class Periodic:
         by a wheel command computed before it)."""
         for slot in list(self._in_flight):
             if slot.started_at is None:
-                self.bus.cancel(slot)
-                self._in_flight.discard(slot)
+                self._withdraw(slot)
+        self._resume()
 
     def cancel_in_flight(self) -> None:
         """Withdraw the slots still waiting (those on the wire finish)."""
         for slot in list(self._in_flight):
-            self.bus.cancel(slot)
-        self._in_flight.clear()
+            self._withdraw(slot)
+        self._resume()
+
+    def _withdraw(self, slot: Slot) -> None:
+        self.bus.cancel(slot)  # its on_done is not called
+        self._in_flight.discard(slot)
+        due = self._ahead_due.pop(slot, None)
+        if due is not None and due > asyncio.get_running_loop().time():
+            self._k -= 1  # a cycle queued ahead, not yet due: it is the next one again
+
+    def _resume(self) -> None:
+        """Cycles queued ahead were the timer: with none left, the timer runs again."""
+        if self.ahead and self.running and self._timer is None and not self._in_flight:
+            self._arm()
 
     @property
     def next_due_s(self) -> float:
@@ -164,8 +197,11 @@ class Periodic:
         self._timer = None
         if not self.running:
             return
-        loop = asyncio.get_running_loop()
-        now = loop.time()
+        self._cycle(asyncio.get_running_loop().time())
+
+    def _cycle(self, now: float) -> None:
+        """Submit the next due cycle (at its time, or ahead of it), and arm the timer
+        unless the cycle queued ahead stands for it."""
         due = self._due(self._k)
         late_cycles = math.floor((now - due) / self.period_s)
         if late_cycles >= 1:
@@ -174,6 +210,7 @@ class Periodic:
             self._k += late_cycles
             due = self._due(self._k)
         self._k += 1
+        queued = False
         try:
             if len(self._in_flight) >= MAX_IN_FLIGHT:
                 self._skipped(1)
@@ -181,12 +218,25 @@ class Periodic:
             packets = self._build(due)
             if packets is None:
                 return
-            slot = self.bus.submit(
-                packets,
-                priority=self.priority,
-                deadline=due + self.slack_s,
-                on_done=lambda done: self._done(done, due),
-            )
+            ahead = self.ahead and due > now
+            self._submitting = True
+            try:
+                slot = self.bus.submit(
+                    packets,
+                    priority=self.priority,
+                    deadline=due + self.slack_s,
+                    on_done=lambda done: self._done(done, due),
+                    not_before=due if ahead else None,
+                )
+            finally:
+                self._submitting = False
+            if not slot.future.done():
+                self._in_flight.add(slot)
+                if self.ahead:
+                    # Its completion queues the next cycle: no timer needed meanwhile.
+                    queued = True
+                    if ahead:
+                        self._ahead_due[slot] = due
         except (TransportError, StateError) as exc:
             # The link is down or the bus closed: the Robot's link watcher takes over.
             self._fail(due, exc)
@@ -196,23 +246,34 @@ class Periodic:
             self._skipped(1)
             return
         finally:
-            if self.running:
+            if self.running and not queued:
                 self._arm()
-        if not slot.future.done():
-            self._in_flight.add(slot)
 
     def _done(self, slot: Slot, due: float) -> None:
         # Called from inside the bus as the slot completes: no loop pass in between.
         self._in_flight.discard(slot)
-        future = slot.future
-        if future.cancelled():
-            return
-        exc = future.exception()
-        if exc is not None:
-            if isinstance(exc, DeadlineMissedError):
-                self._skipped(1)
-            else:
-                self._fail(due, exc)
-            return
-        started = slot.started_at if slot.started_at is not None else due
-        self._handle(CycleResult(due, started, future.result()))
+        if self.ahead:
+            self._ahead_due.pop(slot, None)
+        try:
+            future = slot.future
+            if future.cancelled():
+                return
+            exc = future.exception()
+            if exc is not None:
+                if isinstance(exc, DeadlineMissedError):
+                    self._skipped(1)
+                else:
+                    self._fail(due, exc)
+                return
+            started = slot.started_at if slot.started_at is not None else due
+            self._handle(CycleResult(due, started, future.result()))
+        finally:
+            if (
+                self.ahead
+                and self.running
+                and not self._submitting  # settled inside submit: _cycle arms the timer
+                and self._timer is None
+                and not self._in_flight
+            ):
+                # The next cycle, queued now for its due time.
+                self._cycle(asyncio.get_running_loop().time())
