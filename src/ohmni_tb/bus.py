@@ -20,7 +20,8 @@ What it promises:
   priority; one that has waited ``max_wait_s`` goes next whatever its priority, so nothing
   starves. A slot that cannot start before its ``deadline`` is dropped with
   :class:`~ohmni_tb.errors.DeadlineMissedError`; retries of its reads go only while the
-  deadline allows.
+  deadline allows. A slot queued with ``not_before`` waits for that time without holding
+  anything else up, and starts from whatever wakes the bus then.
 * **Wire-timed and pipelined.** The next request goes when the previous transaction's
   time on the wire is up by the cost model (:mod:`ohmni_tb.protocol.timing`), not when
   the host has read the reply: an adapter's latency delays replies, not the rate. A reply
