@@ -13,7 +13,10 @@ and feeding them to the project's :class:`~ohmni_tb.protocol.PacketDecoder`.
 Then the wake-ups alone: an asyncio loop whose only work is a timer that re-arms itself,
 at 100, 400 (about what the Robot's loop wakes for: ~200 replies, ~150 stream timers and
 the bus's own) and 1,000 a second, no I/O. On a virtual machine a wake-up from idle costs
-far more than the few microseconds of Python it runs; this row shows how much.
+far more than the few microseconds of Python it runs; this row shows how much. Beside
+it, a plain ``time.sleep`` loop on the same absolute schedule (no event loop): what the
+sleep and wake-up themselves cost, and so how much of each asyncio wake-up is the loop's
+own pass (its selector calls, timer heap and handles) — the ratio is printed.
 
 The requests are not paced to the line, so some collide with replies on the simulated
 half-duplex line: the reply count is lower than the schedule's 200 a second. The figure
@@ -97,6 +100,17 @@ async def wakeups(rate_hz: float, seconds: float) -> float:
     return (time.process_time() - cpu0) / (time.perf_counter() - wall0)
 
 
+def sleeps(rate_hz: float, seconds: float) -> float:
+    """CPU share of a plain loop that sleeps (``time.sleep``) to ``rate_hz`` due times."""
+    t0 = time.monotonic() + 0.05
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    k = 0
+    while (now := time.monotonic()) < t0 + seconds:
+        k += 1
+        time.sleep(max(0.0, t0 + k / rate_hz - now))
+    return (time.process_time() - cpu0) / (time.perf_counter() - wall0)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--seconds", type=float, default=15.0)
@@ -108,10 +122,19 @@ def main() -> int:
             what = f"{got / args.seconds:6.0f} replies/s" if decode else f"{got} bytes in"
             label = "raw loop + decoder" if decode else "raw loop"
             print(f"{label:<20} CPU {share:6.2%} of a core   ({what})")
+    timer_cost: dict[int, float] = {}
     for rate in (100, 400, 1000):
         share = asyncio.run(wakeups(rate, args.seconds))
+        timer_cost[rate] = share / rate
         label = f"timers {rate}/s"
         print(f"{label:<20} CPU {share:6.2%} of a core   ({share / rate * 1e6:.0f} µs a wake-up)")
+    for rate in (100, 400):
+        share = sleeps(rate, args.seconds)
+        label = f"time.sleep {rate}/s"
+        print(
+            f"{label:<20} CPU {share:6.2%} of a core   ({share / rate * 1e6:.0f} µs a wake-up; "
+            f"an asyncio timer's costs {timer_cost[rate] / (share / rate):.1f}x)"
+        )
     return 0
 
 
