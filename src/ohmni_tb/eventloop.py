@@ -145,7 +145,7 @@ def set_realtime(priority: int = DEFAULT_RT_PRIORITY) -> None:
     the class belongs to a thread, and threads started afterwards inherit it. The thread
     then runs the moment a timer or a reply wakes it, whatever time-shared programs keep
     the cores busy (with 50 daemon clients on the two cores of ``bench/daemon.py``'s host,
-    the control slot's start p99 grew 2.5–4.2 ms time-shared, 0.3–0.5 ms at 10). A thread in
+    the control slot's start p99 grew 2.5–4.2 ms time-shared, 0–0.5 ms at 10). A thread in
     this class that never sleeps would starve its core of time-shared work; the kernel
     keeps 5 % of every second for them (``/proc/sys/kernel/sched_rt_runtime_us``), and the
     event loop sleeps between its callbacks.
