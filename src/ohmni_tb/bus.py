@@ -995,20 +995,8 @@ class Bus:
         integer("retries", extra, 0, 10)
         if timeout_s is not None:
             check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
-        if deadline is not None and (
-            isinstance(deadline, bool)
-            or not isinstance(deadline, int | float)
-            or not math.isfinite(deadline)
-        ):
-            raise InvalidArgumentError(f"deadline must be a loop.time() value, not {deadline!r}")
-        if not_before is not None and (
-            isinstance(not_before, bool)
-            or not isinstance(not_before, int | float)
-            or not math.isfinite(not_before)
-        ):
-            raise InvalidArgumentError(
-                f"not_before must be a loop.time() value, not {not_before!r}"
-            )
+        _check_loop_time("deadline", deadline)
+        _check_loop_time("not_before", not_before)
         wants: list[bool] = []
         keys: set[tuple[int, int, bytes]] = set()
         for i, packet in enumerate(packets):
@@ -1476,6 +1464,14 @@ class Bus:
             slot.settle(index, None)
             return
         self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
+
+
+def _check_loop_time(name: str, value: float | None) -> None:
+    """``value`` is ``None`` or a finite ``loop.time()`` (an int or a float, not a bool)."""
+    if value is not None and (
+        isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)
+    ):
+        raise InvalidArgumentError(f"{name} must be a loop.time() value, not {value!r}")
 
 
 def _check_reply_fits(packet: Packet, max_packet_size: int) -> None:

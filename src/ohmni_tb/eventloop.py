@@ -40,7 +40,8 @@ import sys
 from collections.abc import Coroutine
 from typing import Any, Final, TypeVar
 
-from ohmni_tb.errors import ConfigError, OutOfRangeError
+from ohmni_tb._checks import integer
+from ohmni_tb.errors import ConfigError
 
 __all__ = [
     "DEFAULT_RT_PRIORITY",
@@ -165,9 +166,7 @@ def set_realtime(priority: int = DEFAULT_RT_PRIORITY) -> None:
             f"real-time scheduling (SCHED_FIFO) is Linux's; this system ({sys.platform}) "
             "has none: run without a real-time priority"
         )
-    high = os.sched_get_priority_max(os.SCHED_FIFO)
-    if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= high:
-        raise OutOfRangeError("priority", priority, 0, high)
+    integer("priority", priority, 0, os.sched_get_priority_max(os.SCHED_FIFO))
     policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
     try:
         os.sched_setscheduler(0, policy, os.sched_param(priority))

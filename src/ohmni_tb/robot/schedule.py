@@ -252,8 +252,7 @@ class Periodic:
     def _done(self, slot: Slot, due: float) -> None:
         # Called from inside the bus as the slot completes: no loop pass in between.
         self._in_flight.discard(slot)
-        if self.ahead:
-            self._ahead_due.pop(slot, None)
+        self._ahead_due.pop(slot, None)
         try:
             future = slot.future
             if future.cancelled():
