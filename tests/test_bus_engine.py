@@ -27,6 +27,7 @@ from ohmni_tb.errors import (
     DeadlineMissedError,
     DeviceUnavailableError,
     InvalidArgumentError,
+    OutOfRangeError,
     StateError,
     TransportError,
 )
@@ -38,6 +39,7 @@ from ohmni_tb.protocol import (
     PacketDecoder,
     encode_packet,
     read_request,
+    write_request,
 )
 from ohmni_tb.protocol.connection import BreakerState
 from ohmni_tb.protocol.drive import read_count, wheel_command
@@ -388,6 +390,35 @@ def test_a_slot_refuses_two_lookalike_reads() -> None:
             with pytest.raises(InvalidArgumentError, match="broadcast"):
                 await bus.query(Packet(BROADCAST_ID, Command.RAM_READ, b"\x3b\x04"))
             assert bus.stats.bytes_out == 0
+        await end.aclose()
+
+    virtual(main)
+
+
+def test_a_tuple_resubmitted_is_checked_once_and_still_follows_the_ack_policy() -> None:
+    """A stream's same tuple every cycle skips the encoding check after the first time;
+    whether each packet waits for a reply is still asked every time."""
+
+    async def main() -> None:
+        host, end = pair()
+        device = TimedDevice(end)
+        write = write_request(3, 53, b"\x12")  # a RAM write: policy 1 answers reads only
+        cycle = (read_count(0), write)
+        async with Bus(host) as bus:
+            first = await bus.transact(cycle)
+            assert first[0] is not None
+            assert first[1] is None  # no reply waited for
+            bus.set_ack_policy(3, 2)  # now the write waits for a reply too
+            slot = bus.submit(cycle, retries=0)
+            await slot.future  # (this device does not answer writes: it times out)
+            assert slot.expect == [True, True]
+            sent = len(device.sent())
+            # A tuple that does not encode is refused each time, never remembered.
+            bad = (read_count(0), Packet(0xFF, Command.RAM_READ, b"\x00\x02"))
+            for _ in range(2):
+                with pytest.raises(OutOfRangeError):
+                    bus.submit(bad)
+            assert len(device.sent()) == sent
         await end.aclose()
 
     virtual(main)

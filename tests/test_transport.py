@@ -331,6 +331,29 @@ async def test_open_a_device_path(pty: tuple[int, str]) -> None:
             device.close()
 
 
+async def test_serial_keeps_what_a_full_port_does_not_take_and_sends_it_in_order(
+    pty: tuple[int, str],
+) -> None:
+    """A peer that does not read fills the pty: the rest waits in the backlog (nothing
+    lost, nothing blocks), and goes out in order once the peer reads."""
+    master, path = pty
+    payload = bytes(range(256)) * 64  # 16 KiB a write
+    async with await open_transport(path) as transport:
+        assert isinstance(transport, SerialTransport)
+        for _ in range(16):  # 256 KiB: more than a pty buffers
+            transport.write_nowait(payload)
+        assert transport.backlog > 0
+        device = PtyDevice(master)
+        try:
+            received = await asyncio.wait_for(device.receive(16 * len(payload)), 10)
+            assert received == payload * 16
+            async with asyncio.timeout(5):
+                await transport.drain()
+            assert transport.backlog == 0
+        finally:
+            device.close()
+
+
 @pytest.mark.parametrize("prefix", ["serial://", "serial:/"], ids=["three-slashes", "two-slashes"])
 async def test_open_a_serial_url_with_options(pty: tuple[int, str], prefix: str) -> None:
     _, path = pty

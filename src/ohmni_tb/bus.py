@@ -416,6 +416,9 @@ class Bus:
         self._failure: TransportError | None = None
         self._lost: asyncio.Event | None = None
         self._taps: list[Tap] = []
+        #: Tuples of packets already found encodable, by id (the tuple is kept, so the
+        #: id is not reused): a stream's same reads every cycle are checked once.
+        self._checked: dict[int, tuple[Packet, ...]] = {}
         self._stall_since: float | None = None
         self._waits: deque[float] = deque(maxlen=_WAIT_WINDOW)
         self._slots = 0
@@ -786,7 +789,9 @@ class Bus:
         ``on_done``, called with the slot the moment it completes (its future done), from
         inside the bus — no pass of the event loop in between, so it must not block.
         Cancelling the future, or :meth:`cancel`, withdraws the slot (what has gone out
-        stays out).
+        stays out). A stream that sends the same packets every cycle can pass the same
+        tuple each time: the bus checks that its packets encode (and that their replies
+        fit) the first time only.
 
         Raises:
             The same as :meth:`transact`, except that :class:`DeadlineMissedError` and a
@@ -986,6 +991,8 @@ class Bus:
         not_before: float | None = None,
     ) -> Slot:
         conn = self._conn
+        given = packets
+        checked = type(given) is tuple and self._checked.get(id(given)) is given
         packets = list(packets)
         if not packets:
             raise InvalidArgumentError("transact() needs at least one packet")
@@ -1000,8 +1007,9 @@ class Bus:
         wants: list[bool] = []
         keys: set[tuple[int, int, bytes]] = set()
         for i, packet in enumerate(packets):
-            conn.frame(packet)  # raises OutOfRangeError before anything is queued
-            _check_reply_fits(packet, conn.max_packet_size)
+            if not checked:
+                conn.frame(packet)  # raises OutOfRangeError before anything is queued
+                _check_reply_fits(packet, conn.max_packet_size)
             if packet.sid == BROADCAST_ID:
                 if packet.cmd == Command.STAT:
                     raise InvalidArgumentError(
@@ -1018,6 +1026,10 @@ class Bus:
                         f"one slot cannot wait for two replies that look alike: {packet!r}"
                     )
                 keys.add(key)
+        if not checked and type(given) is tuple:
+            if len(self._checked) >= _CHECKED_MAX:
+                self._checked.clear()
+            self._checked[id(given)] = cast(tuple[Packet, ...], given)
         self._check_usable()
         loop = self._loop_()
         now = loop.time()
@@ -1138,7 +1150,17 @@ class Bus:
         now = loop.time()
         if self._taps:
             self._tapped(False, data, now)
-        self._handle(self._conn.receive_data(data, now))
+        events = self._conn.receive_data(data, now)
+        if events and not self._pumping:
+            # The slots these settle may queue more (a stream's next cycle): their
+            # submissions wait for the one pass below instead of each making its own.
+            self._pumping = True
+            try:
+                self._handle(events)
+            finally:
+                self._pumping = False
+        elif events:
+            self._handle(events)
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:
@@ -1226,6 +1248,8 @@ class Bus:
     def _run(self, now: float) -> None:
         conn = self._conn
         self._handle(conn.poll(now))
+        # What those events queued, the loop below sees: no second pass for it.
+        self._again = False
         wake = math.inf
         while self._failure is None and not self._closed:
             backlog = self._transport.backlog
@@ -1464,6 +1488,10 @@ class Bus:
             slot.settle(index, None)
             return
         self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
+
+
+#: Packet tuples remembered as checked (``Bus._checked``); more, and it starts over.
+_CHECKED_MAX = 64
 
 
 def _check_loop_time(name: str, value: float | None) -> None:

@@ -281,6 +281,18 @@ def test_covariance_of_a_straight_line_matches_the_closed_form() -> None:
     np.testing.assert_array_equal(cov, cov.T)
 
 
+def test_covariance_rows_are_the_matrix_row_by_row_as_floats() -> None:
+    odo = Odometry(B, noise=WheelNoise(1e-4, 2e-4))
+    for i in range(50):
+        odo.update(0.01 + 0.001 * i, 0.012, 0.02 * i)  # a curve: every term non-zero
+    rows = odo.covariance_rows
+    assert len(rows) == 9
+    assert all(type(v) is float for v in rows)
+    assert rows == tuple(odo.covariance.flat)
+    assert rows[1] != 0.0
+    assert rows[5] != 0.0
+
+
 def _step(state: npt.NDArray[np.float64], d: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """One exact arc step, written independently: the difference of two circle points."""
     x, y, theta = state

@@ -155,6 +155,13 @@ class Odometry:
         return np.array([[a, b, c], [b, d, e], [c, e, f]], dtype=np.float64)
 
     @property
+    def covariance_rows(self) -> tuple[float, ...]:
+        """:attr:`covariance` as nine floats, row by row, without making an array (the
+        Robot puts it in every odometry sample, 50 times a second)."""
+        a, b, c, d, e, f = self._cov
+        return (a, b, c, b, d, e, c, e, f)
+
+    @property
     def t_s(self) -> float | None:
         """Time of the latest update, or None before the first."""
         return self._t_s

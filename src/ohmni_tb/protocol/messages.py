@@ -102,6 +102,12 @@ class StatusDetail(enum.IntFlag):
     MOTOR_ON = 0x40
 
 
+#: Every status byte's flags, built once: making an IntFlag from an int runs the enum
+#: machinery, and the bus parses two status bytes in every read reply.
+STATUS_ERRORS: tuple[StatusError, ...] = tuple(StatusError(b) for b in range(256))
+STATUS_DETAILS: tuple[StatusDetail, ...] = tuple(StatusDetail(b) for b in range(256))
+
+
 def flag_names(flags: enum.IntFlag) -> str:
     """Flags for people: ``"TEMPERATURE|OVERLOAD"``, ``"none"``, unknown bits in hex."""
     value = int(flags)
@@ -219,8 +225,8 @@ class ReadReply:
             memory=memory,
             addr=addr,
             data=d[2 : 2 + length],
-            status_error=StatusError(d[-2]),
-            status_detail=StatusDetail(d[-1]),
+            status_error=STATUS_ERRORS[d[-2]],
+            status_detail=STATUS_DETAILS[d[-1]],
         )
 
 
@@ -245,8 +251,8 @@ class StatusReply:
         return cls(
             sid=packet.sid,
             cmd=packet.cmd,
-            status_error=StatusError(packet.data[0]),
-            status_detail=StatusDetail(packet.data[1]),
+            status_error=STATUS_ERRORS[packet.data[0]],
+            status_detail=STATUS_DETAILS[packet.data[1]],
         )
 
 

@@ -66,7 +66,7 @@ from ohmni_tb.protocol import Memory, Packet, ReadReply, read_request
 from ohmni_tb.protocol.core import parse_status, read_status, set_light_ring
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import PWM_LIMIT, parse_count, read_count, wheel_command
-from ohmni_tb.protocol.messages import StatusDetail, StatusError
+from ohmni_tb.protocol.messages import STATUS_DETAILS, STATUS_ERRORS, StatusError
 from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
 from ohmni_tb.robot.samples import (
@@ -100,6 +100,12 @@ _R = TypeVar("_R")
 #: feedback read share one priority, so they go in the order they fall due: a near-full
 #: line slows them all a little instead of starving the least urgent.
 CONTROL_PRIORITY = 10
+#: The status error bits the thermal guard acts on.
+_HOT_BITS = int(StatusError.TEMPERATURE | StatusError.OVERLOAD)
+#: A servo's torque control byte to its mode (an enum call per sample costs more).
+_TORQUE_MODES = {int(mode): mode for mode in TorqueControl}
+#: Control-slot tuples kept by command value (``Robot._control_cycles``).
+_CONTROL_CYCLES_MAX = 256
 FEEDBACK_PRIORITY = 5
 PROBE_PRIORITY = 0
 #: The control slot must start this share of a period after its due time, or it is
@@ -278,6 +284,7 @@ class Robot:
         self._write_cost_s = bus.cost_s(wheel_command(0, 0))
         self._read_cost_s = bus.cost_s(read_count(DeviceId.LEFT_DRIVE))
         self._count_reads = (read_count(DeviceId.LEFT_DRIVE), read_count(DeviceId.RIGHT_DRIVE))
+        self._control_cycles: dict[tuple[int, int], tuple[Packet, ...]] = {}
         # Each polled stream's packets of one cycle (the control slot's with a stop).
         self._packets: dict[str, Sequence[Packet]] = {
             "wheel_encoder": [wheel_command(0, 0), *self._count_reads]
@@ -695,6 +702,7 @@ class Robot:
         topic.requested_hz = hz
         topic.enabled = True
         self._packets[stream] = packets
+        cycle = tuple(packets)  # the same tuple each cycle: the bus checks it once
         periodic = Periodic(
             self._bus,
             stream,
@@ -702,7 +710,7 @@ class Robot:
             phase_s=phase_s,
             priority=FEEDBACK_PRIORITY,
             slack_s=1.0 / hz,
-            build=lambda due: packets,  # the bus copies the list
+            build=lambda due: cycle,
             handle=handle,
             fail=self._feedback_failed(stream),
             skipped=self._counter(stream, "skipped"),
@@ -757,9 +765,15 @@ class Robot:
 
     # -- control ---------------------------------------------------------------------------
 
-    def _control_packets(self, due: float) -> list[Packet]:
-        left, right = self._control_step(self._loop.time())
-        return [wheel_command(left, right), *self._count_reads]
+    def _control_packets(self, due: float) -> tuple[Packet, ...]:
+        pwm = self._control_step(self._loop.time())
+        cycle = self._control_cycles.get(pwm)
+        if cycle is None:
+            # One tuple per command value: the bus checks a tuple it has seen only once.
+            if len(self._control_cycles) >= _CONTROL_CYCLES_MAX:
+                self._control_cycles.clear()
+            cycle = self._control_cycles[pwm] = (wheel_command(*pwm), *self._count_reads)
+        return cycle
 
     def _control_step(self, now: float) -> tuple[int, int]:
         """The wheel PWM to send now: watchdog, estop, limits, ramps and the PIDs."""
@@ -887,7 +901,7 @@ class Robot:
                 heading_rad=odometry.heading_rad,
                 linear_mps=twist.linear_mps,
                 angular_radps=twist.angular_radps,
-                covariance=tuple(float(v) for v in odometry.covariance.flat),
+                covariance=odometry.covariance_rows,
                 commanded_linear_mps=commanded.linear_mps,
                 commanded_angular_radps=commanded.angular_radps,
             )
@@ -973,10 +987,10 @@ class Robot:
                 raise MalformedReplyError(
                     f"servo {sid}: {len(read.data)} bytes, not {SERVO_BLOCK_LEN}"
                 )
-            try:
-                return read.data, TorqueControl(read.data[4])
-            except ValueError as exc:
-                raise MalformedReplyError(f"servo {sid}: torque byte {read.data[4]}") from exc
+            torque = _TORQUE_MODES.get(read.data[4])
+            if torque is None:
+                raise MalformedReplyError(f"servo {sid}: torque byte {read.data[4]}")
+            return read.data, torque
 
         parsed = self._feedback(topic, result, block)
         if parsed is None:
@@ -992,12 +1006,12 @@ class Robot:
             temperature_raw=data[7],
             voltage_v=voltage_v_from_raw(data[6]),
             torque=torque,
-            status_error=StatusError(data[0]),
-            status_detail=StatusDetail(data[1]),
+            status_error=STATUS_ERRORS[data[0]],
+            status_detail=STATUS_DETAILS[data[1]],
         )
         watch.sample = sample
         topic.publish(sample, result.started_s)
-        self._thermal_check(watch, sample)
+        self._thermal_check(watch, sample, data[0] & _HOT_BITS)
 
     def _worm_result(self, result: CycleResult) -> None:
         topic = self._topics["new_neck"]
@@ -1031,17 +1045,15 @@ class Robot:
 
     # -- the thermal and hold guards ---------------------------------------------------------
 
-    def _thermal_check(self, watch: _ServoWatch, sample: ServoSample) -> None:
+    def _thermal_check(self, watch: _ServoWatch, sample: ServoSample, hot_bits: int) -> None:
+        """``hot_bits``: the sample's status error byte masked by :data:`_HOT_BITS`."""
         config = self.config
         if not config.thermal_guard:
             return
-        fault = f"thermal:{sample.sid}"
-        hot = bool(sample.status_error & (StatusError.TEMPERATURE | StatusError.OVERLOAD)) or (
-            sample.temperature_raw >= config.thermal_limit_raw
-        )
+        hot = bool(hot_bits) or sample.temperature_raw >= config.thermal_limit_raw
         if hot and not watch.tripped:
             watch.tripped = True
-            self._state.faults.add(fault)
+            self._state.faults.add(f"thermal:{sample.sid}")
             rest = watch.stream == "servo_neck"
             self._publish_state(
                 f"thermal guard: servo {sample.sid} at temperature {sample.temperature_raw} "
@@ -1051,12 +1063,12 @@ class Robot:
             self._guard(watch, rest=rest)
             return
         cool = (
-            not sample.status_error & (StatusError.TEMPERATURE | StatusError.OVERLOAD)
+            not hot_bits
             and sample.temperature_raw < config.thermal_limit_raw - THERMAL_HYSTERESIS_RAW
         )
         if watch.tripped and cool:
             watch.tripped = False
-            self._state.faults.discard(fault)
+            self._state.faults.discard(f"thermal:{sample.sid}")
             self._publish_state(f"thermal guard: servo {sample.sid} cooled down")
         held = self._loop.time() - watch.last_command_s
         if (

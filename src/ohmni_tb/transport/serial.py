@@ -235,6 +235,32 @@ class _TtyTransport(serial_asyncio_fast.SerialTransport):
 
     _empty_reads = 0
 
+    def _write_data(self, data: bytes | bytearray | memoryview) -> None:
+        # The library's own goes through pyserial's write(), whose timeout bookkeeping is
+        # most of its cost; the port is non-blocking, so one os.write() is the same write.
+        device: serial.Serial | None = self._serial
+        fd = None if device is None else device.fd
+        if fd is None:  # closing
+            super()._write_data(data)
+            return
+        try:
+            n = os.write(fd, data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError as exc:
+            self._fatal_error(
+                serial.SerialException(f"write failed: {exc}"),
+                "Fatal write error on serial transport",
+            )
+            return
+        if n == len(data):
+            if self._closing:
+                self._close()
+            return
+        self._write_buffer.append(data[n:])  # the rest when the port can take it
+        self._maybe_pause_protocol()
+        self._ensure_writer()
+
     def _read_ready(self) -> None:
         device: serial.Serial | None = self._serial
         fd = None if device is None else device.fd
