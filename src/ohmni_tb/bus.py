@@ -1151,16 +1151,13 @@ class Bus:
         if self._taps:
             self._tapped(False, data, now)
         events = self._conn.receive_data(data, now)
-        if events and not self._pumping:
-            # The slots these settle may queue more (a stream's next cycle): their
-            # submissions wait for the one pass below instead of each making its own.
-            self._pumping = True
-            try:
-                self._handle(events)
-            finally:
-                self._pumping = False
-        elif events:
+        # The slots these settle may queue more (a stream's next cycle): their
+        # submissions wait for the one pass below instead of each making its own.
+        pumping, self._pumping = self._pumping, True
+        try:
             self._handle(events)
+        finally:
+            self._pumping = pumping
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:

@@ -100,14 +100,14 @@ _R = TypeVar("_R")
 #: feedback read share one priority, so they go in the order they fall due: a near-full
 #: line slows them all a little instead of starving the least urgent.
 CONTROL_PRIORITY = 10
+FEEDBACK_PRIORITY = 5
+PROBE_PRIORITY = 0
 #: The status error bits the thermal guard acts on.
 _HOT_BITS = int(StatusError.TEMPERATURE | StatusError.OVERLOAD)
 #: A servo's torque control byte to its mode (an enum call per sample costs more).
 _TORQUE_MODES = {int(mode): mode for mode in TorqueControl}
 #: Control-slot tuples kept by command value (``Robot._control_cycles``).
 _CONTROL_CYCLES_MAX = 256
-FEEDBACK_PRIORITY = 5
-PROBE_PRIORITY = 0
 #: The control slot must start this share of a period after its due time, or it is
 #: skipped (a late wheel command is worse than the next one on time). Its count reads
 #: wait until the previous cycle's replies are seen, which an adapter's latency timer
@@ -1011,7 +1011,7 @@ class Robot:
         )
         watch.sample = sample
         topic.publish(sample, result.started_s)
-        self._thermal_check(watch, sample, data[0] & _HOT_BITS)
+        self._thermal_check(watch, sample)
 
     def _worm_result(self, result: CycleResult) -> None:
         topic = self._topics["new_neck"]
@@ -1045,11 +1045,12 @@ class Robot:
 
     # -- the thermal and hold guards ---------------------------------------------------------
 
-    def _thermal_check(self, watch: _ServoWatch, sample: ServoSample, hot_bits: int) -> None:
-        """``hot_bits``: the sample's status error byte masked by :data:`_HOT_BITS`."""
+    def _thermal_check(self, watch: _ServoWatch, sample: ServoSample) -> None:
         config = self.config
         if not config.thermal_guard:
             return
+        # On the flags' int value: an IntFlag's own & makes a new flag each time.
+        hot_bits = int(sample.status_error) & _HOT_BITS
         hot = bool(hot_bits) or sample.temperature_raw >= config.thermal_limit_raw
         if hot and not watch.tripped:
             watch.tripped = True
