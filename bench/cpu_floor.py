@@ -1,6 +1,7 @@
 """The least CPU the Robot's schedule can cost: raw bytes on the same timers, over a pty.
 
-Run: ``python bench/cpu_floor.py`` (``--seconds`` per row, 15 by default).
+Run: ``python bench/cpu_floor.py`` (``--seconds`` per row, 15 by default; ``--only
+robot`` for the last part alone).
 
 Against ``ohmni sim --pty`` in its own process, an asyncio loop writes the schedule's
 request bytes on the schedule's timers — every 20 ms both wheel-count reads and a wheel
@@ -21,6 +22,15 @@ own pass (its selector calls, timer heap and handles) — the ratio is printed.
 The requests are not paced to the line, so some collide with replies on the simulated
 half-duplex line: the reply count is lower than the schedule's 200 a second. The figure
 is the loop's and the system calls' cost, which that does not change much.
+
+Last, the same work warm and cold: the Robot with every stream on, driving, on ``sim://``
+in virtual time — the exact same sequence of callbacks every run, the simulator in the
+process — once back to back (warm: nothing runs between two passes of the loop), then
+with the loop's thread asleep for real (0.2, 1 and 3 ms) each time virtual time jumps,
+as it sleeps between wake-ups in real time (about 2.4 ms on average under the Robot's
+schedule). The CPU of the loop's thread per virtual second, less what the sleeps
+themselves cost, is the work's; its ratio to the warm row is what sleeping does to the
+same Python (on a shared virtual machine, the caches it finds after waking).
 """
 
 from __future__ import annotations
@@ -35,9 +45,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _pty import simulator_on_pty
+from ohmni_tb import Robot
 from ohmni_tb.protocol import PacketDecoder, encode_packet, read_request
 from ohmni_tb.protocol.core import read_status
 from ohmni_tb.protocol.drive import read_count, wheel_command
+from ohmni_tb.sim.clock import VirtualClockLoop
 from schedule import machine
 
 CONTROL = b"".join(encode_packet(p) for p in (read_count(0), read_count(1), wheel_command(0, 0)))
@@ -111,31 +123,98 @@ def sleeps(rate_hz: float, seconds: float) -> float:
     return (time.process_time() - cpu0) / (time.perf_counter() - wall0)
 
 
+class _SleepingClockLoop(VirtualClockLoop):
+    """Virtual time whose every jump first sleeps ``gap_s`` of real time."""
+
+    def __init__(self, gap_s: float) -> None:
+        super().__init__()
+        self.gap_s = gap_s
+        self.sleep_cpu_s = 0.0
+        self.jumps = 0
+
+    def advance(self, seconds: float) -> None:
+        self.jumps += 1
+        if self.gap_s > 0:
+            t0 = time.thread_time()
+            time.sleep(self.gap_s)
+            self.sleep_cpu_s += time.thread_time() - t0
+        super().advance(seconds)
+
+
+def robot_work(gap_s: float, virtual_s: float) -> tuple[float, float]:
+    """Thread CPU per virtual second of the Robot's schedule, the sleeps' own cost left
+    out, and the loop's jumps (so its sleeps) per virtual second."""
+    loop = _SleepingClockLoop(gap_s)
+
+    async def run() -> tuple[float, float]:
+        async with Robot.open("sim://", watchdog_s=0.0) as robot:
+            robot.drive(0.2, 0.1)
+            await asyncio.sleep(1.0)
+            cpu0, slept0, jumps0 = time.thread_time(), loop.sleep_cpu_s, loop.jumps
+            await asyncio.sleep(virtual_s)
+            cpu = time.thread_time() - cpu0 - (loop.sleep_cpu_s - slept0)
+            return cpu / virtual_s, (loop.jumps - jumps0) / virtual_s
+
+    with asyncio.Runner(loop_factory=lambda: loop) as runner:
+        return runner.run(run())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument(
+        "--only",
+        choices=("floor", "wakeups", "robot"),
+        help="one part: the raw schedule, the wake-ups alone, or the Robot warm and cold",
+    )
     args = parser.parse_args()
     print(machine())
+    if args.only in (None, "floor"):
+        raw_floor(args.seconds)
+    if args.only in (None, "wakeups"):
+        wake_costs(args.seconds)
+    if args.only in (None, "robot"):
+        warm_and_cold(args.seconds)
+    return 0
+
+
+def raw_floor(seconds: float) -> None:
     with simulator_on_pty() as path:
         for decode in (False, True):
-            share, got = asyncio.run(floor(path, args.seconds, decode=decode))
-            what = f"{got / args.seconds:6.0f} replies/s" if decode else f"{got} bytes in"
+            share, got = asyncio.run(floor(path, seconds, decode=decode))
+            what = f"{got / seconds:6.0f} replies/s" if decode else f"{got} bytes in"
             label = "raw loop + decoder" if decode else "raw loop"
             print(f"{label:<20} CPU {share:6.2%} of a core   ({what})")
+
+
+def wake_costs(seconds: float) -> None:
     timer_cost: dict[int, float] = {}
     for rate in (100, 400, 1000):
-        share = asyncio.run(wakeups(rate, args.seconds))
+        share = asyncio.run(wakeups(rate, seconds))
         timer_cost[rate] = share / rate
         label = f"timers {rate}/s"
         print(f"{label:<20} CPU {share:6.2%} of a core   ({share / rate * 1e6:.0f} µs a wake-up)")
     for rate in (100, 400):
-        share = sleeps(rate, args.seconds)
+        share = sleeps(rate, seconds)
         label = f"time.sleep {rate}/s"
         print(
             f"{label:<20} CPU {share:6.2%} of a core   ({share / rate * 1e6:.0f} µs a wake-up; "
             f"an asyncio timer's costs {timer_cost[rate] / (share / rate):.1f}x)"
         )
-    return 0
+
+
+def warm_and_cold(seconds: float) -> None:
+    virtual_s = max(2.0, seconds / 3)
+    warm = 0.0
+    for gap_ms in (0.0, 0.2, 1.0, 3.0):
+        work, jumps = robot_work(gap_ms / 1e3, virtual_s)
+        warm = warm or work
+        label = f"robot, {'warm' if not gap_ms else f'sleep {gap_ms:g} ms'}"
+        extra = f"; {(work - warm) / jumps * 1e6:.0f} µs more after each" if gap_ms else ""
+        print(
+            f"{label:<20} CPU {work * 1e3:5.1f} ms per second of schedule "
+            f"({work / warm:.1f}x the warm figure; {jumps:.0f} loop passes a second{extra})"
+        )
 
 
 if __name__ == "__main__":
