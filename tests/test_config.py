@@ -337,7 +337,7 @@ def test_nan_from_the_environment_is_refused(monkeypatch: pytest.MonkeyPatch) ->
         ({"thermal_limit_raw": 255}, "thermal_limit_raw=255 is out of range: allowed 1..254"),
         ({"worm_max_raw": 130_000}, "worm_max_raw=130000 is out of range: allowed -127000..120000"),
         ({"wheel_radius_m": math.nan}, "wheel_radius_m=nan is not a finite number"),
-        ({"pid_kp": math.inf}, "pid_kp=inf is not a finite number: allowed 0..1000000 PWM/(m/s)"),
+        ({"pid_kp": math.inf}, "pid_kp=inf is not a finite number: allowed 0..10000 PWM/(m/s)"),
         ({"baudrate": "fast"}, "baudrate='fast' is not an integer: allowed 1200..4000000 baud"),
         ({"stale_ticks": 2.5}, "stale_ticks=2.5 is not an integer: allowed 1..100 ticks"),
         ({"watchdog_s": True}, "watchdog_s=True is not a number"),
@@ -382,7 +382,7 @@ def test_every_problem_gets_a_line_unknown_names_first() -> None:
     assert lines == [
         "unknown setting 'watchdogs' (argument); did you mean 'watchdog_s'?",
         "baudrate=1 is out of range: allowed 1200..4000000 baud (argument)",
-        "pid_kp=-1 is out of range: allowed 0..1000000 PWM/(m/s) (argument)",
+        "pid_kp=-1 is out of range: allowed 0..10000 PWM/(m/s) (argument)",
     ]
 
 

@@ -50,12 +50,14 @@ from pydantic_settings.exceptions import SettingsError
 
 from ohmni_tb._checks import show
 from ohmni_tb.control.defaults import (
+    CONTROL_HZ_RANGE,
     DEFAULT_MAX_ANGULAR_RADPS,
     DEFAULT_MAX_LINEAR_MPS,
     DEFAULT_TICKS_PER_REV,
     DEFAULT_WHEEL_RADIUS_M,
     DEFAULT_WHEEL_SEPARATION_M,
     PID_RATE_HZ,
+    WHEEL_GAIN_RANGES,
 )
 from ohmni_tb.control.encoder import EncoderConfig
 from ohmni_tb.control.kinematics import DiffDrive, VelocityLimits
@@ -248,21 +250,32 @@ class RobotConfig(BaseSettings):
     # motor model (no-load 1 m/s at PWM 1000, 6 % dead band): 1-3 % overshoot on a
     # 0.5 m/s ramp; the speed estimate's 0.1 s window makes a larger ki wind up.
     pid_kp: float = _setting(
-        600.0, 0, 1e6, "PWM/(m/s)", f"Wheel PID proportional gain, PWM per m/s of error ({_PWM})."
+        600.0,
+        *WHEEL_GAIN_RANGES["kp"],
+        "PWM/(m/s)",
+        f"Wheel PID proportional gain, PWM per m/s of error ({_PWM}).",
     )
     pid_ki: float = _setting(
-        300.0, 0, 1e6, "PWM/m", "Wheel PID integral gain, PWM per m/s of error and second."
+        300.0,
+        *WHEEL_GAIN_RANGES["ki"],
+        "PWM/m",
+        "Wheel PID integral gain, PWM per m/s of error and second.",
     )
     pid_kd: float = _setting(
-        0.0, 0, 1e6, "PWM/(m/s²)", "Wheel PID derivative gain on the measured speed, PWM per m/s²."
+        0.0,
+        *WHEEL_GAIN_RANGES["kd"],
+        "PWM/(m/s²)",
+        "Wheel PID derivative gain on the measured speed, PWM per m/s².",
     )
     pid_kff: float = _setting(
-        940.0, 0, 1e6, "PWM/(m/s)", "Wheel velocity feed-forward, PWM per m/s of setpoint."
+        940.0,
+        *WHEEL_GAIN_RANGES["kff"],
+        "PWM/(m/s)",
+        "Wheel velocity feed-forward, PWM per m/s of setpoint.",
     )
     pid_ff_offset: float = _setting(
         60.0,
-        0,
-        1e6,
+        *WHEEL_GAIN_RANGES["ff_offset"],
         "PWM",
         "PWM added in the direction of a non-zero wheel setpoint, to overcome the motor's "
         "dead band.",
@@ -378,8 +391,7 @@ class RobotConfig(BaseSettings):
     # Stream rates.
     wheel_hz: float = _setting(
         PID_RATE_HZ,
-        1,
-        100,
+        *CONTROL_HZ_RANGE,
         "Hz",
         "Rate of the control slot (both wheel counts, odometry, the wheel command), Hz.",
     )

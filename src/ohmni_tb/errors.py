@@ -17,6 +17,7 @@ catches the right thing::
     │                                                               (.sid, .report)
     ├── StateError                  the call does not fit the object's state
     │   ├── BusClosedError          the bus is closed
+    │   ├── RobotClosedError        a command to a Robot (or client) already closed
     │   ├── DeadlineMissedError     a slot could not start before its deadline
     │   │                                                 (+ TimeoutError)  (.deadline, .late_s)
     │   └── LeaseError              a daemon command without its control lease (.holder)
@@ -49,6 +50,7 @@ __all__ = [
     "OhmniError",
     "OutOfRangeError",
     "ProtocolError",
+    "RobotClosedError",
     "StateError",
     "StopNotConfirmedError",
     "TransportClosedError",
@@ -197,6 +199,13 @@ class StateError(OhmniError):
 
 class BusClosedError(StateError):
     """The bus is closed; open a new one."""
+
+
+class RobotClosedError(StateError):
+    """A command to a Robot that is closed: nothing was sent. Open a new one."""
+
+    def __init__(self, message: str = "the robot is closed: open a new one") -> None:
+        super().__init__(message)
 
 
 class DeadlineMissedError(StateError, TimeoutError):

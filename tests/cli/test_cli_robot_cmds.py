@@ -324,9 +324,9 @@ def test_pid_set_refuses_what_it_cannot_edit_safely(
 @pytest.mark.parametrize(
     ("args", "named"),
     [
-        (("--kp", "-1"), "--kp: pid_kp=-1.0 is out of range: allowed 0..1000000 PWM/(m/s)"),
-        (("--ki", "2e6"), "--ki: pid_ki=2000000.0 is out of range: allowed 0..1000000 PWM/m"),
-        (("--kd", "nan"), "--kd must be a finite number, not 'nan': allowed 0..1000000"),
+        (("--kp", "-1"), "--kp: pid_kp=-1.0 is out of range: allowed 0..10000 PWM/(m/s)"),
+        (("--ki", "2e6"), "--ki: pid_ki=2000000.0 is out of range: allowed 0..10000 PWM/m"),
+        (("--kd", "nan"), "--kd must be a finite number, not 'nan': allowed 0..1000 PWM/(m/s²)"),
         (("--kff", "inf"), "--kff must be a finite number, not 'inf'"),
         (("--ff-offset", "٣"), "--ff-offset must be a finite number, not '٣'"),
         (("--kp", "9" * 400), "--kp must be a finite number"),

@@ -277,13 +277,13 @@ FileOption = Annotated[
 #: What each gain is and allows, for --help and errors (a test checks them against
 #: RobotConfig's: importing the config here would load pydantic for every --help).
 GAINS: Final[dict[str, tuple[str, str]]] = {
-    "--kp": ("Proportional gain, PWM per m/s of error", "0..1000000 PWM/(m/s)"),
-    "--ki": ("Integral gain, PWM per m/s of error and second", "0..1000000 PWM/m"),
-    "--kd": ("Derivative gain on the measured speed, PWM per m/s²", "0..1000000 PWM/(m/s²)"),
-    "--kff": ("Velocity feed-forward, PWM per m/s of setpoint", "0..1000000 PWM/(m/s)"),
+    "--kp": ("Proportional gain, PWM per m/s of error", "0..10000 PWM/(m/s)"),
+    "--ki": ("Integral gain, PWM per m/s of error and second", "0..10000 PWM/m"),
+    "--kd": ("Derivative gain on the measured speed, PWM per m/s²", "0..1000 PWM/(m/s²)"),
+    "--kff": ("Velocity feed-forward, PWM per m/s of setpoint", "0..10000 PWM/(m/s)"),
     "--ff-offset": (
         "PWM added toward a non-zero setpoint (the motors' dead band)",
-        "0..1000000 PWM",
+        "0..200 PWM",
     ),
 }
 

@@ -6,10 +6,14 @@ in :mod:`ohmni_tb.protocol.drive`, and only re-exported here under the names con
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from types import MappingProxyType
+
 from ohmni_tb.protocol.drive import MOTOR_POSITION_MODULUS as MOTOR_TICKS_PER_REV
 from ohmni_tb.protocol.drive import PWM_LIMIT
 
 __all__ = [
+    "CONTROL_HZ_RANGE",
     "DEFAULT_MAX_ANGULAR_RADPS",
     "DEFAULT_MAX_LINEAR_MPS",
     "DEFAULT_TICKS_PER_REV",
@@ -18,6 +22,7 @@ __all__ = [
     "MOTOR_TICKS_PER_REV",
     "PID_RATE_HZ",
     "PWM_LIMIT",
+    "WHEEL_GAIN_RANGES",
 ]
 
 #: Wheel radius of the vendor's simulation model; robots measure 0.07525 m.
@@ -34,3 +39,21 @@ DEFAULT_MAX_LINEAR_MPS = 1.0
 DEFAULT_MAX_ANGULAR_RADPS = 2.0
 #: tb_control runs the wheel PIDs at 50 Hz.
 PID_RATE_HZ = 50.0
+#: The control tick's allowed rate, Hz, wherever it is set (``wheel_hz``,
+#: ``Robot.set_rate("wheel_encoder", …)``, the daemon, Foxglove). The floor keeps the
+#: braking ramp and stale-feedback detection (``stale_ticks`` ticks) within a fraction of a
+#: second; the motion watchdog has a timer of its own and does not depend on the tick.
+CONTROL_HZ_RANGE = (10.0, 100.0)
+#: Each wheel PID gain's allowed range, wherever it is set (config, ``Robot.set_pid``, the
+#: daemon, Foxglove): ten times and more the gains that drive the robot well, and a
+#: dead-band offset of at most a fifth of the PWM range. Whatever the gains, the wheels
+#: are held to ``max_wheel_mps`` after the PID (``Robot``'s speed governor).
+WHEEL_GAIN_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {
+        "kp": (0.0, 10_000.0),
+        "ki": (0.0, 10_000.0),
+        "kd": (0.0, 1_000.0),
+        "kff": (0.0, 10_000.0),
+        "ff_offset": (0.0, PWM_LIMIT / 5),
+    }
+)

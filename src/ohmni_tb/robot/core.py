@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 from ohmni_tb._checks import check_seconds, host_port, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
+from ohmni_tb.control.defaults import CONTROL_HZ_RANGE, WHEEL_GAIN_RANGES
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
 from ohmni_tb.control.kinematics import (
     LimitedTwist,
@@ -55,6 +56,7 @@ from ohmni_tb.errors import (
     MalformedReplyError,
     OhmniError,
     OutOfRangeError,
+    RobotClosedError,
     StateError,
     StopNotConfirmedError,
     TransportError,
@@ -115,6 +117,14 @@ _CONTROL_CYCLES_MAX = 256
 #: that way (49.0 Hz); a slot that starts at three quarters still ends, with its
 #: command computed at send time, before the next cycle is due.
 CONTROL_SLACK = 0.75
+#: A feedback stream's rate range, Hz (the control tick's is ``CONTROL_HZ_RANGE``).
+FEEDBACK_HZ_RANGE = (0.1, 100.0)
+#: The speed governor, on the PWM after the PID (or the open-loop PWM): at most the PWM
+#: the configured feed-forward (``pid_kff``, ``pid_ff_offset``) gives for this share of
+#: ``max_wheel_mps``; and none at all for a wheel measured faster than that share of it
+#: plus a margin for the speed estimate's noise (a model that is wrong, a slope).
+OVERSPEED_SHARE = 1.1
+OVERSPEED_MARGIN_MPS = 0.03
 #: Phase of the first servo read and of the core read after the control slot, seconds:
 #: between control slots, so the 50 Hz and 30 Hz grids do not pile up.
 SERVO_PHASE_S = 0.010
@@ -276,6 +286,23 @@ class Robot:
         self._pwm = (0, 0)
         self._last_step_s: float | None = None
         self._last_command_s = -math.inf
+        self._watchdog_timer: asyncio.TimerHandle | None = None
+        self._closing: asyncio.Task[Any] | None = None  # the task closing the Robot
+        self._overspeed_max_mps = self._limits.max_wheel_mps * OVERSPEED_SHARE + (
+            OVERSPEED_MARGIN_MPS
+        )
+        self._pwm_cap = (
+            min(
+                PWM_LIMIT,
+                round(
+                    config.pid_kff * self._limits.max_wheel_mps * OVERSPEED_SHARE
+                    + config.pid_ff_offset
+                ),
+            )
+            if config.pid_kff > 0
+            else PWM_LIMIT
+        )
+        self._overspeed = 0
         self._stale_ticks = 0
         self._rejected = 0
         self._clamped = 0
@@ -423,9 +450,15 @@ class Robot:
         if self._closed:
             return
         self._closed = True
+        self._closing = asyncio.current_task()
         for periodic in self._periodic.values():
             periodic.stop()
-        for timer in (self._state_timer, self._reprobe_timer, self._reclaim_timer):
+        for timer in (
+            self._state_timer,
+            self._reprobe_timer,
+            self._reclaim_timer,
+            self._watchdog_timer,
+        ):
             if timer is not None:
                 timer.cancel()
         await self._cancel_tasks()
@@ -637,7 +670,7 @@ class Robot:
             build=self._control_packets,
             handle=self._control_result,
             fail=self._control_failed,
-            skipped=self._counter("wheel_encoder", "skipped"),
+            skipped=self._control_skipped,
         )
         self._topics["wheel_encoder"].requested_hz = config.wheel_hz
         self._topics["wheel_odom"].requested_hz = config.wheel_hz
@@ -782,18 +815,7 @@ class Robot:
         self._last_step_s = now
         dt = 1.0 / config.wheel_hz if previous is None else max(now - previous, 1e-6)
         state = self._state
-        if (
-            config.watchdog_s > 0
-            and not state.watchdog_tripped
-            and self._moving_target()
-            and now - self._last_command_s > config.watchdog_s
-        ):
-            state.watchdog_tripped = True
-            self._target = Twist()
-            self._target_wheels = WheelSpeeds(0.0, 0.0)
-            self._target_pwm = (0, 0)
-            self._mode = "twist" if self._mode == "pwm" else self._mode
-            self._publish_state(f"watchdog: no drive command for {config.watchdog_s:g} s, stopping")
+        self._watchdog_check(now)
         if state.estopped or state.link is not Link.CONNECTED or "stale_feedback" in state.faults:
             self._limiter.reset()
             self._reset_pids()
@@ -801,7 +823,7 @@ class Robot:
             return self._pwm
         if self._mode == "pwm" or not self._controllers:
             self._limiter.reset()
-            self._pwm = self._target_pwm if self._mode == "pwm" else (0, 0)
+            self._pwm = self._governed(*self._target_pwm) if self._mode == "pwm" else (0, 0)
             return self._pwm
         if self._mode == "wheels":
             wheels = self._target_wheels
@@ -824,8 +846,75 @@ class Robot:
             step = wheel.pid.step(setpoint, measured, dt)
             wheel.last_step = step
             outputs.append(round(step.output))
-        self._pwm = (outputs[0], outputs[1])
+        self._pwm = self._governed(outputs[0], outputs[1])
         return self._pwm
+
+    def _governed(self, left: int, right: int) -> tuple[int, int]:
+        """The PWM that reaches the wheels, whatever the command, the gains or the
+        open-loop PWM asked: within the PWM that ``max_wheel_mps`` needs by the configured
+        feed-forward, and none for a wheel measured faster than ``max_wheel_mps`` (with a
+        margin) in the direction it is driven (each counted in ``clamped_commands``)."""
+        limit = self._overspeed_max_mps
+        cap = self._pwm_cap
+        pwm = [left, right]
+        for index, wheel in enumerate(self._wheels):
+            if pwm[index] == 0:
+                continue
+            if abs(pwm[index]) > cap:
+                pwm[index] = cap if pwm[index] > 0 else -cap
+                self._clamped += 1
+            last = wheel.encoder.last
+            if last is None:
+                continue
+            speed = last.velocity_mps
+            if abs(speed) > limit and (pwm[index] > 0) == (speed > 0):
+                pwm[index] = 0
+                self._overspeed += 1
+                self._clamped += 1
+                if self._overspeed == 1:
+                    _log.warning(
+                        "a wheel measured %.2f m/s, over max_wheel_mps=%g: its power is cut "
+                        "until it slows (counted in clamped_commands)",
+                        speed,
+                        self._limits.max_wheel_mps,
+                    )
+        return pwm[0], pwm[1]
+
+    def _watchdog_check(self, now: float) -> bool:
+        """Trip the motion watchdog if the last drive command is older than ``watchdog_s``
+        and the target still moves; whether it tripped now."""
+        config = self.config
+        state = self._state
+        if (
+            config.watchdog_s <= 0
+            or state.watchdog_tripped
+            or not self._moving_target()
+            or now - self._last_command_s < config.watchdog_s
+        ):
+            return False
+        state.watchdog_tripped = True
+        self._stop_targets()
+        self._publish_state(f"watchdog: no drive command for {config.watchdog_s:g} s, stopping")
+        return True
+
+    def _watchdog_due(self) -> None:
+        """The watchdog's own timer: it trips at ``watchdog_s`` after the last drive command
+        whatever the control tick's rate, and puts the braking command on the wire at once."""
+        self._watchdog_timer = None
+        if self._closed:
+            return
+        due = self._last_command_s + self.config.watchdog_s
+        if self._loop.time() < due:  # commanded again meanwhile: wait for the new time
+            self._watchdog_timer = self._loop.call_at(due, self._watchdog_due)
+        elif self._watchdog_check(self._loop.time()):
+            self._write_early(force=True)
+
+    def _control_skipped(self, cycles: int) -> None:
+        """Control cycles that did not run (a late loop, a busy line): counted; while the
+        wheels are braking, the braking command goes anyway, late rather than never."""
+        self._topics["wheel_encoder"].skipped += cycles
+        if self._pwm != (0, 0) and not self._moving_target():
+            self._write_early(force=True)
 
     def _moving_target(self) -> bool:
         if self._mode == "pwm":
@@ -1239,8 +1328,10 @@ class Robot:
         self._check_open()
 
     def _check_open(self) -> None:
-        if self._closed:
-            raise StateError("the robot is closed")
+        """Refuse a command to a closed Robot (but for the closing's own: the neck is
+        rested or freed on the way)."""
+        if self._closed and asyncio.current_task() is not self._closing:
+            raise RobotClosedError
 
     async def _release(self, duration_s: float | None) -> StopNotConfirmedError | None:
         """:meth:`release_port`'s work, under the port lock; the stop's error, if any."""
@@ -1344,7 +1435,8 @@ class Robot:
 
     def _check_port(self) -> None:
         """Refuse a command while the port is released, or being released (but for the
-        release's own: the neck is rested or freed on the way)."""
+        release's own: the neck is rested or freed on the way), or to a closed Robot."""
+        self._check_open()
         if self._releasing is not None and asyncio.current_task() is not self._releasing:
             raise StateError("the port is being released to another program (release_port())")
         if self._state.link is not Link.RELEASED:
@@ -1491,7 +1583,9 @@ class Robot:
         Raises:
             InvalidArgumentError: No such stream.
             StateError: The stream's device is absent (it cannot be turned on).
+            RobotClosedError: The Robot is closed.
         """
+        self._check_open()
         topic = self._topic(name)
         if not isinstance(enabled, bool):
             raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
@@ -1513,13 +1607,20 @@ class Robot:
     def set_rate(self, name: str, hz: float) -> None:
         """Change a polled stream's rate (the control tick's too, ``wheel_encoder``).
 
+        The control tick (``wheel_encoder``, which ``wheel_odom`` and ``pid_debug``
+        follow) takes 10..100 Hz (:data:`~ohmni_tb.control.defaults.CONTROL_HZ_RANGE`, as
+        ``wheel_hz``); a feedback stream 0.1..100 Hz.
+
         Raises:
             InvalidArgumentError: No such stream, or it is not polled.
-            OutOfRangeError: ``hz`` is not 0.1..100.
+            OutOfRangeError: ``hz`` is outside the stream's range; nothing changes.
+            RobotClosedError: The Robot is closed.
         """
+        self._check_open()
         self._topic(name)
-        if not 0.1 <= number("hz", hz) <= 100.0:
-            raise OutOfRangeError(f"{name} rate", hz, 0.1, 100.0, "Hz")
+        low, high = CONTROL_HZ_RANGE if name == "wheel_encoder" else FEEDBACK_HZ_RANGE
+        if not low <= number("hz", hz) <= high:
+            raise OutOfRangeError(f"{name} rate", hz, low, high, "Hz")
         periodic = self._periodic.get(name)
         if periodic is None:
             raise InvalidArgumentError(f"stream {name!r} is not polled on this robot")
@@ -1560,14 +1661,16 @@ class Robot:
     # -- motion commands (public) ----------------------------------------------------------
 
     def _check_can_drive(self) -> None:
-        if self._closed:
-            raise StateError("the robot is closed")
         self._check_port()
         if self._state.estopped:
             raise StateError("an emergency stop is latched: call robot.clear_estop() first")
 
     def _commanded(self, changed: bool) -> None:
-        self._last_command_s = self._loop.time()
+        now = self._last_command_s = self._loop.time()
+        if self._watchdog_timer is None and self.config.watchdog_s > 0:
+            self._watchdog_timer = self._loop.call_at(
+                now + self.config.watchdog_s, self._watchdog_due
+            )
         if changed:
             self._write_early()
         if self._state.watchdog_tripped:
@@ -1649,31 +1752,34 @@ class Robot:
         self._target_pwm = (left, right)
         self._commanded(changed)
 
-    def _write_early(self) -> None:
+    def _write_early(self, *, force: bool = False) -> None:
         """Get a changed command to the wheels well within one control period.
 
-        A control slot still waiting for the line gets the new command in place of the
-        one computed when it fell due. Otherwise, when the next control slot is over a
-        quarter period away, the command goes now in a slot of its own (at most one
-        between two control slots), due before the next control slot.
+        A control slot (or an early command) still waiting for the line gets the new
+        command in place of the one computed before. Otherwise, when the next control slot
+        is over a quarter period away (or ``force``: the control cycles are being skipped),
+        the command goes now in a slot of its own (at most one between two control slots).
+        A command that moves is due before the next control slot; one that stops or brakes
+        has no deadline: late, it still goes.
         """
         control = self._periodic.get("wheel_encoder")
         if control is None or not control.running:
             return
         now = self._loop.time()
-        waiting = control.unstarted()
-        if waiting is not None:
-            with contextlib.suppress(OhmniError):
-                waiting.replace_unsent(0, wheel_command(*self._control_step(now)))
-                self._early_writes += 1
-                return
-        if self._early_pending or control.next_due_s - now <= control.period_s / 4:
+        for waiting in (control.unstarted(), self._early_slot):
+            if waiting is not None and waiting.started_at is None:
+                with contextlib.suppress(OhmniError):
+                    waiting.replace_unsent(0, wheel_command(*self._control_step(now)))
+                    self._early_writes += 1
+                    return
+        if self._early_pending or (not force and control.next_due_s - now <= control.period_s / 4):
             return
+        pwm = self._control_step(now)
         try:
             slot = self._bus.submit(
-                [wheel_command(*self._control_step(now))],
+                [wheel_command(*pwm)],
                 priority=CONTROL_PRIORITY,
-                deadline=control.next_due_s,
+                deadline=control.next_due_s if self._moving_target() else None,
             )
         except OhmniError:
             return
@@ -1690,17 +1796,29 @@ class Robot:
         slot.future.add_done_callback(done)
 
     def stop(self) -> None:
-        """Target zero: the wheels ramp down at the deceleration limits."""
-        if self._closed:
-            return
+        """Target zero: the wheels ramp down at the deceleration limits.
+
+        The first braking command goes on the wire at once (in the next free slot), not
+        at the next control tick.
+
+        Raises:
+            RobotClosedError: The Robot is closed (closing stopped the wheels).
+        """
+        self._check_open()
         self._stop_targets()
         self._last_command_s = self._loop.time()
+        if self._state.link is Link.CONNECTED:
+            self._write_early(force=True)
 
     async def estop(self) -> None:
         """Emergency stop: zero PWM ahead of everything queued, latched until cleared.
 
         Drive commands are refused until :meth:`clear_estop`.
+
+        Raises:
+            RobotClosedError: The Robot is closed (closing stopped the wheels).
         """
+        self._check_open()
         self._state.estopped = True
         self._stop_targets()
         self._limiter.reset()
@@ -1718,13 +1836,24 @@ class Robot:
             await self._bus.send_now(wheel_command(0, 0))
 
     def clear_estop(self) -> None:
-        """Release a latched emergency stop (the robot stays still until commanded)."""
+        """Release a latched emergency stop (the robot stays still until commanded).
+
+        Raises:
+            RobotClosedError: The Robot is closed.
+        """
+        self._check_open()
         if self._state.estopped:
             self._state.estopped = False
             self._publish_state("emergency stop cleared")
 
     def enable_controllers(self, enabled: bool = True) -> None:
-        """Run the wheel PIDs (default), or not: then only :meth:`drive_pwm` moves."""
+        """Run the wheel PIDs (default), or not: then only :meth:`drive_pwm` moves.
+
+        Raises:
+            InvalidArgumentError: ``enabled`` is not a bool.
+            RobotClosedError: The Robot is closed.
+        """
+        self._check_open()
         if not isinstance(enabled, bool):
             raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
         self._controllers = enabled
@@ -1737,11 +1866,22 @@ class Robot:
     def set_pid(self, gains: PidGains) -> None:
         """Change the wheel PIDs' gains, bumplessly (the output does not jump).
 
+        Each gain has one allowed range, the same as the ``pid_*`` settings'
+        (:data:`~ohmni_tb.control.defaults.WHEEL_GAIN_RANGES`). Whatever the gains, a
+        wheel measured faster than ``max_wheel_mps`` gets no drive power.
+
         Raises:
             InvalidArgumentError: Not a :class:`PidGains`.
+            OutOfRangeError: A gain is outside its range; nothing changes.
+            RobotClosedError: The Robot is closed.
         """
+        self._check_open()
         if not isinstance(gains, PidGains):
             raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
+        for name, (low, high) in WHEEL_GAIN_RANGES.items():
+            value = getattr(gains, name)
+            if not low <= value <= high:
+                raise OutOfRangeError(f"pid {name}", value, low, high)
         for wheel in self._wheels:
             wheel.pid.set_gains(gains)
 
@@ -1750,7 +1890,9 @@ class Robot:
 
         Raises:
             InvalidArgumentError: A value is not finite.
+            RobotClosedError: The Robot is closed.
         """
+        self._check_open()
         self._odometry.reset(number("x_m", x_m), number("y_m", y_m), number("yaw_rad", yaw_rad))
 
     # -- devices (public) --------------------------------------------------------------------
