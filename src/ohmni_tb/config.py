@@ -29,6 +29,7 @@ frozen objects (:meth:`RobotConfig.drive`, :meth:`RobotConfig.pid_gains`, ...).
 from __future__ import annotations
 
 import difflib
+import logging
 import os
 import tomllib
 from collections.abc import Mapping
@@ -86,6 +87,13 @@ ENV_PREFIX = "OHMNI_"
 CONFIG_ENV = "OHMNI_CONFIG"
 #: Name of the TOML file looked for in the working directory and the user's config dir.
 CONFIG_FILE_NAME = "ohmni.toml"
+
+#: The other ``OHMNI_*`` variables the package reads, exactly so spelled: the config file,
+#: and where ``ohmni`` finds the daemon and its token (ohmni_tb.cli.common.DAEMON_URL_ENV,
+#: ohmni_tb.daemon.auth.TOKEN_ENV). Any other ``OHMNI_*`` name is warned about once.
+_OTHER_ENV = frozenset({CONFIG_ENV, "OHMNI_DAEMON_URL", "OHMNI_DAEMON_TOKEN"})
+
+_log = logging.getLogger(__name__)
 
 #: Highest bus id a HerkuleX servo may have (0xFE is the broadcast id).
 _MAX_SERVO_ID = 253
@@ -535,6 +543,7 @@ class RobotConfig(BaseSettings):
         for key in values:
             if key.startswith("_"):
                 raise ConfigError(_unknown_message(key, " (argument)"))
+        _warn_unknown_env()
         try:
             super().__init__(**values)
         except ValidationError as exc:
@@ -653,9 +662,7 @@ class _TomlSource(TomlConfigSettingsSource):
     def _read_file(self, file_path: Path | Traversable) -> dict[str, Any]:
         try:
             with file_path.open("rb") as file:
-                data = tomllib.load(file)
-        except tomllib.TOMLDecodeError as exc:  # its message ends "(at line 3, column 7)"
-            raise ConfigError(f"{file_path}: not valid TOML: {exc}") from exc
+                data = toml_settings(file.read().decode("utf-8"), file_path)
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{file_path}: not UTF-8 text: {exc}") from exc
         except OSError as exc:
@@ -691,6 +698,24 @@ _KIND_ERRORS = {
     "string_too_short": "empty",
     "tuple_type": "a list",
 }
+
+
+def toml_settings(text: str, path: object) -> dict[str, Any]:
+    """A config file's text parsed as TOML.
+
+    Raises:
+        ConfigError: It is not TOML, or it nests too deeply to parse; the message names
+            ``path``.
+    """
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:  # its message ends "(at line 3, column 7)"
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except RecursionError as exc:  # tomllib parses nested values recursively
+        raise ConfigError(
+            f"{path}: not read: its arrays or tables nest too deeply "
+            "(a setting is a number, a string, a boolean or a list of ids)"
+        ) from exc
 
 
 def _explain(error: ValidationError, arguments: Mapping[str, object]) -> str:
@@ -744,6 +769,32 @@ def _origin(name: str, arguments: Mapping[str, object]) -> tuple[str, bool]:
     if loading is not None and name.lower() in {key.lower() for key in loading.data}:
         return f" (in {loading.path})", False
     return "", False
+
+
+#: Unknown ``OHMNI_*`` names already warned about: once each.
+_warned_env: set[str] = set()
+
+
+def _warn_unknown_env() -> None:
+    """Warn once about each ``OHMNI_*`` variable that nothing reads (a mistyped
+    ``OHMNI_WATCHDOG`` would otherwise leave the watchdog at its default unnoticed),
+    naming the closest known name."""
+    fields = {f"{ENV_PREFIX}{name}".upper() for name in RobotConfig.model_fields}
+    for key in os.environ:
+        if not key.upper().startswith(ENV_PREFIX) or key in _warned_env:
+            continue
+        if key.upper() in fields or key in _OTHER_ENV:  # settings in any case, others exact
+            continue
+        _warned_env.add(key)
+        # Compared without the prefix, which every name shares.
+        known = {name[len(ENV_PREFIX) :]: name for name in fields | _OTHER_ENV}
+        close = difflib.get_close_matches(key.upper()[len(ENV_PREFIX) :], sorted(known), n=1)
+        hint = (
+            f"did you mean {known[close[0]]}?"
+            if close
+            else "the settings are listed by RobotConfig.describe() and in docs/robot.md"
+        )
+        _log.warning("environment variable %s is ignored: nothing reads that name; %s", key, hint)
 
 
 def _unknown_message(key: str, origin: str) -> str:

@@ -13,6 +13,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
+from ohmni_tb._files import open_regular
 from ohmni_tb.cli.common import (
     JsonOption,
     PortOption,
@@ -176,14 +177,7 @@ def monitor(
                 console.print(f"{t}{ev.device:>9} {ev.text}{lat}", highlight=False)
 
     if capture is not None:
-        if _is_mcap(capture):
-            _feed_recording(mon, capture, show)
-        else:
-            try:
-                data = capture.read_bytes()
-            except OSError as exc:
-                raise typer.BadParameter(f"cannot read capture {capture}: {exc}") from None
-            show(mon.feed(data))
+        _feed_capture(mon, capture, show)
     else:
         assert port is not None
 
@@ -208,14 +202,39 @@ def monitor(
 
 #: The first bytes of an MCAP file.
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: A raw capture is decoded this much at a time: the monitor holds a block, not the file.
+_CAPTURE_BLOCK = 1 << 16
 
 
-def _is_mcap(path: Path) -> bool:
+def _feed_capture(mon: BusMonitor, path: Path, show: Callable[[list[MonitorEvent]], None]) -> None:
+    """A capture file: raw bytes read a block at a time, or an ``ohmni record --raw``
+    recording. Only a regular file: a FIFO or a device (``/dev/zero``) would block, or
+    never end; opening one never waits.
+
+    Raises:
+        typer.BadParameter: It cannot be opened (exit code 2).
+        typer.Exit: Code 1, after one line, when it is not a regular file or a read fails.
+    """
     try:
-        with path.open("rb") as file:
-            return file.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC
-    except OSError:
-        return False  # read_bytes says why, as for any capture
+        file = open_regular(path)
+    except OSError as exc:
+        raise typer.BadParameter(f"cannot read capture {path}: {exc}") from None
+    except ValueError as exc:  # not a regular file, or a NUL in the path
+        error_line(f"cannot read capture {path}: {exc}")
+        raise typer.Exit(1) from None
+    with file:
+        try:
+            data = file.read(len(_MCAP_MAGIC))
+            if data == _MCAP_MAGIC:
+                file.close()
+                _feed_recording(mon, path, show)
+                return
+            while data:
+                show(mon.feed(data))
+                data = file.read(_CAPTURE_BLOCK)
+        except OSError as exc:
+            error_line(f"cannot read capture {path}: {exc.strerror or exc}")
+            raise typer.Exit(1) from None
 
 
 def _feed_recording(

@@ -4,6 +4,9 @@ The channels are the file's, as recorded (``ohmni record`` writes the live view'
 the app's layout for the robot shows the replay unchanged. The server's address is the
 first line of stdout; the replay runs once at ``--speed`` and ends with a one-line
 summary on stderr (exit code 0). Ctrl-C ends it early (exit code 130, as every command).
+A file that is not a regular file, not MCAP, or damaged inside ends it with one error
+line naming the file and what is wrong (exit code 1); a chunk that declares more than
+64 MiB uncompressed is refused unread, so a hostile file cannot exhaust memory.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ def replay(
     Connect the app to the address printed on the first line ("Foxglove WebSocket"); the
     messages go out on their recorded times (divided by --speed), then the command ends.
     The app can also open the file directly; this is for panels and tools that want a
-    live connection.
+    live connection. A damaged file ends the replay with one error line (exit code 1).
 
     Example: ohmni replay run.mcap --speed 2 ; ohmni replay run.mcap --foxglove 0.0.0.0:8765
     """

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -532,14 +531,14 @@ def _settings_in(path: Path) -> dict[str, Any]:
     Raises:
         ConfigError: It cannot be read or is not TOML, or ``[robot]`` is not a table.
     """
+    from ohmni_tb.config import toml_settings  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
 
     try:
-        return _merged(tomllib.loads(_read(path)), path)
+        text = _read(path)
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read config file {path}: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return _merged(toml_settings(text, path), path)
 
 
 def _read(path: Path) -> str:
@@ -662,11 +661,12 @@ def _check_result(
     path: Path, text: str, before: Mapping[str, Any], values: Mapping[str, float]
 ) -> None:
     """Refuse an edit that would not read back as intended."""
+    from ohmni_tb.config import toml_settings  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
 
     try:
-        after = _merged(tomllib.loads(text), path)
-    except (tomllib.TOMLDecodeError, ConfigError) as exc:
+        after = _merged(toml_settings(text, path), path)
+    except ConfigError as exc:
         keys = ", ".join(values)
         raise ConfigError(
             f"{path}: cannot set {keys} safely by editing lines ({exc}); nothing was "

@@ -13,6 +13,13 @@ recorded gaps (divided by ``speed``); a client that connects late sees the rest.
 file is read on the event loop as the messages are due, a chunk at a time: this process
 drives no robot, and a chunk (about a second of the streams) reads in a millisecond or
 two.
+
+A damaged or hostile file costs bounded memory and ends in one :class:`ReplayError`
+naming the file, what is wrong and where: only a regular file is opened (a FIFO or a
+device is refused, and opening never waits), a chunk that declares more than 64 MiB
+uncompressed (``ohmni record`` writes chunks of at most 1 MiB) is refused before it is
+decompressed, and each chunk's CRC is checked. A recording without its index (cut short)
+plays in the order it was written, up to where it ends.
 """
 
 from __future__ import annotations
@@ -21,15 +28,13 @@ import asyncio
 import json
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any, Final
+from typing import Any, Final
 
 import foxglove
 from foxglove.websocket import WebSocketServer
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 
 from ohmni_tb._checks import bounded, integer
-from ohmni_tb.errors import OhmniError, TransportError
+from ohmni_tb.foxglove._recording import Recording, ReplayError
 from ohmni_tb.foxglove.bridge import DEFAULT_HOST, DEFAULT_PORT, _Served
 from ohmni_tb.foxglove.record import RAW_TOPICS
 
@@ -39,57 +44,34 @@ __all__ = ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"]
 MAX_SPEED: Final = 40.0
 
 
-class ReplayError(OhmniError):
-    """A recording that cannot be replayed: not found, not MCAP, or cut short inside."""
-
-
 def raw_bus_bytes(path: str | Path) -> Iterator[tuple[float, bool, bytes]]:
     """The bus bytes of a ``ohmni record --raw`` recording, in the order they happened:
     (seconds since the first chunk, whether the host wrote them, the bytes).
 
     Raises:
-        ReplayError: No such file, not MCAP, no raw bus bytes in it, or a chunk that is
-            not one (the message names the file).
+        ReplayError: No such file (or not a regular file), not MCAP, no raw bus bytes in
+            it, or damaged inside (the message names the file and what is wrong).
     """
-    with _open(path) as file:
-        try:
-            reader = make_reader(file)
-            first_ns: int | None = None
-            found = False
-            for _, channel, message in reader.iter_messages(
-                topics=list(RAW_TOPICS), log_time_order=True
-            ):
-                found = True
-                if first_ns is None:
-                    first_ns = message.log_time
-                try:
-                    data = bytes.fromhex(json.loads(message.data)["data"])
-                except (ValueError, KeyError, TypeError) as exc:
-                    raise ReplayError(
-                        f"{path}: a {channel.topic} message is not bus bytes: {message.data[:60]!r}"
-                    ) from exc
-                yield (message.log_time - first_ns) / 1e9, channel.topic == RAW_TOPICS[0], data
-        except (McapError, EOFError) as exc:
-            raise ReplayError(
-                f"{path} is not an MCAP recording (or ends inside a record): {exc}"
-            ) from exc
+    with Recording(path) as recording:
+        first_ns: int | None = None
+        found = False
+        for _, channel, message in recording.messages(topics=RAW_TOPICS):
+            found = True
+            if first_ns is None:
+                first_ns = message.log_time
+            try:
+                data = bytes.fromhex(json.loads(message.data)["data"])
+            # RecursionError: JSON nested thousands deep.
+            except (ValueError, KeyError, TypeError, RecursionError) as exc:
+                raise ReplayError(
+                    f"{path}: a {channel.topic} message is not bus bytes: {message.data[:60]!r}"
+                ) from exc
+            yield (message.log_time - first_ns) / 1e9, channel.topic == RAW_TOPICS[0], data
         if not found:
             raise ReplayError(
                 f"{path} has no raw bus bytes ({', '.join(RAW_TOPICS)}): record them with "
                 "ohmni record --raw"
             )
-
-
-def _open(path: str | Path) -> IO[bytes]:
-    """The recording, open for reading.
-
-    Raises:
-        ReplayError: It cannot be opened; the message names it and why.
-    """
-    try:
-        return Path(path).open("rb")
-    except OSError as exc:
-        raise ReplayError(f"cannot open {path}: {exc.strerror or exc}") from exc
 
 
 class McapReplay(_Served):
@@ -125,7 +107,7 @@ class McapReplay(_Served):
         self._context = foxglove.Context()
         self._channels: dict[int, foxglove.Channel] = {}
         self._server: WebSocketServer | None = None
-        self._file: IO[bytes] | None = None
+        self._recording: Recording | None = None
         #: Messages sent so far, by topic.
         self.sent: dict[str, int] = {}
 
@@ -138,36 +120,41 @@ class McapReplay(_Served):
         """Open the file, advertise its channels, listen.
 
         Raises:
-            ReplayError: No such file, or not an MCAP file.
+            ReplayError: No such file, not a regular file, or not an MCAP file.
             TransportError: The address cannot be bound.
         """
-        self._file = _open(self._path)
+        recording = Recording(self._path)
         try:
-            summary = make_reader(self._file).get_summary()
-        except (McapError, ValueError, EOFError) as exc:
-            self._file.close()
-            raise ReplayError(f"{self._path} is not an MCAP recording: {exc}") from exc
-        if summary is not None:  # without one (a cut file) channels come as they appear
-            for channel in summary.channels.values():
-                self._channel(channel, summary.schemas.get(channel.schema_id))
-        try:
+            # Without an index (a cut file) the channels come as they appear.
+            for channel, schema in recording.channels:
+                self._channel(channel, schema)
             self._server = self._listen(name=self._name, context=self._context)
-        except TransportError:
-            self._file.close()
+        except BaseException:
+            recording.close()
             raise
+        self._recording = recording
 
     def _channel(self, channel: Any, schema: Any) -> foxglove.Channel:
         made = self._channels.get(channel.id)
         if made is None:
-            made = foxglove.Channel(
-                channel.topic,
-                message_encoding=channel.message_encoding,
-                schema=None
-                if schema is None
-                else foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
-                context=self._context,
-                metadata=dict(channel.metadata) or None,
-            )
+            try:
+                made = foxglove.Channel(
+                    channel.topic,
+                    message_encoding=channel.message_encoding,
+                    schema=None
+                    if schema is None
+                    else foxglove.Schema(
+                        name=schema.name, encoding=schema.encoding, data=schema.data
+                    ),
+                    context=self._context,
+                    metadata=dict(channel.metadata) or None,
+                )
+            # The SDK's refusals: a schemaless channel in another encoding than JSON...
+            except (TypeError, ValueError) as exc:
+                raise ReplayError(
+                    f"{self._path}: channel {channel.topic!r} ({channel.message_encoding}) "
+                    f"cannot be served to the app: {exc}"
+                ) from exc
             self._channels[channel.id] = made
         return made
 
@@ -175,19 +162,17 @@ class McapReplay(_Served):
         """Send every message on its recorded time (scaled by ``speed``); the count sent.
 
         Raises:
-            ReplayError: The file ends inside a record (what came before was sent).
+            ReplayError: The file is damaged or ends inside a record (what came before
+                was sent); the message says what and where.
         """
-        if self._file is None:
+        if self._recording is None:
             raise ReplayError("start() the replay first")
-        self._file.seek(0)
         loop = asyncio.get_running_loop()
         start_at: float | None = None
         first_ns = 0
         count = 0
         try:
-            for schema, channel, message in make_reader(self._file).iter_messages(
-                log_time_order=True
-            ):
+            for schema, channel, message in self._recording.messages():
                 if start_at is None:
                     start_at, first_ns = loop.time(), message.log_time
                 due = start_at + (message.log_time - first_ns) / 1e9 / self._speed
@@ -196,8 +181,8 @@ class McapReplay(_Served):
                 self._channel(channel, schema).log(message.data, log_time=message.log_time)
                 self.sent[channel.topic] = self.sent.get(channel.topic, 0) + 1
                 count += 1
-        except (McapError, ValueError, EOFError) as exc:
-            raise ReplayError(f"{self._path} ends inside a record after {count} messages") from exc
+        except ReplayError as exc:
+            raise ReplayError(f"{exc} ({count} messages were replayed before)") from exc
         return count
 
     async def aclose(self) -> None:
@@ -205,9 +190,9 @@ class McapReplay(_Served):
         server, self._server = self._server, None
         if server is not None:
             await asyncio.to_thread(server.stop)
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        if self._recording is not None:
+            self._recording.close()
+            self._recording = None
 
     async def __aenter__(self) -> McapReplay:
         await self.start()
