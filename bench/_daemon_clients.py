@@ -5,6 +5,8 @@ Run by the benchmark, not by hand::
     python bench/_daemon_clients.py URL readers N [--stalled K]
     python bench/_daemon_clients.py URL churn [--every-s 0.2]
     python bench/_daemon_clients.py URL driver N
+    python bench/_daemon_clients.py URL flood N [--rate 90]
+    python bench/_daemon_clients.py URL holder
 
 ``readers``: N :class:`~ohmni_tb.client.RobotClient` connections on one event loop, each
 subscribed to every stream of :data:`TOPICS` with one task per subscription reading it
@@ -17,6 +19,14 @@ subscriptions open, some cut the TCP connection without a closing handshake.
 (``drive_pwm``, so the wheel packet carries exactly the value) every 50–150 ms, as a
 teleop does, noting ``time.monotonic()`` just before each; N readers of every stream
 beside it. Its ``done`` line carries the commands, ``[[t, [left, right]], …]``.
+``flood``: N raw WebSocket connections without the lease, each calling ``stats``
+``--rate`` times a second (90: under the daemon's per-client limit of 100) without
+waiting for the replies, which another task per connection reads and counts; a
+connection the daemon refuses is counted and not tried again. ``holder``: one
+connection takes the control lease and drives at 0.3 m/s, the command again every 50 ms
+(a teleop inside the watchdog time), until a ``silence`` line on stdin: then it sends
+nothing more, its connection left open (as a driver whose process froze), and says
+``{"event": "silent", "last_t": …}``, the ``time.monotonic()`` of its last command.
 
 It talks to the benchmark in JSON lines: it prints ``{"event": "ready", …}`` once every
 reader is subscribed, answers each ``mark`` line on stdin with its cumulative figures
@@ -73,6 +83,12 @@ class Tally:
     errors: Counter[str] = field(default_factory=Counter)
     stalled_peers: list[str] = field(default_factory=list)
     sent: list[tuple[float, tuple[int, int]]] = field(default_factory=list)
+    #: flood: calls sent, replies read, connections refused by the daemon.
+    calls: int = 0
+    answered: int = 0
+    refused: int = 0
+    #: holder: when its last drive command went.
+    last_t: float = 0.0
 
     def figures(self, event: str) -> dict[str, Any]:
         return {
@@ -84,6 +100,9 @@ class Tally:
             "errors": dict(self.errors),
             "stalled_peers": self.stalled_peers,
             "commands": self.sent,
+            "calls": self.calls,
+            "answered": self.answered,
+            "refused": self.refused,
             "cpu_s": time.process_time(),
         }
 
@@ -232,14 +251,85 @@ async def driver(url: str, tally: Tally, ready: asyncio.Event, stop: asyncio.Eve
         await client.confirm()
 
 
-async def commands(tally: Tally, stop: asyncio.Event) -> None:
-    """Answer the benchmark's ``mark`` lines; ``quit`` or the end of stdin stops."""
+async def flooder(
+    url: str, rate_hz: float, tally: Tally, connected: Callable[[], None], stop: asyncio.Event
+) -> None:
+    """One connection calling ``stats`` ``rate_hz`` times a second, not waiting for the
+    replies (read and counted by a task of its own), until ``stop``."""
+    from websockets.asyncio.client import connect  # noqa: PLC0415
+    from websockets.exceptions import InvalidHandshake  # noqa: PLC0415
+
+    try:
+        ws = await connect(url, compression=None, open_timeout=30)
+        await ws.recv()  # hello
+    except (OSError, InvalidHandshake, TimeoutError):
+        tally.refused += 1
+        connected()
+        return
+    connected()
+
+    async def replies() -> None:
+        async for _ in ws:
+            tally.answered += 1
+
+    loop = asyncio.get_running_loop()
+    try:
+        async with asyncio.TaskGroup() as group:
+            reading = group.create_task(replies())
+            due, n = loop.time(), 0
+            while not stop.is_set():
+                await ws.send(f'{{"op":"call","id":{n},"method":"stats"}}')
+                tally.calls += 1
+                n += 1
+                # A fixed rate; after a send that waited (the daemon's backpressure), on
+                # from now rather than a burst to catch up.
+                due = max(due + 1.0 / rate_hz, loop.time())
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout_at(due):
+                        await stop.wait()
+            reading.cancel()
+    except Exception as exc:  # counted and shown: the daemon is judged, not this client
+        tally.error(exc)
+    finally:
+        ws.transport.abort()
+
+
+async def holder(
+    url: str, tally: Tally, ready: asyncio.Event, silence: asyncio.Event, silent: asyncio.Event
+) -> None:
+    """The lease holder: drives at 0.3 m/s every 50 ms until ``silence``; then sends
+    nothing more, its connection open, until the process ends."""
+    async with RobotClient.connect(url) as client:
+        await client.acquire()
+        ready.set()
+        while not silence.is_set():
+            tally.last_t = time.monotonic()
+            client.drive(0.3, 0.0)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(0.05):
+                    await silence.wait()
+        silent.set()
+        await asyncio.Event().wait()  # silent until cancelled
+
+
+async def commands(
+    tally: Tally,
+    stop: asyncio.Event,
+    silence: asyncio.Event | None = None,
+    silent: asyncio.Event | None = None,
+) -> None:
+    """Answer the benchmark's ``mark`` (and ``silence``) lines; ``quit`` or the end of
+    stdin stops."""
     loop = asyncio.get_running_loop()
     lines = asyncio.StreamReader()
     await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(lines), sys.stdin)
     while line := (await lines.readline()).decode().strip():
         if line == "mark":
             say(tally.figures("mark"))
+        elif line == "silence" and silence is not None and silent is not None:
+            silence.set()
+            await silent.wait()
+            say({"event": "silent", "last_t": tally.last_t})
         elif line == "quit":
             break
     stop.set()
@@ -248,8 +338,32 @@ async def commands(tally: Tally, stop: asyncio.Event) -> None:
 async def run(args: argparse.Namespace) -> None:
     tally = Tally()
     stop = asyncio.Event()
+    if args.mode == "holder":
+        ready, silence, silent = asyncio.Event(), asyncio.Event(), asyncio.Event()
+        async with asyncio.TaskGroup() as group:
+            driving = group.create_task(holder(args.url, tally, ready, silence, silent))
+            await ready.wait()
+            say({"event": "ready"})
+            await commands(tally, stop, silence, silent)
+            driving.cancel()
+        say(tally.figures("done"))
+        return
     async with asyncio.TaskGroup() as group:
-        if args.mode in ("readers", "driver"):
+        if args.mode == "flood":
+            connected = 0
+            everyone = asyncio.Event()
+
+            def one_more() -> None:
+                nonlocal connected
+                connected += 1
+                if connected == args.clients:
+                    everyone.set()
+
+            for _ in range(args.clients):
+                group.create_task(flooder(args.url, args.rate, tally, one_more, stop))
+            if args.clients:
+                await everyone.wait()
+        elif args.mode in ("readers", "driver"):
             # A client that fails to connect fails the group, and this process with it.
             total = args.clients + args.stalled
             subscribed = 0
@@ -280,10 +394,11 @@ async def run(args: argparse.Namespace) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("url")
-    parser.add_argument("mode", choices=("readers", "churn", "driver"))
+    parser.add_argument("mode", choices=("readers", "churn", "driver", "flood", "holder"))
     parser.add_argument("clients", type=int, nargs="?", default=0)
     parser.add_argument("--stalled", type=int, default=0)
     parser.add_argument("--every-s", type=float, default=0.2)
+    parser.add_argument("--rate", type=float, default=90.0, help="flood: calls/s a connection")
     args = parser.parse_args()
     try:
         asyncio.run(run(args))

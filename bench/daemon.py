@@ -2,7 +2,8 @@
 
 Run: ``python bench/daemon.py [--seconds S] [--quick] [--soak-seconds S]`` (``--seconds``
 per row, 30 by default; ``--soak-seconds``, 600 by default; ``--quick``: 5 s rows and a
-20 s soak; ``--only rows`` or ``--only soak`` runs one part).
+20 s soak; ``--only rows``, ``--only flood`` or ``--only soak`` runs one part;
+``--flooders N``, 200 by default).
 
 The daemon is this process: ``Robot.open(...)`` with every stream on and
 ``RobotServer(robot)`` on a free loopback port, which is what ``ohmni serve`` runs, on the
@@ -40,6 +41,20 @@ driver in the clients' process holds the control lease and sends a new open-loop
 ``WheelTap``) notes when the first wheel packet carrying each value is written (p50/p99
 against one 20 ms control period). And the ratio of the daemon's CPU with 50 readers to
 its CPU with none.
+
+The flood (``--only flood``): readers without the lease flooding the daemon beside a
+driver that then goes silent. A holder in a process of its own takes the control lease and
+drives at 0.3 m/s (the command again every 50 ms); ``--flooders`` connections in the
+clients' process each call ``stats`` 90 times a second without waiting for the replies
+(each under the per-client limit of 100/s). Rows: the driver alone; the driver beside the
+flood with ``max_clients`` raised so that every flooder is served (what the readers'
+shared budget must hold); and beside the flood at the default cap of 64 (the rest refused
+with 503). Per row: the control tick's rate and skipped cycles over the window, the
+daemon's CPU, the calls sent and answered a second, the connections refused; then the
+driver goes silent (it sends nothing more, its connection open, as a frozen process) and
+the time from its last command until the Robot's own ``wheel_encoder`` samples show both
+wheels standing still (below 0.01 m/s, and staying so for 0.5 s): the watchdog's
+``watchdog_s`` and the braking ramp, whatever the readers do.
 
 The memory soak (``--soak-seconds``) runs first, in this still fresh process: the daemon
 serves while the clients' process opens a connection every 0.2 s that subscribes to two
@@ -181,17 +196,18 @@ def simulator() -> Iterator[tuple[str, bool]]:
 
 @asynccontextmanager
 async def serving(
-    port: str, wrap: Callable[[Transport], Transport] | None = None
+    port: str, wrap: Callable[[Transport], Transport] | None = None, **options: Any
 ) -> AsyncIterator[Daemon]:
     """The Robot on ``port`` with every stream on, served on a free loopback port; settled.
 
     ``wrap`` puts a tap between the Robot and its port, as ``bench/robot.py``'s
-    ``WheelTap`` (what the command → wire row below will need).
+    ``WheelTap`` (what the command → wire row below will need). ``options`` go to
+    ``RobotServer`` (``max_clients``).
     """
     transport = await open_transport(port)
     if wrap is not None:
         transport = wrap(transport)
-    async with Robot.open(transport) as robot, RobotServer(robot, port=0) as server:
+    async with Robot.open(transport) as robot, RobotServer(robot, port=0, **options) as server:
         await asyncio.sleep(ROBOT_SETTLE_S)
         gc.freeze()  # as ohmni serve does once serving: out of the collector's full passes
         yield Daemon(robot, server, transport)
@@ -282,6 +298,12 @@ class ClientProcess:
         """Its cumulative figures now."""
         await self._send("mark")
         return await self._expect("mark", 10.0)
+
+    async def silence(self) -> float:
+        """The holder stops sending; when its last command went (``time.monotonic``)."""
+        await self._send("silence")
+        silent = await self._expect("silent", 10.0)
+        return float(silent["last_t"])
 
     async def finish(self) -> dict[str, Any]:
         """Close every client; their last figures."""
@@ -497,6 +519,174 @@ def show(row: Row, base: Row | None) -> None:
     )
     for note in row.notes:
         print(f"{'':<18}   {note}")
+
+
+# -- readers flooding beside a driver that goes silent ---------------------------------------------
+
+#: Each flooder's ``stats`` calls a second: under the daemon's per-client limit of 100.
+FLOOD_RATE_HZ = 90.0
+#: Below this, a wheel stands still (m/s); for this long after, it must stay so (s).
+STILL_MPS = 0.01
+STILL_FOR_S = 0.5
+#: How long after the driver's last command the wheels are watched for standing still.
+STOP_WATCH_S = 10.0
+
+
+@dataclass
+class FloodRow:
+    name: str
+    row: Row
+    max_clients: int
+    calls_per_s: float = math.nan
+    answered_per_s: float = math.nan
+    refused: int = 0
+    #: From the driver's last command to the wheels standing still (NaN: not within
+    #: STOP_WATCH_S); the control tick's rate meanwhile.
+    stop_s: float = math.nan
+    silent_control_hz: float = math.nan
+
+
+async def flood_row(
+    name: str, port: str, seconds: float, flooders: int, max_clients: int
+) -> FloodRow:
+    """The driver alone or beside ``flooders`` readers calling ``stats`` at 90/s each."""
+    async with (
+        serving(port, max_clients=max_clients) as daemon,
+        ClientProcess.start(daemon.server.url, "holder") as holder,
+        contextlib.AsyncExitStack() as stack,
+    ):
+        result = FloodRow(name, Row(name, flooders), daemon.server.max_clients)
+        flood: ClientProcess | None = None
+        if flooders:
+            flood = await stack.enter_async_context(
+                ClientProcess.start(
+                    daemon.server.url, "flood", str(flooders), "--rate", str(FLOOD_RATE_HZ)
+                )
+            )
+        await asyncio.sleep(CLIENTS_SETTLE_S)
+        first = await flood.mark() if flood else None
+        sent = sum(client.sent for client in daemon.server.clients)
+        await measure(result.row, daemon, seconds)
+        sent = sum(client.sent for client in daemon.server.clients) - sent
+        last = await flood.mark() if flood else None
+        if first is not None and last is not None:
+            wall = result.row.seconds
+            result.calls_per_s = (last["calls"] - first["calls"]) / wall
+            # By the daemon's own figures (its messages to the clients, the holder's few
+            # replies included): what it served, whether or not the flooders keep reading.
+            result.answered_per_s = sent / wall
+            result.row.clients_cpu = (last["cpu_s"] - first["cpu_s"]) / wall
+            if last["errors"]:
+                result.row.notes.append(f"flood errors: {last['errors']}")
+        result.refused = daemon.server.refused_connections
+        encoder = daemon.robot.subscribe(CONTROL, maxlen=4096)
+        try:
+            last_t = await holder.silence()
+            result.stop_s, result.silent_control_hz = await standstill(encoder, last_t)
+        finally:
+            encoder.close()
+        if flood is not None:
+            await flood.finish()
+        await holder.finish()
+    return result
+
+
+async def standstill(encoder: Any, last_t: float) -> tuple[float, float]:
+    """From ``last_t`` until both wheels stand still by the Robot's own samples (s; NaN
+    when they did not within STOP_WATCH_S), and the samples' rate meanwhile (Hz)."""
+    loop = asyncio.get_running_loop()
+    still_since: float | None = None
+    samples = 0
+    first_stamp = last_stamp = math.nan
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout_at(last_t + STOP_WATCH_S):
+            async for sample in encoder:
+                if sample.stamp_s <= last_t:
+                    continue
+                samples += 1
+                last_stamp = sample.stamp_s
+                if math.isnan(first_stamp):
+                    first_stamp = sample.stamp_s
+                if max(abs(sample.left_mps), abs(sample.right_mps)) >= STILL_MPS:
+                    still_since = None
+                elif still_since is None:
+                    still_since = sample.stamp_s
+                if still_since is not None and sample.stamp_s - still_since >= STILL_FOR_S:
+                    break
+    rate = (samples - 1) / (last_stamp - first_stamp) if samples >= 2 else 0.0
+    if still_since is None or loop.time() - still_since < STILL_FOR_S - 0.05:
+        return math.nan, rate
+    return still_since - last_t, rate
+
+
+def show_flood(rows: list[FloodRow], watchdog_s: float) -> None:
+    header = (
+        f"{'row':<30} | {'wheel':>6} {'±1%':>3} {'skip':>5} | {'CPU':>5} {'cliCPU':>6} | "
+        f"{'calls/s':>7} {'answ/s':>7} {'refused':>7} | stop after silence"
+    )
+    print(header)
+    print("-" * len(header))
+    for result in rows:
+        row = result.row
+        calls = "      -" if math.isnan(result.calls_per_s) else f"{result.calls_per_s:7,.0f}"
+        answered = (
+            "      -" if math.isnan(result.answered_per_s) else f"{result.answered_per_s:7,.0f}"
+        )
+        clients_cpu = "     -" if math.isnan(row.clients_cpu) else f"{row.clients_cpu:6.1%}"
+        stop = (
+            f"NOT within {STOP_WATCH_S:g} s"
+            if math.isnan(result.stop_s)
+            else f"{result.stop_s:.2f} s"
+        )
+        print(
+            f"{result.name:<30} | {row.rates[CONTROL]:6.2f} "
+            f"{'yes' if row.control_ok else 'NO':>3} {row.skipped:5d} | {row.cpu:5.1%} "
+            f"{clients_cpu} | {calls} {answered} {result.refused:7d} | {stop} (control tick "
+            f"{result.silent_control_hz:.1f} Hz meanwhile)"
+        )
+        for note in row.notes:
+            print(f"{'':<30}   {note}")
+    print(
+        f"stop after silence: from the driver's last command (0.3 m/s) until both wheels stand "
+        f"still by the Robot's wheel_encoder samples (< {STILL_MPS:g} m/s for "
+        f"{STILL_FOR_S:g} s): the watchdog ({watchdog_s:g} s) and the braking ramp"
+    )
+    print(
+        "units: Hz | cycles | share of one core (the daemon; the flooders' process) | stats "
+        "calls sent a second by all flooders together, and messages the daemon sent to its "
+        "clients a second | connections refused (503)"
+    )
+
+
+def run_flood(seconds: float, flooders: int) -> None:
+    from ohmni_tb.daemon.server import DEFAULT_MAX_CLIENTS  # noqa: PLC0415
+
+    specs = [
+        ("driver alone", 0, DEFAULT_MAX_CLIENTS),
+        # Every flooder served (and the holder): what the readers' shared budget must hold.
+        (f"driver + {flooders} flooding (all served)", flooders, flooders + 16),
+    ]
+    if flooders > DEFAULT_MAX_CLIENTS:
+        specs.append(
+            (
+                f"driver + {flooders} flooding (cap {DEFAULT_MAX_CLIENTS})",
+                flooders,
+                DEFAULT_MAX_CLIENTS,
+            )
+        )
+    rows: list[FloodRow] = []
+    in_process = False
+    for name, count, cap in specs:
+        with simulator() as (port, on_pty):
+            in_process |= not on_pty
+            rows.append(run(flood_row(name, port, seconds, count, cap)))
+    print(
+        f"{seconds:g} s a row; each flooder calls stats {FLOOD_RATE_HZ:g} times a second "
+        "without waiting for the replies"
+    )
+    show_flood(rows, ohmni_tb.RobotConfig().watchdog_s)
+    if in_process:
+        print("NOTE: sim:// ran in the daemon's process; its CPU is in the figure")
 
 
 # -- the memory soak -----------------------------------------------------------------------------
@@ -821,7 +1011,10 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=30.0, help="per row (default 30)")
     parser.add_argument("--soak-seconds", type=float, default=600.0, help="default 600")
     parser.add_argument("--quick", action="store_true", help="5 s rows, a 20 s soak")
-    parser.add_argument("--only", choices=("rows", "soak"), help="run one part")
+    parser.add_argument("--only", choices=("rows", "flood", "soak"), help="run one part")
+    parser.add_argument(
+        "--flooders", type=int, default=200, help="flood: connections calling stats (200)"
+    )
     parser.add_argument(
         "--sim", choices=("pty", "in-process"), default="pty", help="where the simulator runs"
     )
@@ -867,6 +1060,9 @@ def main() -> int:
         ),
     )
     try:
+        if args.only == "flood":
+            run_flood(seconds, args.flooders)
+            return 0
         if args.only != "rows" and soak_seconds > 0:
             with simulator() as (port, on_pty):
                 if not on_pty:
@@ -880,6 +1076,9 @@ def main() -> int:
                 "odom 50, servos 3 x 30, core 10, state 1 Hz"
             )
             run_rows(seconds)
+        if args.only is None:
+            print()
+            run_flood(seconds, args.flooders)
     except (KeyboardInterrupt, TerminatedError):
         print("interrupted: the clients' process and the simulator were stopped", file=sys.stderr)
         return 130

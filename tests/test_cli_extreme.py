@@ -69,6 +69,7 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("servo", "stat"): {"timeout": "0.01"},
     ("servo", "clear"): {"timeout": "0.01"},
     ("drive",): {"linear": "0.1", "duration": "0.1"},
+    ("stop",): {"timeout": "0.5"},
     ("light",): {"hue": "0", "saturation": "0", "value": "0"},
     ("neck",): {"raw": "400", "playtime": "0.2"},
     ("odom",): {"rate": "20", "duration": "0.2", "count": "2"},

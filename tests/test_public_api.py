@@ -109,9 +109,10 @@ PUBLIC = {
          "write_schema",
     ],
     "ohmni_tb.daemon.server": [
-         "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_PORT", "HARD_MAX_MESSAGE_BYTES",
-         "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "SAMPLE_FLUSH_S", "ClientFigures",
-         "RobotServer", "check_listen", "is_loopback",
+         "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_MAX_CLIENTS", "DEFAULT_PORT",
+         "HARD_MAX_MESSAGE_BYTES", "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "MAX_POSE_M",
+         "READER_BURST", "READER_MESSAGES_PER_S", "REFUSAL_LOG_S", "SAMPLE_FLUSH_S",
+         "STATS_INTERVAL_S", "ClientFigures", "RobotServer", "check_listen", "is_loopback",
     ],
     "ohmni_tb.foxglove": [
          "CHANNELS", "DEFAULT_HOST", "DEFAULT_PORT", "ChannelSpec", "ChannelStats",
@@ -135,9 +136,20 @@ PUBLIC = {
          "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "RAW_SCHEMA_NAME",
          "RAW_TOPICS", "McapRecorder", "RecordingError",
     ],
+    "ohmni_tb.foxglove.access": [
+         "LOCKED_MESSAGE", "LOCKED_STATUS_ID", "UNLOCK_SCHEMAS", "UNLOCK_SERVICE",
+         "AccessStats", "ControlGate",
+    ],
+    "ohmni_tb.foxglove.teleop": [
+         "DEFAULT_RATE_HZ", "MAX_RATE_HZ", "TELEOP_IDLE_S", "FoxgloveTeleop", "TeleopStats",
+    ],
+    "ohmni_tb.daemon.supervisor": [
+         "HEARTBEAT_S", "HUNG_S", "MAX_QUICK_DEATHS", "QUICK_DEATH_S", "RESTART_BACKOFF_S",
+         "WORKER_EXIT_S", "WorkerCommand", "stop_wheels_at", "supervise", "until_stopped",
+    ],
     "ohmni_tb.daemon.auth": [
-         "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token", "default_token_path",
-         "load_or_create_token", "presented_token", "read_token",
+         "MIN_TOKEN_CHARS", "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token",
+         "default_token_path", "load_or_create_token", "presented_token", "read_token",
     ],
 }  # fmt: skip
 

@@ -69,6 +69,7 @@ from ohmni_tb.daemon.protocol import (
     stats_from_json,
 )
 from ohmni_tb.errors import (
+    ConfigError,
     InvalidArgumentError,
     LeaseError,
     OhmniError,
@@ -215,9 +216,12 @@ class RobotClient:
                 tells it happened).
 
         Raises:
+            ConfigError: ``url`` is not a ``ws://`` or ``wss://`` URL with a host (and a
+                port in 0..65535).
             TransportError: Nothing answers at ``url``, it is not the daemon, or it
                 refused the connection (no token or a wrong one: the message says).
         """
+        _check_url(url)
         token = token if token is not None else os.environ.get(TOKEN_ENV) or None
         headers = {"Authorization": f"Bearer {token}"} if token else None
         ws, hello = await _open(url, headers, timeout_s)
@@ -501,7 +505,8 @@ class RobotClient:
         self._command("enable_stream", {"topic": name, "enabled": enabled})
 
     def set_rate(self, name: str, hz: float) -> None:
-        """:meth:`Robot.set_rate`, for every client (needs the lease; 0.1..100 Hz)."""
+        """:meth:`Robot.set_rate`, for every client (needs the lease; the control tick's
+        10..100 Hz, a feedback stream's 0.1..100 Hz)."""
         _check_topic(name)
         self._command("set_rate", {"topic": name, "hz": number("hz", hz)})
 
@@ -795,6 +800,19 @@ class RobotClient:
     def connected(self) -> bool:
         """Whether the connection is up (``False`` while connecting again)."""
         return self._lost is None
+
+
+def _check_url(url: str) -> None:
+    """Raises ConfigError: ``url`` is not a daemon's URL (what websockets would refuse)."""
+    from websockets.exceptions import InvalidURI  # noqa: PLC0415  # loaded when used
+    from websockets.uri import parse_uri  # noqa: PLC0415
+
+    try:
+        parse_uri(url)
+    except (InvalidURI, ValueError) as exc:  # ValueError: urllib's, for "[" or the port
+        raise ConfigError(
+            f"{url!r} is not a daemon URL: expected ws://HOST:PORT or wss://HOST:PORT ({exc})"
+        ) from exc
 
 
 async def _open(

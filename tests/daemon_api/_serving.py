@@ -40,7 +40,7 @@ def start_serving(*args: str) -> tuple[subprocess.Popen[bytes], str]:
 
 
 def stop_serving(proc: subprocess.Popen[bytes]) -> str:
-    """SIGINT, then what it logged; it must exit as every command does on Ctrl-C."""
+    """SIGINT, then what it logged; a daemon that shut down cleanly exits 0."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
@@ -49,5 +49,5 @@ def stop_serving(proc: subprocess.Popen[bytes]) -> str:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 130, err.decode()  # 128 + SIGINT, as every command
+    assert proc.returncode == 0, err.decode()  # a requested stop, not an interruption
     return err.decode()

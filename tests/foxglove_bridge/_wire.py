@@ -17,6 +17,7 @@ from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
+from websockets.typing import Origin
 
 #: The subprotocol foxglove-sdk's server requires (it refuses foxglove.websocket.v1).
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -25,6 +26,8 @@ MESSAGE_DATA = 0x01
 #: Client → server binary opcode of a service call, and server → client of its response.
 SERVICE_CALL_REQUEST = 0x02
 SERVICE_CALL_RESPONSE = 0x03
+#: The service that unlocks control for the calling client.
+UNLOCK = "/tb_control/unlock"
 
 # -- protobuf's wire format -----------------------------------------------------------------
 
@@ -195,11 +198,15 @@ class FoxgloveClient:
         self._topics: dict[int, str] = {}
 
     @classmethod
-    async def connect(cls, url: str, *, close_timeout_s: float = 10.0) -> FoxgloveClient:
+    async def connect(
+        cls, url: str, *, close_timeout_s: float = 10.0, origin: str | None = None
+    ) -> FoxgloveClient:
+        """Connect as the app does; ``origin``: as a web page of that origin would."""
         ws = await connect(
             url,
             subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
             close_timeout=close_timeout_s,
+            origin=None if origin is None else Origin(origin),
         )
         client = cls(ws)
         client.server_info = json.loads(await client.ws.recv())
@@ -276,10 +283,16 @@ class FoxgloveClient:
         return await self._parameter_values(request_id)
 
     async def set_parameters(
-        self, values: dict[str, float], *, request_id: str = "set"
+        self, values: dict[str, Any], *, request_id: str = "set"
     ) -> dict[str, Any]:
-        """``setParameters`` as the app's Parameters panel sends them; the values answered."""
-        parameters = [{"name": n, "value": v, "type": "float64"} for n, v in values.items()]
+        """``setParameters`` as the app's Parameters panel sends them (a float as float64,
+        anything else as it is); the values answered."""
+        parameters = [
+            {"name": n, "value": v, "type": "float64"}
+            if isinstance(v, float)
+            else {"name": n, "value": v}
+            for n, v in values.items()
+        ]
         await self.ws.send(
             json.dumps({"op": "setParameters", "parameters": parameters, "id": request_id})
         )
@@ -319,6 +332,36 @@ class FoxgloveClient:
             return {"failure": frame["message"]}
         (size,) = struct.unpack_from("<I", frame, 9)
         return json.loads(frame[13 + size :])
+
+    async def unlock(self, token: str, call_id: int = 9000) -> Any:
+        """Call the unlock service with ``token``: its answer, or ``{"failure": text}``."""
+        return await self.call_service(UNLOCK, {"token": token}, call_id=call_id)
+
+    async def advertise_twist(self, channel_id: int = 1, topic: str = "/tb_cmd_vel") -> None:
+        """Advertise a JSON ``geometry_msgs/Twist`` channel, as the Teleop panel does."""
+        channel = {
+            "id": channel_id,
+            "topic": topic,
+            "encoding": "json",
+            "schemaName": "geometry_msgs/Twist",
+        }
+        await self.ws.send(json.dumps({"op": "advertise", "channels": [channel]}))
+
+    async def send_twist(self, linear: float, angular: float = 0.0, channel_id: int = 1) -> None:
+        """Publish one Twist on an advertised channel."""
+        twist = {"linear": {"x": linear, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": angular}}
+        await self.ws.send(struct.pack("<BI", 1, channel_id) + json.dumps(twist).encode())
+
+    async def status(self, words: str, seconds: float = 5.0) -> dict[str, Any]:
+        """The first status message (kept, or next) whose text has ``words``."""
+        for kept in self.statuses:
+            if words in kept["message"]:
+                return kept
+        message: dict[str, Any] = await self._next(
+            lambda m: isinstance(m, dict) and m.get("op") == "status" and words in m["message"],
+            seconds,
+        )
+        return message
 
     async def close(self) -> None:
         await self.ws.close()

@@ -6,6 +6,7 @@ real time (the SDK's server runs in its own threads)."""
 from __future__ import annotations
 
 import asyncio
+import secrets
 from collections.abc import AsyncIterator
 
 import pytest
@@ -13,6 +14,7 @@ import pytest
 from ohmni_tb import Robot
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.foxglove import FoxgloveBridge
+from ohmni_tb.foxglove.access import UNLOCK_SERVICE
 from ohmni_tb.foxglove.control import (
     LIMIT_PARAMETERS,
     NECK_MOVE_SERVICE,
@@ -24,6 +26,8 @@ from ohmni_tb.foxglove.control import (
 from ._wire import FoxgloveClient
 
 P = "/tb_control/"
+#: The token a client unlocks control with.
+TOKEN = secrets.token_urlsafe(32)
 
 
 @pytest.fixture
@@ -33,9 +37,18 @@ async def robot() -> AsyncIterator[Robot]:
 
 
 async def connected(robot: Robot, *, writable: bool) -> tuple[FoxgloveBridge, FoxgloveClient]:
-    bridge = FoxgloveBridge(robot, port=0, control=RobotControl(robot, writable=writable))
+    """A bridge and a client of it; with control, the client unlocked it."""
+    bridge = FoxgloveBridge(
+        robot,
+        port=0,
+        control=RobotControl(robot, writable=writable),
+        token=TOKEN if writable else None,
+    )
     await bridge.start()
-    return bridge, await FoxgloveClient.connect(bridge.url)
+    client = await FoxgloveClient.connect(bridge.url)
+    if writable:
+        assert await client.unlock(TOKEN) == {"unlocked": True}
+    return bridge, client
 
 
 async def test_every_parameter_reads_what_the_robot_runs_with(robot: Robot) -> None:
@@ -132,7 +145,7 @@ async def test_the_services_reset_odometry_and_move_the_neck(robot: Robot) -> No
     bridge, client = await connected(robot, writable=True)
     try:
         assert "services" in client.server_info["capabilities"]
-        assert set(client.services) == {RESET_ODOM_SERVICE, NECK_MOVE_SERVICE}
+        assert set(client.services) == {UNLOCK_SERVICE, RESET_ODOM_SERVICE, NECK_MOVE_SERVICE}
         request_schema = client.services[RESET_ODOM_SERVICE]["request"]
         assert request_schema["encoding"] == "json"
         assert request_schema["schemaEncoding"] == "jsonschema"

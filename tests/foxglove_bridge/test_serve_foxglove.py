@@ -8,6 +8,7 @@ import os
 import select
 import struct
 import time
+from pathlib import Path
 from subprocess import Popen
 
 import pytest
@@ -89,10 +90,28 @@ def test_a_bad_foxglove_address_is_refused_before_the_port_opens() -> None:
     )
 
 
-async def publish_twists(view: str, linear: float, seconds: float) -> None:
-    """As the Foxglove Teleop panel does: advertise a Twist channel, publish at 10 Hz."""
+def unlock_token(config_home: Path) -> str:
+    """The token a loopback daemon without one unlocks Foxglove control with: the default
+    token file's ($XDG_CONFIG_HOME/ohmni/daemon-token)."""
+    return (config_home / "ohmni" / "daemon-token").read_text().strip()
+
+
+@pytest.fixture
+def config_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """$XDG_CONFIG_HOME for the daemons these tests start (their token file is there)."""
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    return tmp_path
+
+
+async def publish_twists(
+    view: str, linear: float, seconds: float, token: str | None = None
+) -> None:
+    """As the Foxglove Teleop panel does: advertise a Twist channel, publish at 10 Hz
+    (having unlocked control with ``token``, when given)."""
     foxglove = await FoxgloveClient.connect(view)
     try:
+        if token is not None:
+            assert await foxglove.unlock(token) == {"unlocked": True}
         await foxglove.ws.send(
             json.dumps(
                 {
@@ -132,18 +151,19 @@ async def lease_is_free_again(url: str) -> None:
         await after.acquire()
 
 
-def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
+def test_the_teleop_panel_drives_only_with_control_and_the_lease(config_home: Path) -> None:
     proc, url, view = serving_with_view("--foxglove-control")
+    token = unlock_token(config_home)
     try:
 
         async def drive() -> None:
             # Another client holds the lease: the panel's Twists move nothing.
             async with RobotClient.connect(url) as holder:
                 await holder.acquire()
-                await publish_twists(view, 0.3, 1.0)
+                await publish_twists(view, 0.3, 1.0, token)
                 assert await travelled(url) == pytest.approx(0.0, abs=0.002)
             # Free: the panel takes the lease and drives; the wheels follow.
-            await publish_twists(view, 0.3, 1.5)
+            await publish_twists(view, 0.3, 1.5, token)
             assert await travelled(url) > 0.2
             # It gives the lease back after its last Twist: another client may drive.
             await lease_is_free_again(url)
@@ -154,17 +174,22 @@ def test_the_teleop_panel_drives_only_with_control_and_the_lease() -> None:
     assert "foxglove teleop refused" in log
 
 
-def test_parameters_and_services_change_the_robot_only_through_the_lease() -> None:
+def test_parameters_and_services_change_the_robot_only_through_the_lease(
+    config_home: Path,
+) -> None:
     proc, url, view = serving_with_view("--foxglove-control")
+    token = unlock_token(config_home)
     try:
 
         async def change() -> None:
             foxglove = await FoxgloveClient.connect(view)
             try:
                 assert set(foxglove.services) == {
+                    "/tb_control/unlock",
                     "/tb_control/reset_odom",
                     "/tb_control/neck_move",
                 }
+                assert await foxglove.unlock(token) == {"unlocked": True}
                 # Another client holds the lease: refused, named, nothing changed.
                 async with RobotClient.connect(url) as holder:
                     await holder.acquire()

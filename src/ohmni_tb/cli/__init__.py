@@ -30,6 +30,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "drive",
         "Drive for a time, a distance or a turn and print the odometry; --teleop: keyboard.",
     ),
+    "stop": (
+        "ohmni_tb.cli.stop",
+        "stop",
+        "Stop the wheels, confirmed by their counts (opens the port; e.g. after the daemon).",
+    ),
     "neck": (
         "ohmni_tb.cli.neck",
         "neck",

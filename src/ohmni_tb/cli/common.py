@@ -13,7 +13,7 @@ import sys
 import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Annotated, Any, Final, TypeVar, cast
+from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn, TypeVar, cast
 from urllib.parse import urlsplit
 
 import typer
@@ -136,13 +136,14 @@ def is_simulated(port: str) -> bool:
 
 
 def confirm_motion(port: str, what: str, *, yes: bool) -> None:
-    """Ask once before a command moves a real robot; ``--yes`` or ``sim://`` skip it.
+    """Ask once before a command moves a real robot; ``--yes``, ``sim://`` or a daemon
+    (``ws://``) whose hello says it serves the simulator skip it.
 
     Raises:
         typer.Exit: Code 1 when the answer is no, or when nobody can answer (stdin is
             not a terminal and ``--yes`` was not given).
     """
-    if yes or is_simulated(port):
+    if yes or is_simulated(port) or _daemon_simulated(port):
         return
     if not sys.stdin.isatty():
         _err.print(
@@ -154,6 +155,15 @@ def confirm_motion(port: str, what: str, *, yes: bool) -> None:
     if not typer.confirm(f"{what} on {port} moves the robot. Is the way clear?", default=False):
         _err.print("nothing moved")
         raise typer.Exit(1)
+
+
+def _daemon_simulated(port: str) -> bool:
+    """Whether ``port`` is a daemon's URL and the daemon serves the built-in simulator."""
+    if not port.lower().startswith(("ws://", "wss://")):
+        return False
+    from ohmni_tb.cli.remote import serves_simulator  # noqa: PLC0415  # the client: when used
+
+    return run(lambda: serves_simulator(port))
 
 
 @asynccontextmanager
@@ -202,20 +212,43 @@ def daemon_for(port_option: str | None, direct: bool) -> str | None:
     url = os.environ.get(DAEMON_URL_ENV) or _DEFAULT_DAEMON_URL
     if url.lower() == "off":
         return None
-    parts = urlsplit(url)
-    if parts.scheme not in ("ws", "wss") or parts.hostname is None:
-        return None
     try:
-        with socket.create_connection((parts.hostname, parts.port or 80), timeout=_PROBE_S):
+        with socket.create_connection(_daemon_address(url), timeout=_PROBE_S):
             return url
     except OSError:
         return None
+    except UnicodeError:  # a host name the resolver cannot encode (a label over 63 bytes)
+        _bad_daemon_url(url)
+
+
+def _daemon_address(url: str) -> tuple[str, int]:
+    """The host and port of ``$OHMNI_DAEMON_URL``; a malformed one ends the command
+    (:func:`_bad_daemon_url`)."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port  # a number in 0..65535, or ValueError
+    except ValueError:  # also an unclosed "[" around an IPv6 address
+        _bad_daemon_url(url)
+    if parts.scheme not in ("ws", "wss") or not parts.hostname or port == 0:
+        _bad_daemon_url(url)
+    return parts.hostname, port or (443 if parts.scheme == "wss" else 80)
+
+
+def _bad_daemon_url(url: str) -> NoReturn:
+    """Exit code 1, as for the other settings, after one line naming the variable, its
+    value and what it takes."""
+    error_line(
+        f"{DAEMON_URL_ENV}={_shown(url)} is not a daemon URL: expected ws://HOST:PORT or "
+        "wss://HOST:PORT (port 1..65535), or off"
+    )
+    raise typer.Exit(1)
 
 
 def run(
     main: Callable[[], Coroutine[Any, Any, T]],
     *,
     on_interrupt: Callable[[], None] | None = None,
+    stop_requested: asyncio.Event | None = None,
 ) -> T:
     """Run a coroutine for a command; our errors become one red line and exit code 1.
 
@@ -225,8 +258,13 @@ def run(
     does not cut that short (asyncio's own Ctrl-C handler would raise KeyboardInterrupt
     in the middle of the event loop, abandoning the stop). The exit code is then 128 +
     the signal's number (130 for Ctrl-C), after ``on_interrupt`` (a command's summary).
+
+    A command whose normal end is a signal (``ohmni serve``) passes ``stop_requested``:
+    the first signal sets it instead of cancelling, and the command ends itself through
+    its normal exit — exit code 0 when that succeeds, 1 with its error when not (a stop
+    the wheel counts did not confirm).
     """
-    signals = _Signals()
+    signals = _Signals(stop_requested)
     logger = logging.getLogger("ohmni_tb")
     shown = _WarningLines(logger)
     if not _options["debug"]:
@@ -252,9 +290,10 @@ def run(
 
 
 class _WarningLines(logging.Handler):
-    """The library's warnings during a command, one yellow line each on stderr (Python's
-    last-resort handler would print them bare). A command that installs its own handler
-    on the logger (``drive``, ``demo``) takes them over."""
+    """The library's warnings during a command, one yellow line each on stderr (its errors
+    one red ``error:`` line each; Python's last-resort handler would print them bare). A
+    command that installs its own handler on the logger (``drive``, ``demo``) takes them
+    over."""
 
     def __init__(self, logger: logging.Logger) -> None:
         super().__init__(logging.WARNING)
@@ -264,6 +303,9 @@ class _WarningLines(logging.Handler):
         if any(h is not self for h in self._logger.handlers):
             return
         with contextlib.suppress(OSError):  # SIGHUP: the terminal may be gone
+            if record.levelno >= logging.ERROR:
+                error_line(record.getMessage())
+                return
             _err.print(f"[yellow]warning: {escape(record.getMessage())}[/yellow]", soft_wrap=True)
 
 
@@ -272,15 +314,21 @@ _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 class _Signals:
-    """The stop signals a command received: the first cancels its task."""
+    """The stop signals a command received: the first cancels its task (or sets the
+    command's ``stop_requested``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, stop_requested: asyncio.Event | None = None) -> None:
         self.first: int | None = None
         self.count = 0
+        self._stop_requested = stop_requested
 
     def received(self, signum: int, task: asyncio.Task[Any] | None) -> None:
         self.count += 1
-        if self.first is None:
+        if self.count == 1:
+            if self._stop_requested is not None:
+                # The command ends itself: not an interruption (no 128 + N).
+                self._stop_requested.set()
+                return
             self.first = signum
             if task is not None:
                 task.cancel()

@@ -336,7 +336,8 @@ def drive(
     --turn drive by odometry, slow down near the goal and fail (exit 1) if it is not
     reached in time. --teleop drives from the keyboard: each key press drives for the
     watchdog time, so releasing the key stops the robot. Speeds past the Robot's limits
-    are refused. On a real robot it asks first (--yes skips that); on sim:// it does not.
+    are refused. On a real robot it asks first (--yes skips that); on sim:// it does not,
+    nor through a daemon serving sim://.
 
     Examples:
 

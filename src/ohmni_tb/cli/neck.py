@@ -149,7 +149,8 @@ def neck(
     (on_exit_neck=keep), so a HerkuleX neck keeps its torque on. Run `ohmni neck rest` or
     `ohmni neck free` when done: holding torque for long heats the servo.
 
-    On a real port, motion asks first (--yes skips); sim:// never asks.
+    On a real port, motion asks first (--yes skips); sim:// never asks, nor a daemon
+    serving it.
 
     Examples: ohmni neck up --port sim:// ; ohmni neck --raw 400 --playtime 0.5 ;
     ohmni neck --deg -10 --json ; ohmni neck rest ; ohmni neck --json (where it is).

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.robot import RobotStateSample, RobotStats
 
-__all__ = ["DaemonRobot", "open_remote"]
+__all__ = ["DaemonRobot", "open_remote", "serves_simulator"]
 
 #: How often the daemon's figures are fetched for ``stats()``.
 _STATS_EVERY_S = 0.25
@@ -235,6 +235,19 @@ async def open_remote(url: str, *, control: bool) -> AsyncIterator[DaemonRobot]:
                 # robot at the daemon (nothing else here could).
                 with contextlib.suppress(Exception):
                     await asyncio.shield(client.release())
+
+
+async def serves_simulator(url: str) -> bool:
+    """Whether the daemon at ``url`` serves the built-in simulator, as its ``hello`` says
+    (a command's motion then needs no consent, as on ``sim://``).
+
+    Raises:
+        TransportError: The daemon does not answer or refused the connection.
+    """
+    from ohmni_tb.client import RobotClient  # noqa: PLC0415
+
+    async with RobotClient.connect(url) as client:
+        return client.hello.simulated
 
 
 def _info_from_state(config: RobotConfig, state: RobotStateSample | None) -> dict[str, Any]:

@@ -6,26 +6,25 @@ import asyncio
 import contextlib
 import gc
 import logging
+import os
+import stat
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
+from urllib.parse import urlsplit
 
 import typer
 
 from ohmni_tb._checks import host_port
 from ohmni_tb.cli.common import PortOption, open_robot, resolve_port, run, write_line
-from ohmni_tb.errors import ConfigError
+from ohmni_tb.errors import ConfigError, RobotClosedError
 from ohmni_tb.eventloop import set_realtime
-
-if TYPE_CHECKING:
-    from ohmni_tb.client import RobotClient
 
 __all__ = ["parse_foxglove", "serve"]
 
 _log = logging.getLogger("ohmni_tb.daemon")
-#: The Foxglove Teleop panel gives the control lease back this long after its last Twist.
-_TELEOP_IDLE_S = 1.0
 #: ``--listen``'s default: the daemon's loopback address (ohmni_tb.daemon.server).
 _DEFAULT_LISTEN = "127.0.0.1:8766"
 #: SCHED_FIFO's highest priority on Linux.
@@ -33,6 +32,7 @@ _MAX_RT_PRIORITY = 99
 
 
 def serve(
+    ctx: typer.Context,
     port: PortOption = None,
     listen: Annotated[
         str,
@@ -83,8 +83,10 @@ def serve(
             "--foxglove-control",
             help="With --foxglove: the Foxglove Teleop panel drives the robot (Twist on "
             "/tb_cmd_vel or /cmd_vel), the Parameters panel sets PID gains and stream rates, "
-            "and the reset_odom and neck_move services answer — through the daemon's control "
-            "lease like any client and under the Robot's watchdog.",
+            "and the reset_odom and neck_move services answer — for a client that first "
+            'called /tb_control/unlock with {"token": ...} (the daemon\'s token; on loopback '
+            "without one, the default token file's), through the daemon's control lease like "
+            "any client and under the Robot's watchdog. Beyond loopback only with a token.",
         ),
     ] = False,
     handoff: Annotated[
@@ -117,6 +119,18 @@ def serve(
             show_default=False,
         ),
     ] = None,
+    max_clients: Annotated[
+        int,
+        typer.Option(
+            "--max-clients",
+            metavar="N",
+            min=1,
+            max=10000,
+            help="Serve at most N connections at once; the next is refused with HTTP 503 "
+            "(lowered when ulimit -n leaves too few files). Readers share one budget of "
+            "work, so the control tick keeps its rate however many connect.",
+        ),
+    ] = 64,
     foreground: Annotated[
         bool,
         typer.Option(
@@ -125,13 +139,26 @@ def serve(
             "structured line each (it always runs in the foreground).",
         ),
     ] = False,
+    supervisor_fd: Annotated[
+        int | None,
+        typer.Option(
+            "--supervisor-fd",
+            hidden=True,
+            min=0,
+            max=2**31 - 1,  # a descriptor is a C int
+            help="Run as the worker of the supervisor whose pipe is this descriptor "
+            "(ohmni_tb.daemon.supervisor starts it so).",
+        ),
+    ] = None,
 ) -> None:
     """Serve the robot to many local clients over WebSocket: one driver, many readers.
 
     Opens the port like every command, then prints the address (ws://HOST:PORT) alone on
     the first line of stdout. Clients subscribe to the Robot's streams, call its services
     and, holding the control lease, command it (ohmni_tb.client.RobotClient;
-    docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits.
+    docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits
+    with 0. The robot runs in a worker process: when it dies, this one stops the wheels
+    and starts it again (docs/daemon.md).
 
     With --handoff SECONDS or --reclaim it does not serve: it asks the daemon already
     running at --listen to hand the serial port to another program, or take it back.
@@ -153,10 +180,20 @@ def serve(
         raise typer.BadParameter(
             "--foxglove-control needs --foxglove [HOST:]PORT", param_hint="--foxglove-control"
         )
-    view = parse_foxglove(foxglove) if foxglove is not None else None
-    token = _token(host, token_file)
+    token = _token(host, token_file, say=supervisor_fd is None)
+    view = (
+        parse_foxglove(foxglove, control=foxglove_control, token=token, say=supervisor_fd is None)
+        if foxglove is not None
+        else None
+    )
     url = resolve_port(port)
     origins = tuple(allow_origin or ())
+    stop = asyncio.Event()
+    if supervisor_fd is not None:
+        _check_pipe(supervisor_fd)
+    elif os.name == "posix":
+        _supervise(ctx, url, listen, foxglove, rt_priority=rt_priority, stop=stop)
+        return
     run(
         lambda: _serve(
             url,
@@ -165,10 +202,14 @@ def serve(
             read_only=read_only,
             token=token,
             origins=origins,
+            max_clients=max_clients,
             foxglove=view,
             foxglove_control=foxglove_control,
             rt_priority=rt_priority,
-        )
+            stop=stop,
+            supervisor_fd=supervisor_fd,
+        ),
+        stop_requested=stop,
     )
 
 
@@ -180,12 +221,16 @@ async def _serve(
     read_only: bool,
     token: str | None,
     origins: tuple[str, ...],
+    max_clients: int = 64,
     foxglove: tuple[str, int] | None = None,
     foxglove_control: bool = False,
     rt_priority: int | None = None,
+    stop: asyncio.Event | None = None,
+    supervisor_fd: int | None = None,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
+    from ohmni_tb.daemon.supervisor import until_stopped  # noqa: PLC0415
 
     check_listen(host, token)  # before the port opens: a refused address moves nothing
     if rt_priority is not None:
@@ -195,27 +240,40 @@ async def _serve(
     async with (
         open_robot(url) as robot,
         RobotServer(
-            robot, host=host, port=tcp_port, read_only=read_only, token=token, origins=origins
+            robot,
+            host=host,
+            port=tcp_port,
+            read_only=read_only,
+            token=token,
+            origins=origins,
+            max_clients=max_clients,
+            serves=url,
         ) as server,
         contextlib.AsyncExitStack() as stack,
     ):
         write_line(server.url)
         if foxglove is not None:
             from ohmni_tb.client import RobotClient  # noqa: PLC0415
+            from ohmni_tb.daemon.auth import load_or_create_token  # noqa: PLC0415
             from ohmni_tb.foxglove import FoxgloveBridge  # noqa: PLC0415  # the extra
             from ohmni_tb.foxglove.control import RobotControl  # noqa: PLC0415
+            from ohmni_tb.foxglove.teleop import FoxgloveTeleop  # noqa: PLC0415
 
             teleop = None
             control = None
+            unlock = None
             if foxglove_control:
-                # The panel is one more client of the daemon: the same lease as any other,
-                # for its Twists, its parameter changes and its service calls.
+                # The app is one more client of the daemon: the same lease as any other,
+                # for its Twists, its parameter changes and its service calls; connected
+                # again when the daemon closes the connection.
                 operator = await stack.enter_async_context(
-                    RobotClient.connect(server.url, token=token)
+                    RobotClient.connect(server.url, token=token, reconnect=True)
                 )
-                teleop = _FoxgloveTeleop(operator)
-                stack.push_async_callback(teleop.aclose)
+                teleop = await stack.enter_async_context(FoxgloveTeleop(operator))
                 control = RobotControl(operator, writable=True, before_change=teleop.hold)
+                # The SDK shows no client's Origin: every client unlocks with a token, the
+                # daemon's, or on a loopback daemon without one the default token file's.
+                unlock = token if token is not None else load_or_create_token()
             bridge = await stack.enter_async_context(
                 FoxgloveBridge(
                     robot,
@@ -223,6 +281,7 @@ async def _serve(
                     port=foxglove[1],
                     teleop=teleop,
                     control=control,
+                    token=unlock,
                 )
             )
             write_line(bridge.url)
@@ -232,87 +291,21 @@ async def _serve(
         # the loop 30–45 ms (two control periods) now and then. (A link reopened later
         # leaves its old transport's few objects to the collector no more: a few KiB.)
         gc.freeze()
-        await asyncio.Event().wait()  # until a signal cancels it
+        why = await until_stopped(stop or asyncio.Event(), supervisor_fd)
+        if why == "gone":
+            _log.warning("the supervisor is gone: stopping the wheels and closing")
+        # The brake goes out now, not after the clients are closed.
+        with contextlib.suppress(RobotClosedError):  # closed already: it stopped the wheels
+            robot.stop()
 
 
-class _FoxgloveTeleop:
-    """Twists from the Foxglove Teleop panel, driven through the daemon's control lease.
-
-    The first Twist takes the lease when nobody holds it (never steals: while another
-    client drives, the panel's Twists are refused and logged); it is given back, which
-    stops the robot, :data:`_TELEOP_IDLE_S` after the last Twist. The Robot's watchdog
-    stops the wheels sooner when the panel goes quiet.
-    """
-
-    def __init__(self, client: RobotClient) -> None:
-        self._client = client
-        self._acquiring: asyncio.Task[None] | None = None
-        self._idle: asyncio.TimerHandle | None = None
-        self._refused_by: str | None = None
-        self._releasing: asyncio.Task[None] | None = None
-
-    def __call__(self, linear_mps: float, angular_radps: float) -> None:
-        if self._client.has_lease:
-            self._drive(linear_mps, angular_radps)
-        elif self._acquiring is None or self._acquiring.done():
-            self._acquiring = asyncio.get_running_loop().create_task(
-                self._acquire_then(linear_mps, angular_radps)
-            )
-
-    async def _acquire_then(self, linear_mps: float, angular_radps: float) -> None:
-        from ohmni_tb.errors import OhmniError  # noqa: PLC0415
-
-        try:
-            await self._client.acquire()
-        except OhmniError as exc:
-            holder = getattr(exc, "holder", None)
-            if holder != self._refused_by:  # once per holder, not once per Twist
-                _log.warning("foxglove teleop refused: %s", exc)
-                self._refused_by = holder
-            return
-        self._refused_by = None
-        _log.info("foxglove teleop took the control lease")
-        self._drive(linear_mps, angular_radps)
-
-    async def hold(self) -> None:
-        """Hold the lease for a parameter change or a service call: take it when nobody
-        holds it (never steals), and give it back a second after the last use.
-
-        Raises:
-            LeaseError: Another client holds it (the message names it).
-        """
-        if not self._client.has_lease:
-            await self._client.acquire()
-            _log.info("foxglove took the control lease")
-        self._rearm()
-
-    def _rearm(self) -> None:
-        if self._idle is not None:
-            self._idle.cancel()
-        self._idle = asyncio.get_running_loop().call_later(_TELEOP_IDLE_S, self._give_back)
-
-    def _drive(self, linear_mps: float, angular_radps: float) -> None:
-        from ohmni_tb.errors import OhmniError  # noqa: PLC0415
-
-        try:
-            self._client.drive(linear_mps, angular_radps)
-        except OhmniError as exc:
-            _log.warning("foxglove teleop: %s", exc)
-        self._rearm()
-
-    def _give_back(self) -> None:
-        self._idle = None
-        self._releasing = asyncio.get_running_loop().create_task(self._client.release())
-
-    async def aclose(self) -> None:
-        if self._idle is not None:
-            self._idle.cancel()
-        if self._acquiring is not None:
-            self._acquiring.cancel()
-
-
-def parse_foxglove(text: str) -> tuple[str, int]:
-    """``--foxglove [HOST:]PORT``; the extra must be installed."""
+def parse_foxglove(
+    text: str, *, control: bool = False, token: str | None = None, say: bool = True
+) -> tuple[str, int]:
+    """``--foxglove [HOST:]PORT``; the extra must be installed. With ``control``
+    (``--foxglove-control``) beyond loopback only when the daemon has a ``token``. ``say``:
+    tell where the token that unlocks control is, and, beyond loopback, what anyone there
+    can do (the supervisor does; its worker does not again)."""
     import importlib.util  # noqa: PLC0415
 
     address = host_port(text, default_host="127.0.0.1")
@@ -328,13 +321,50 @@ def parse_foxglove(text: str) -> tuple[str, int]:
         )
     from ohmni_tb.daemon.server import is_loopback  # noqa: PLC0415
 
-    if not is_loopback(host):
+    unlock = '/tb_control/unlock {"token": ...}'
+    if control:
+        if token is None and not is_loopback(host):
+            raise typer.BadParameter(
+                f"--foxglove-control on {host}, beyond loopback, needs the daemon's token: "
+                "give --token-file PATH (Foxglove clients unlock control with it), or keep "
+                "--foxglove on 127.0.0.1 and reach it with ssh -L",
+                param_hint="--foxglove-control",
+            )
+        where = _unlock_token(token)
+        if say:
+            typer.echo(
+                f"Foxglove clients watch; to drive, set parameters or call services, a client "
+                f"first calls {unlock} with {where}",
+                err=True,
+            )
+    if say and not is_loopback(host):
+        can = (
+            f"drive, set parameters and call services only with the token ({unlock})"
+            if control
+            else "change nothing"
+        )
         typer.echo(
-            f"warning: the Foxglove view on {host} has no authentication: anyone who reaches "
-            "it can watch the robot (prefer loopback and ssh -L)",
+            f"warning: the Foxglove view on {host} has no authentication of its own: anyone "
+            f"who reaches it can watch every stream and read the parameters, and {can} "
+            "(prefer loopback and ssh -L)",
             err=True,
         )
     return host, port
+
+
+def _unlock_token(token: str | None) -> str:
+    """Where the token that unlocks Foxglove control is: the daemon's, or the default
+    token file's (made on first use) on a loopback daemon without one."""
+    if token is not None:
+        return "the daemon's token"
+    from ohmni_tb.daemon.auth import default_token_path, load_or_create_token  # noqa: PLC0415
+
+    path = default_token_path()
+    try:
+        load_or_create_token(path)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--foxglove-control") from None
+    return f"the token in {path}"
 
 
 def _hand_off(
@@ -379,9 +409,10 @@ def _hand_off(
         )
 
 
-def _token(host: str, token_file: Path | None) -> str | None:
+def _token(host: str, token_file: Path | None, *, say: bool = True) -> str | None:
     """The token clients must present: from ``--token-file``, or the default file beyond
-    loopback (made on first use); none on loopback without ``--token-file``."""
+    loopback (made on first use); none on loopback without ``--token-file``. ``say``:
+    tell where it is (the supervisor does; its worker does not again)."""
     from ohmni_tb.daemon.auth import default_token_path, load_or_create_token  # noqa: PLC0415
     from ohmni_tb.daemon.server import is_loopback  # noqa: PLC0415
 
@@ -392,11 +423,97 @@ def _token(host: str, token_file: Path | None) -> str | None:
         token = load_or_create_token(path)
     except ConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--token-file") from None
-    typer.echo(
-        f"clients need the token in {path} (RobotClient.connect(token=...) or $OHMNI_DAEMON_TOKEN)",
-        err=True,
-    )
+    if say:
+        typer.echo(
+            f"clients need the token in {path} (RobotClient.connect(token=...) or "
+            "$OHMNI_DAEMON_TOKEN)",
+            err=True,
+        )
     return token
+
+
+def _supervise(
+    ctx: typer.Context,
+    url: str,
+    listen: str,
+    foxglove: str | None,
+    *,
+    rt_priority: int | None,
+    stop: asyncio.Event,
+) -> None:
+    """Serve through a worker process (ohmni_tb.daemon.supervisor); exit with its code."""
+    from ohmni_tb.daemon.supervisor import supervise  # noqa: PLC0415
+
+    root = ["--debug"] if ctx.find_root().params.get("debug") else []
+    # Every other option given, as given: the worker checks them again and serves with
+    # them. The port (resolved) and the addresses are set below.
+    given: list[str] = []
+    for param in ctx.command.params:
+        name = param.name or ""
+        source = ctx.get_parameter_source(name)
+        if (
+            param.param_type_name != "option"
+            or name in ("port", "listen", "foxglove", "supervisor_fd")
+            or source is None
+            or source.name == "DEFAULT"
+        ):
+            continue
+        value = ctx.params[name]
+        flag = param.opts[0]
+        if getattr(param, "is_flag", False):
+            given += [flag] if value else param.secondary_opts[:1]
+        elif param.multiple:
+            for item in value:
+                given += [flag, str(item)]
+        elif value is not None:
+            given += [flag, str(value)]
+
+    def command(fd: int, shown: Sequence[str]) -> list[str]:
+        # A restarted worker serves where the first one did (a port 0 chose one).
+        where, view = listen, foxglove
+        if shown:
+            where = _with_port(listen, urlsplit(shown[0]).port)
+        if view is not None and len(shown) > 1:
+            view = _with_port(view, urlsplit(shown[1]).port)
+        extra = [] if view is None else ["--foxglove", view]
+        return [
+            sys.executable, "-m", "ohmni_tb", *root, "serve", "--supervisor-fd", str(fd),
+            "--port", url, "--listen", where, *extra, *given,
+        ]  # fmt: skip
+
+    async def main() -> int:
+        if rt_priority is not None:
+            # The supervisor stops the wheels when the worker dies: as promptly as it serves.
+            set_realtime(rt_priority)
+        return await supervise(
+            command,
+            port=url,
+            stop=stop,
+            ready_lines=1 if foxglove is None else 2,
+            write=write_line,
+        )
+
+    code = run(main, stop_requested=stop)
+    if code:
+        raise typer.Exit(code)
+
+
+def _check_pipe(fd: int) -> None:
+    """``--supervisor-fd`` must be the worker's end of the supervisor's socket pair."""
+    try:
+        is_pipe = stat.S_ISSOCK(os.fstat(fd).st_mode)
+    except OSError:
+        is_pipe = False
+    if not is_pipe:
+        raise typer.BadParameter(
+            f"{fd} is not an open pipe (ohmni serve passes it to its own worker)",
+            param_hint="--supervisor-fd",
+        )
+
+
+def _with_port(address: str, port: int | None) -> str:
+    """``HOST:PORT`` (or ``PORT``) with another port."""
+    return address if port is None else f"{address.rpartition(':')[0]}:{port}"
 
 
 def _parse_listen(listen: str) -> tuple[str, int]:

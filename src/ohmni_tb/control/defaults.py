@@ -19,6 +19,7 @@ __all__ = [
     "DEFAULT_TICKS_PER_REV",
     "DEFAULT_WHEEL_RADIUS_M",
     "DEFAULT_WHEEL_SEPARATION_M",
+    "MAX_POSE_M",
     "MOTOR_TICKS_PER_REV",
     "PID_RATE_HZ",
     "PWM_LIMIT",
@@ -57,3 +58,7 @@ WHEEL_GAIN_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
         "ff_offset": (0.0, PWM_LIMIT / 5),
     }
 )
+#: The odometry pose that may be set, metres from the origin each way (1,000 km; the yaw
+#: in radians likewise): beyond, a float's resolution (about 1e-10 m at 1e6 m) is no
+#: longer a wheel's.
+MAX_POSE_M = 1e6

@@ -23,6 +23,7 @@ from ohmni_tb.config import user_config_dir
 from ohmni_tb.errors import ConfigError
 
 __all__ = [
+    "MIN_TOKEN_CHARS",
     "TOKEN_ENV",
     "TOKEN_FILE_NAME",
     "check_origin",
@@ -39,8 +40,9 @@ TOKEN_FILE_NAME: Final = "daemon-token"
 TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: Bytes of randomness in a new token (256 bits), shown URL-safe base64 (43 characters).
 _TOKEN_BYTES = 32
-#: A token shorter than this is refused: anyone could guess it.
-_MIN_TOKEN_CHARS = 16
+#: A token shorter than this is refused (the daemon, Foxglove control): anyone could
+#: guess it.
+MIN_TOKEN_CHARS: Final = 16
 
 
 def default_token_path() -> Path:
@@ -97,10 +99,10 @@ def read_token(path: str | os.PathLike[str]) -> str:
         raise
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read the daemon token file {target}: {exc}") from exc
-    if len(token) < _MIN_TOKEN_CHARS:
+    if len(token) < MIN_TOKEN_CHARS:
         raise ConfigError(
             f"the daemon token in {target} is {len(token)} characters: at least "
-            f"{_MIN_TOKEN_CHARS} are needed (delete the file and a new one is made)"
+            f"{MIN_TOKEN_CHARS} are needed (delete the file and a new one is made)"
         )
     return token
 

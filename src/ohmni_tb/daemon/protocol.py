@@ -100,8 +100,9 @@ __all__ = [
     "write_schema",
 ]
 
-#: Bumped on any change a peer of the previous version would misread (2: commands, lease).
-PROTOCOL_VERSION: Final = 2
+#: Bumped on any change a peer of the previous version would misread (2: commands, lease;
+#: 3: strict types, ``hello`` says what the daemon serves).
+PROTOCOL_VERSION: Final = 3
 #: What a client may ask (``op``).
 CLIENT_OPS: Final = ("subscribe", "unsubscribe", "call")
 #: Every stream's sample type, by stream name.
@@ -118,6 +119,8 @@ SAMPLE_TYPES: Final[dict[str, type[Sample]]] = {
 }
 #: Longest string ``id`` a client may use.
 _MAX_ID_CHARS = 64
+#: Longest error message: it quotes what was wrong, shortened (a frame is up to 16 KiB).
+_MAX_ERROR_CHARS = 1000
 #: Most samples a subscription's queue may hold (memory per client and topic).
 MAX_QUEUE = 1024
 #: Fastest rate cap a subscription may ask; no stream is faster than 100 Hz.
@@ -126,7 +129,7 @@ _MAX_HZ = 1000.0
 _MAX_EVERY = 10_000
 
 ErrorCode = Literal[
-    "bad_json",  # not JSON, or not one JSON object
+    "bad_json",  # not JSON (nested too deep included), or not one JSON object
     "bad_message",  # an object, but not a valid message (a field missing or wrong)
     "unknown_op",
     "unknown_method",
@@ -145,66 +148,75 @@ ErrorCode = Literal[
 ERROR_CODES: Final = ErrorCode.__args__  # type: ignore[attr-defined]  # Literal's members
 
 MessageId = (
-    Annotated[int, Field(ge=0, le=2**53 - 1)]
-    | Annotated[str, Field(min_length=1, max_length=_MAX_ID_CHARS)]
+    Annotated[int, Field(ge=0, le=2**53 - 1, strict=True)]
+    | Annotated[str, Field(min_length=1, max_length=_MAX_ID_CHARS, strict=True)]
 )
 Topic = Literal[STREAM_NAMES]  # type: ignore[valid-type]  # the tuple of names, for the schema
-#: A finite number (JSON has no NaN, but Python's json module reads ``NaN``/``Infinity``).
-Number = Annotated[float, Field(allow_inf_nan=False)]
+#: A finite number (JSON has no NaN, but Python's json module reads ``NaN``/``Infinity``);
+#: an integer is one, ``true`` and ``"0.5"`` are not.
+Number = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 
 
 class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class _Request(_Message):
+    """A client's message or a method's arguments: strict types (no ``true`` for 1, no
+    ``"5"`` for 5), so that what reaches the Robot is what the client meant."""
+
+    model_config = ConfigDict(strict=True)
+
+
 # -- the methods' arguments -----------------------------------------------------------------
 
 
-class NoArgs(_Message):
+class NoArgs(_Request):
     """No arguments."""
 
 
-class LatestArgs(_Message):
+class LatestArgs(_Request):
     """``latest``: which stream."""
 
     topic: Topic
 
 
-class AcquireArgs(_Message):
+class AcquireArgs(_Request):
     """``acquire``: take the control lease; ``steal`` takes it from its holder (told so)."""
 
     steal: bool = False
 
 
-class DriveArgs(_Message):
+class DriveArgs(_Request):
     """``drive``: body velocity target, as :meth:`Robot.drive`."""
 
     linear_mps: Number
     angular_radps: Number = 0.0
 
 
-class DriveWheelsArgs(_Message):
+class DriveWheelsArgs(_Request):
     """``drive_wheels``: each wheel's rim speed target, as :meth:`Robot.drive_wheels`."""
 
     left_mps: Number
     right_mps: Number
 
 
-class DrivePwmArgs(_Message):
+class DrivePwmArgs(_Request):
     """``drive_pwm``: open-loop PWM −1000..1000, as :meth:`Robot.drive_pwm`."""
 
     left: int
     right: int
 
 
-class EnabledArgs(_Message):
+class EnabledArgs(_Request):
     """``enable_controllers``: on or off."""
 
     enabled: bool = True
 
 
-class PidArgs(_Message):
-    """``set_pid``: the wheel PIDs' gains (each 0..1e12), as :class:`PidGains`."""
+class PidArgs(_Request):
+    """``set_pid``: the wheel PIDs' gains, as :class:`PidGains`, each within its range
+    (the ``pid_*`` settings': ``ohmni_tb.control.defaults.WHEEL_GAIN_RANGES``)."""
 
     kp: Number
     ki: Number
@@ -213,7 +225,7 @@ class PidArgs(_Message):
     ff_offset: Number = 0.0
 
 
-class PoseArgs(_Message):
+class PoseArgs(_Request):
     """``reset_odometry``: the pose to set."""
 
     x_m: Number = 0.0
@@ -221,7 +233,7 @@ class PoseArgs(_Message):
     yaw_rad: Number = 0.0
 
 
-class LightArgs(_Message):
+class LightArgs(_Request):
     """``light_ring``: hue, saturation, value, 0..255 each."""
 
     hue: int
@@ -229,28 +241,29 @@ class LightArgs(_Message):
     value: int
 
 
-class StreamArgs(_Message):
+class StreamArgs(_Request):
     """``enable_stream``: a stream on or off."""
 
     topic: Topic
     enabled: bool = True
 
 
-class RateArgs(_Message):
-    """``set_rate``: a polled stream's rate, 0.1..100 Hz."""
+class RateArgs(_Request):
+    """``set_rate``: a polled stream's rate: 10..100 Hz for ``wheel_encoder`` (the control
+    tick), 0.1..100 Hz for a feedback stream."""
 
     topic: Topic
     hz: Number
 
 
-class ReleasePortArgs(_Message):
+class ReleasePortArgs(_Request):
     """``release_port``: hand the serial port to another program for ``duration_s``
     (0.1..3600 s; ``null``: until ``reclaim_port``)."""
 
     duration_s: Number | None = None
 
 
-class _ServoCommand(_Message):
+class _ServoCommand(_Request):
     target: str | int = Field(description='"neck", or a HerkuleX servo id 0..253.')
 
     @field_validator("target", mode="before")
@@ -294,7 +307,7 @@ class MethodSpec:
         result: What its ``result`` carries (for the docs and the schema).
     """
 
-    args: type[_Message]
+    args: type[_Request]
     lease: bool
     result: str
 
@@ -346,7 +359,7 @@ Method = Literal[METHODS]  # type: ignore[valid-type]  # the tuple of names, for
 # -- client → server -----------------------------------------------------------------------
 
 
-class Subscribe(_Message):
+class Subscribe(_Request):
     """Send me ``topic``'s samples from now on (again: replaces the options)."""
 
     op: Literal["subscribe"] = "subscribe"
@@ -364,7 +377,7 @@ class Subscribe(_Message):
     )
 
 
-class Unsubscribe(_Message):
+class Unsubscribe(_Request):
     """Stop sending ``topic``."""
 
     op: Literal["unsubscribe"] = "unsubscribe"
@@ -372,7 +385,7 @@ class Unsubscribe(_Message):
     topic: Topic
 
 
-class Call(_Message):
+class Call(_Request):
     """Call a service: ``method`` with ``args`` (each method's are under ``methods``)."""
 
     op: Literal["call"] = "call"
@@ -419,6 +432,12 @@ class Hello(_Message):
     protocol: int = Field(description="PROTOCOL_VERSION of the server.")
     version: str = Field(description="ohmni_tb's version.")
     read_only: bool = Field(description="Commands are refused (stop and estop excepted).")
+    serves: str | None = Field(
+        None, description="The port the daemon's Robot opened (sim://, /dev/ttyUSB0 …), if told."
+    )
+    simulated: bool = Field(
+        False, description="The Robot is the built-in simulator: nothing physical moves."
+    )
     peer: str = Field(description="This connection as the server names it (host:port).")
     lease: str | None = Field(description="Who holds the control lease (peer), or null.")
     topics: dict[str, float] = Field(description="Each stream and its rate (Hz; 0: on events).")
@@ -490,6 +509,10 @@ class RequestError(Exception):
     """A client message that cannot be served: the ``error`` to send back."""
 
     def __init__(self, code: ErrorCode, message: str, id: int | str | None = None) -> None:
+        # What the client sent may be quoted (a key, a value): as UTF-8 text, and short.
+        message = message.encode("utf-8", "backslashreplace").decode("utf-8")
+        if len(message) > _MAX_ERROR_CHARS:
+            message = f"{message[: _MAX_ERROR_CHARS - 1]}…"
         super().__init__(message)
         self.code: ErrorCode = code
         self.message = message
@@ -511,10 +534,13 @@ def parse_client_message(frame: str | bytes) -> Subscribe | Unsubscribe | Call:
         raw = json.loads(frame)
     except (ValueError, UnicodeDecodeError) as exc:
         raise RequestError("bad_json", f"not JSON: {exc}") from None
+    except RecursionError:
+        # Python's JSON reader refuses nesting deeper than the interpreter's recursion
+        # limit (about 1,000): no message nests more than three levels.
+        raise RequestError("bad_json", "JSON nested too deep: a message nests 3 levels") from None
     if not isinstance(raw, dict):
         raise RequestError("bad_json", f"a message is a JSON object, not {type(raw).__name__}")
-    ident = raw.get("id")
-    ident = ident if isinstance(ident, int | str) and not isinstance(ident, bool) else None
+    ident = _readable_id(raw.get("id"))
     op = raw.get("op")
     if op not in CLIENT_OPS:
         raise RequestError(
@@ -553,7 +579,7 @@ def call_args(call: Call) -> BaseModel:
         return model.model_validate(call.args)
     except ValidationError as exc:
         raise RequestError(
-            "bad_message", f"bad {call.method} args: {_problems(exc, 'args')}", call.id
+            "bad_message", f"bad {call.method} args: {_problems(exc, 'args', 'args')}", call.id
         ) from None
 
 
@@ -636,13 +662,30 @@ def schema_text() -> str:
     return json.dumps(json_schema(), indent=2, sort_keys=True, ensure_ascii=False) + "\n"
 
 
+_ID: TypeAdapter[int | str] = TypeAdapter(MessageId)
+
+
+def _readable_id(value: object) -> int | str | None:
+    """``value`` if it is a valid ``id`` to send back, else ``None`` (a negative number,
+    a string too long or not UTF-8 text, a bool …)."""
+    if isinstance(value, bool) or not isinstance(value, int | str):
+        return None
+    try:
+        return _ID.validate_python(value)
+    except ValidationError:
+        return None
+
+
 def _args(raw: dict[str, Any]) -> dict[str, Any]:
     args = raw.get("args")
     return args if isinstance(args, dict) else {}
 
 
 def _shown(value: object) -> str:
-    text = json.dumps(value) if not isinstance(value, str) else repr(value)
+    try:
+        text = json.dumps(value) if not isinstance(value, str) else repr(value)
+    except (RecursionError, ValueError, TypeError):
+        text = f"a {type(value).__name__} nested too deep"  # deeper than JSON can show
     return text if len(text) <= 40 else f"{text[:30]}…({len(text)} chars)"
 
 
@@ -650,8 +693,9 @@ def _listed(names: tuple[str, ...]) -> str:
     return ", ".join(names)
 
 
-def _problems(exc: ValidationError, op: str) -> str:
-    """pydantic's errors, one short clause each: where, what, and the value given."""
+def _problems(exc: ValidationError, op: str, whole: str = "message") -> str:
+    """pydantic's errors, one short clause each: where (``whole`` for the object itself),
+    what, and the value given."""
     parts = []
     for error in exc.errors(include_url=False):
         loc = error["loc"][1:] if error["loc"][:1] == (op,) else error["loc"]
@@ -661,7 +705,7 @@ def _problems(exc: ValidationError, op: str) -> str:
             parts.append(f"{where}: {error['msg'].removeprefix('Value error, ')}")
             continue
         given = "" if error["type"] == "missing" else f" (got {_shown(error.get('input'))})"
-        parts.append(f"{where or 'message'}: {error['msg']}{given}")
+        parts.append(f"{where or whole}: {error['msg']}{given}")
     return "; ".join(parts)
 
 

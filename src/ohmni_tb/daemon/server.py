@@ -17,6 +17,14 @@ Commands go through one control lease (:meth:`RobotServer` ``acquire``): any num
 readers, one driver; ``stop`` and ``estop`` are anyone's. On loopback every local program
 may connect; any other address needs a token (:mod:`ohmni_tb.daemon.auth`), and a
 browser's handshake (it carries ``Origin``) is refused unless its origin is allowed.
+
+No load of clients holds the control tick back. At most ``max_clients`` connections
+(:data:`DEFAULT_MAX_CLIENTS`, fewer when the process may open too few files to keep some
+in reserve) are served; the next handshake is refused with HTTP 503. The messages of every
+client but the lease holder share one budget (:data:`READER_MESSAGES_PER_S`): a message
+beyond it waits in its socket, costing nothing, until its turn. ``stats`` is computed at
+most once per :data:`STATS_INTERVAL_S`, and every caller gets the same encoded reply.
+Refusals are counted and logged at most once per :data:`REFUSAL_LOG_S`.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ import ipaddress
 import json
 import logging
 import math
+import os
 import socket
 import time
 from collections import deque
@@ -35,6 +44,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb import __version__
+from ohmni_tb._checks import integer
+from ohmni_tb.control.defaults import MAX_POSE_M
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.daemon.auth import check_origin, check_token, presented_token
 from ohmni_tb.daemon.protocol import (
@@ -54,6 +65,7 @@ from ohmni_tb.daemon.protocol import (
     Motion,
     MoveArgs,
     PidArgs,
+    PoseArgs,
     ReleasePortArgs,
     RequestError,
     RestArgs,
@@ -74,16 +86,22 @@ if TYPE_CHECKING:
     from websockets.asyncio.server import Server, ServerConnection
     from websockets.http11 import Request, Response
 
-    from ohmni_tb.robot import Robot, Subscription
+    from ohmni_tb.robot import Robot, RobotStats, Subscription
 
 __all__ = [
     "BURST_MESSAGES",
     "DEFAULT_HOST",
+    "DEFAULT_MAX_CLIENTS",
     "DEFAULT_PORT",
     "HARD_MAX_MESSAGE_BYTES",
     "MAX_MESSAGES_PER_S",
     "MAX_MESSAGE_BYTES",
+    "MAX_POSE_M",
+    "READER_BURST",
+    "READER_MESSAGES_PER_S",
+    "REFUSAL_LOG_S",
     "SAMPLE_FLUSH_S",
+    "STATS_INTERVAL_S",
     "ClientFigures",
     "RobotServer",
     "check_listen",
@@ -106,6 +124,25 @@ HARD_MAX_MESSAGE_BYTES: Final = 1024 * 1024
 MAX_MESSAGES_PER_S: Final = 100.0
 #: Messages allowed at once above that rate (a script subscribing to everything).
 BURST_MESSAGES: Final = 200
+#: Connections served at once by default (``RobotServer(max_clients=...)``): a robot has a
+#: handful of programs and people watching it; 64 readers of every stream cost the
+#: daemon about a fifth of a core.
+DEFAULT_MAX_CLIENTS: Final = 64
+#: Messages a second that all the clients without the control lease may have handled
+#: together (each 4 KiB of a message counts as one more). What is beyond waits in its socket
+#: until its turn, in the order it came: the event loop spends at most a few per cent of
+#: a core on them, however many clients send however much, and the control tick and the
+#: lease holder go first. A program polling ``stats`` at 4 Hz costs 4 of these.
+READER_MESSAGES_PER_S: Final = 500.0
+#: Messages of those clients handled at once above that rate (connecting scripts
+#: subscribing to every stream).
+READER_BURST: Final = 100
+#: ``stats`` is computed at most this often: every caller in between gets the same reply.
+STATS_INTERVAL_S: Final = 0.2
+#: A kind of refusal (connections over the cap, a client's bad messages, ``accept()``
+#: out of descriptors) is logged at most once this often; the rest are counted, and the
+#: count is logged with the next line.
+REFUSAL_LOG_S: Final = 10.0
 #: Samples wait this long at most before they go out, together, in one frame per client:
 #: the fan-out then costs a send per client and flush instead of one per sample.
 SAMPLE_FLUSH_S: Final = 0.02
@@ -119,12 +156,28 @@ _MAX_OUTBOX = 256
 #: client shows up in its queues (dropped, counted) within a second or two instead of
 #: megabytes later; 50 clients of every stream need far less than this per second.
 _SOCKET_SEND_BUFFER = 32 * 1024
+#: The kernel's receive buffer per client (Linux doubles it): websockets parses every
+#: frame of a read at once, so a read of a flooding client's backlog is a few hundred
+#: small frames (a few milliseconds of the event loop), not thousands; and the flood
+#: backs up to the client sooner. A 16 KiB message still arrives, in two reads.
+_SOCKET_RECEIVE_BUFFER = 8 * 1024
 #: websockets' own buffer before ``send`` waits for the socket to drain.
 _WRITE_LIMIT = 32 * 1024
 #: Unread client frames websockets holds (the reader handles each at once).
 _MAX_READ_QUEUE = 16
 #: How long closing waits for a client's closing handshake (a stalled one never answers).
 _CLOSE_TIMEOUT_S = 1.0
+#: File descriptors kept free for everything but the clients: the serial port reopened,
+#: the Foxglove view and its clients' few, log files, the simulator's pty.
+_FD_RESERVE = 32
+#: TCP connections beyond ``max_clients`` that may be in their handshake (answered 503
+#: once their request arrives); any more are closed as soon as accepted.
+_HANDSHAKE_SLACK = 16
+#: A message's bytes that count as one more message of the readers' budget: parsing a
+#: 16 KiB frame costs about what four small messages do.
+_BUDGET_BYTES = 4096
+#: The largest ``max_clients``: one descriptor and a few hundred KiB of buffers each.
+_MAX_CLIENTS_LIMIT = 10_000
 #: WebSocket close codes.
 _GOING_AWAY = 1001
 _POLICY_VIOLATION = 1008
@@ -164,10 +217,17 @@ class RobotServer:
             ``?token=…``); see :func:`ohmni_tb.daemon.auth.load_or_create_token`.
         origins: Browser origins allowed to connect (``"http://localhost:8080"``); a
             handshake with any other ``Origin`` header is refused (403).
+        max_clients: Connections served at once (1..10000); the next handshake is
+            refused with HTTP 503. Lowered at :meth:`start`, with a warning, when the
+            process may open too few files (``ulimit -n``) to keep some in reserve.
+        serves: The port the Robot was opened on (``sim://``, ``/dev/ttyUSB0``), told to
+            clients in ``hello``; by default ``sim://`` for the built-in simulator, else
+            not told.
 
     Raises:
         ConfigError: ``host`` is not a loopback address and there is no ``token``, or the
             token is shorter than 16 characters.
+        InvalidArgumentError: ``port`` or ``max_clients`` out of range.
     """
 
     def __init__(
@@ -179,10 +239,13 @@ class RobotServer:
         read_only: bool = False,
         token: str | None = None,
         origins: Sequence[str] = (),
+        max_clients: int = DEFAULT_MAX_CLIENTS,
+        serves: str | None = None,
     ) -> None:
         check_listen(host, token)
         if not 0 <= port <= 65535:
             raise InvalidArgumentError(f"port {port} is out of range: allowed 0..65535")
+        integer("max_clients", max_clients, 1, _MAX_CLIENTS_LIMIT)
         self._robot = robot
         self._host = host
         self._port = port
@@ -196,6 +259,17 @@ class RobotServer:
         self._holder: _Client | None = None
         self._flusher = _Flusher(SAMPLE_FLUSH_S)
         self._closed = False
+        self._max_clients = max_clients
+        #: Connections admitted (the handshake's checks passed) and not yet gone.
+        self._admitted: set[ServerConnection] = set()
+        #: TCP connections open: from accepted until closed.
+        self._tcp_connections = 0
+        self._simulated = robot.sim is not None
+        self._serves = serves if serves is not None else "sim://" if self._simulated else None
+        self._budget = _Budget(READER_MESSAGES_PER_S, READER_BURST)
+        self._stats: tuple[float, RobotStats, str] | None = None
+        self._over_cap = _Throttled(REFUSAL_LOG_S)
+        self._accept_failures = _AcceptFailures(REFUSAL_LOG_S)
 
     @property
     def url(self) -> str:
@@ -212,16 +286,31 @@ class RobotServer:
         """The peer (``host:port``) holding the control lease, or ``None``."""
         return None if self._holder is None else self._holder.peer
 
+    @property
+    def max_clients(self) -> int:
+        """Connections served at once (as asked, or lowered at :meth:`start` to keep file
+        descriptors in reserve)."""
+        return self._max_clients
+
+    @property
+    def refused_connections(self) -> int:
+        """Connections refused so far because ``max_clients`` were connected, and
+        ``accept()`` failures (the process out of file descriptors)."""
+        return self._over_cap.total + self._accept_failures.total
+
     async def start(self) -> None:
         """Listen.
 
         Raises:
             TransportError: The address cannot be bound (in use, not this machine's).
+            ConfigError: This process may open too few more files (``ulimit -n``) to
+                serve one client and keep 48 in reserve.
         """
         from websockets.asyncio.server import serve  # noqa: PLC0415  # loaded when serving
 
         from ohmni_tb.errors import TransportError  # noqa: PLC0415
 
+        self._fit_descriptors()
         try:
             self._server = await serve(
                 self._handle,
@@ -233,16 +322,75 @@ class RobotServer:
                 close_timeout=_CLOSE_TIMEOUT_S,
                 compression=None,  # loopback: deflate would cost CPU per client for nothing
                 process_request=self._admit,
+                create_connection=_capped_connection(self),
             )
         except OSError as exc:
             raise TransportError(f"cannot listen on {self.url}: {exc.strerror or exc}") from exc
+        for listening in self._server.sockets:
+            # Inherited by every connection accepted from now on; set on a connection
+            # already open it would shrink a window the peer was promised, and stall it.
+            listening.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCKET_RECEIVE_BUFFER)
         self._port = self._server.sockets[0].getsockname()[1]  # the one chosen for 0
-        _log.info("serving on %s", self.url)
+        logging.getLogger("asyncio").addFilter(self._accept_failures)
+        _log.info("serving on %s (at most %d clients)", self.url, self._max_clients)
+
+    def _fit_descriptors(self) -> None:
+        """Lower ``max_clients`` so that every client, the handshakes beyond and a reserve
+        fit the files this process may open: a full server then refuses with 503 instead
+        of failing ``accept()`` with the whole process out of descriptors."""
+        room = _descriptors_free()
+        if room is None:
+            return
+        fits = room - _FD_RESERVE - _HANDSHAKE_SLACK
+        if fits < 1:
+            raise ConfigError(
+                f"this process may open {room} more files, too few to serve a client and "
+                f"keep {_FD_RESERVE + _HANDSHAKE_SLACK} in reserve: raise ulimit -n"
+            )
+        if fits < self._max_clients:
+            _log.warning(
+                "serving at most %d clients instead of %d: this process may open %d more "
+                "files (ulimit -n), %d of them kept in reserve",
+                fits,
+                self._max_clients,
+                room,
+                _FD_RESERVE + _HANDSHAKE_SLACK,
+            )
+            self._max_clients = fits
+
+    def _tcp_opened(self) -> bool:
+        """One more TCP connection accepted: whether it fits (clients, handshakes and the
+        closing ones together, at most ``max_clients`` + :data:`_HANDSHAKE_SLACK`)."""
+        self._tcp_connections += 1
+        if self._tcp_connections <= self._max_clients + _HANDSHAKE_SLACK:
+            return True
+        self._over_cap.note(
+            _log,
+            "connections closed at once: %d clients and %d handshakes already "
+            "(ohmni serve --max-clients)",
+            self._max_clients,
+            _HANDSHAKE_SLACK,
+        )
+        return False
+
+    def _tcp_closed(self) -> None:
+        self._tcp_connections -= 1
 
     def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
-        """The handshake's checks: a browser's origin, then the token. A refusal is an HTTP
-        error before any WebSocket exists, logged with the peer."""
+        """The handshake's checks: room for one more client, a browser's origin, then the
+        token. A refusal is an HTTP error before any WebSocket exists, logged with the peer
+        (over the cap: at most once per :data:`REFUSAL_LOG_S`)."""
         peer = _peer(connection)
+        if len(self._admitted) >= self._max_clients:
+            self._over_cap.note(
+                _log,
+                f"connections refused (503): {self._max_clients} clients connected, the "
+                "most this daemon serves (ohmni serve --max-clients); the last from %s",
+                peer,
+            )
+            return connection.respond(
+                503, f"this daemon serves at most {self._max_clients} clients: try again later\n"
+            )
         origin = request.headers.get("Origin")
         if not check_origin(origin, self._origins):
             _log.warning("client %s: refused: origin %r is not allowed", peer, origin)
@@ -259,6 +407,11 @@ class RobotServer:
                     401,
                     "this daemon needs its token: Authorization: Bearer <token>, or ?token=\n",
                 )
+        # Counted from here until its TCP connection is gone, handshake failed or not.
+        self._admitted.add(connection)
+        connection.connection_lost_waiter.add_done_callback(
+            lambda _: self._admitted.discard(connection)
+        )
         return None
 
     async def aclose(self) -> None:
@@ -266,10 +419,13 @@ class RobotServer:
         if self._closed:
             return
         self._closed = True
+        logging.getLogger("asyncio").removeFilter(self._accept_failures)
         if self._server is not None:
             self._server.close(close_connections=True)
             await self._server.wait_closed()
         self._flusher.close()
+        self._over_cap.close()
+        self._accept_failures.close()
         for pump in list(self._pumps.values()):
             pump.subscription.close()
         tasks = list(self._tasks)
@@ -312,17 +468,27 @@ class RobotServer:
             self._clients.discard(client)
             if self._holder is client:
                 self._set_holder(None, f"released: {client.peer} disconnected")
+            client.refusals.close()
             _log.info(
-                "client %s left (%s; sent %d, dropped %d)",
+                "client %s left (%s; sent %d, dropped %d, refused %d messages)",
                 client.peer,
                 _close_text(ws),
                 client.sent,
                 client.dropped_total,
+                client.refusals.total,
             )
 
     async def _read_loop(self, client: _Client) -> None:
         bucket = _TokenBucket(MAX_MESSAGES_PER_S, BURST_MESSAGES)
         async for frame in client.ws:
+            size = len(frame) if isinstance(frame, bytes) else len(frame.encode())
+            if self._holder is not client and not _may_stop(frame, size):
+                # The readers' shared budget, before any work on the frame: beyond it the
+                # frame waits here, and the next ones in the socket (backpressure). A
+                # short call that may be a stop or an estop never waits for it.
+                delay = self._budget.reserve(1 + min(size, MAX_MESSAGE_BYTES) // _BUDGET_BYTES)
+                if delay > 0.0:
+                    await asyncio.sleep(delay)
             if not bucket.take():
                 self._refuse(
                     client,
@@ -334,7 +500,6 @@ class RobotServer:
                 )
                 client.close_after_flush(_POLICY_VIOLATION, "message rate limit")
                 return
-            size = len(frame) if isinstance(frame, bytes) else len(frame.encode())
             if size > MAX_MESSAGE_BYTES:
                 self._refuse(
                     client,
@@ -367,16 +532,30 @@ class RobotServer:
                 return
 
     def _refuse(self, client: _Client, exc: RequestError) -> None:
-        _log.warning("client %s: refused (%s): %s", client.peer, exc.code, exc.message)
+        client.refusals.note(
+            _log, "client %s: refused (%s): %s", client.peer, exc.code, exc.message
+        )
         client.reply(exc.reply())
+
+    def _shared_stats(self) -> tuple[RobotStats, str]:
+        """:meth:`Robot.stats` and its JSON, computed at most once per
+        :data:`STATS_INTERVAL_S` (a few hundred microseconds each time)."""
+        now = time.monotonic()
+        if self._stats is None or now >= self._stats[0]:
+            stats = self._robot.stats()
+            text = json.dumps(stats_json(stats), separators=(",", ":"))
+            self._stats = (now + STATS_INTERVAL_S, stats, text)
+        return self._stats[1], self._stats[2]
 
     def _hello(self, client: _Client) -> Hello:
         robot = self._robot
-        stats = robot.stats()
+        stats, _ = self._shared_stats()
         config = robot.config
         return Hello(
             protocol=PROTOCOL_VERSION,
             read_only=self._read_only,
+            serves=self._serves,
+            simulated=self._simulated,
             version=__version__,
             peer=client.peer,
             lease=self.lease_holder,
@@ -420,6 +599,11 @@ class RobotServer:
                 + (f"{holder} holds it" if holder else "nobody holds it; acquire it first"),
                 call.id,
             )
+        if call.method == "stats":
+            # One encoding for every caller within the interval: only the id differs.
+            _, text = self._shared_stats()
+            client.reply_frame(f'{{"op":"result","id":{json.dumps(call.id)},"data":{text}}}')
+            return
         serve = self._SYNC.get(call.method)
         if serve is not None:
             try:
@@ -429,6 +613,8 @@ class RobotServer:
             except RequestError as exc:
                 exc.id = call.id
                 raise
+            if call.method in _CHANGES_STATS:
+                self._stats = None  # the next stats shows the change, as on the Robot
             client.reply(Result(id=call.id, data=data))
             return
         task = asyncio.get_running_loop().create_task(
@@ -447,6 +633,8 @@ class RobotServer:
         except RequestError as exc:
             self._refuse(client, exc)
             return
+        if call.method in _CHANGES_STATS:
+            self._stats = None
         client.reply(Result(id=call.id, data=data))
 
     # The services, each one line on the Robot.
@@ -499,6 +687,10 @@ class RobotServer:
         wheels = self._robot.drive_wheels(args.left_mps, args.right_mps)
         return {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps}
 
+    def _reset_odometry(self, client: _Client, args: PoseArgs) -> Any:
+        self._robot.reset_odometry(args.x_m, args.y_m, args.yaw_rad)
+        return None
+
     def _set_pid(self, client: _Client, args: PidArgs) -> Any:
         self._robot.set_pid(PidGains(**args.model_dump()))
         return None
@@ -508,7 +700,6 @@ class RobotServer:
         return {name: getattr(gains, name) for name in ("kp", "ki", "kd", "kff", "ff_offset")}
 
     _SYNC: Final[dict[str, _SyncCall]] = {
-        "stats": lambda self, client, args: stats_json(self._robot.stats()),
         "schedule": lambda self, client, args: [list(row) for row in self._robot.schedule()],
         "latest": _latest,
         "get_pid": _get_pid,
@@ -528,9 +719,7 @@ class RobotServer:
             args.enabled
         ),
         "set_pid": _set_pid,
-        "reset_odometry": lambda self, client, args: self._robot.reset_odometry(
-            args.x_m, args.y_m, args.yaw_rad
-        ),
+        "reset_odometry": _reset_odometry,
         "enable_stream": lambda self, client, args: self._robot.enable_stream(
             args.topic, args.enabled
         ),
@@ -601,7 +790,7 @@ class RobotServer:
             client.subscriptions[topic] = queue
             pump.queues.add(queue)
         queue.configure(message.queue, message.max_hz, message.every)
-        hz = self._robot.stats().streams[topic].requested_hz
+        hz = self._shared_stats()[0].streams[topic].requested_hz
         return {
             "topic": topic,
             "max_hz": message.max_hz,
@@ -627,10 +816,25 @@ class RobotServer:
             _log.error("a daemon pump failed", exc_info=task.exception())
 
 
+#: The commands whose effect ``stats`` shows (a rate, a stream on or off, the link): the
+#: shared figures are computed again after them.
+_CHANGES_STATS: Final = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
 #: A service served at once: (server, client, args) → result data.
 _SyncCall = Callable[["RobotServer", "_Client", Any], Any]
 #: A service that awaits the Robot: (server, args) → result data.
 _AsyncCall = Callable[["RobotServer", Any], Awaitable[Any]]
+
+
+#: The longest frame that may be a stop call and so skips the readers' budget.
+_STOP_FRAME_BYTES = 200
+
+
+def _may_stop(frame: str | bytes, size: int) -> bool:
+    """Whether a frame may be a ``stop`` or ``estop`` call: short, and naming one."""
+    if size > _STOP_FRAME_BYTES:
+        return False
+    text = frame if isinstance(frame, str) else frame.decode(errors="replace")
+    return '"stop"' in text or '"estop"' in text
 
 
 def _robot_refusal(call: Call, exc: OhmniError) -> RequestError:
@@ -747,6 +951,8 @@ class _Client:
         self.sent = 0
         #: When it took the control lease (monotonic), if it holds it.
         self.lease_since = 0.0
+        #: Its messages refused, logged at most once per REFUSAL_LOG_S.
+        self.refusals = _Throttled(REFUSAL_LOG_S)
 
     @property
     def dropped_total(self) -> int:
@@ -766,10 +972,14 @@ class _Client:
         self._ready.set()
 
     def reply(self, message: Any) -> None:
+        self.reply_frame(encode(message))
+
+    def reply_frame(self, frame: str) -> None:
+        """A message already encoded."""
         if len(self._outbox) >= _MAX_OUTBOX:
             self.overflowed = True
             return
-        self._outbox.append(encode(message))
+        self._outbox.append(frame)
         self._ready.set()
 
     def finish(self) -> None:
@@ -878,6 +1088,142 @@ class _TokenBucket:
             return False
         self._tokens -= 1.0
         return True
+
+
+class _Budget:
+    """Work shared by many: ``rate_per_s`` units a second, ``burst`` at once; a caller
+    beyond it is told how long to wait for its turn, in the order of asking (a virtual
+    schedule: each reservation takes the next free units, so waiting costs no work)."""
+
+    def __init__(
+        self, rate_per_s: float, burst: int, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self._unit_s = 1.0 / rate_per_s
+        self._tolerance_s = (burst - 1) * self._unit_s
+        self._clock = clock
+        self._free_at = -math.inf
+
+    def reserve(self, units: int = 1) -> float:
+        """Take ``units``; the seconds to wait before using them (0: now)."""
+        now = self._clock()
+        start = max(self._free_at, now)
+        self._free_at = start + units * self._unit_s
+        return max(0.0, self._free_at - self._unit_s - self._tolerance_s - now)
+
+
+class _Throttled:
+    """A kind of refusal, logged at most once per ``interval_s``: the first at once, the
+    ones after it counted and told in one line when the interval ends."""
+
+    def __init__(self, interval_s: float) -> None:
+        self._interval_s = interval_s
+        #: Every one noted.
+        self.total = 0
+        self._quiet_until = -math.inf
+        self._held = 0
+        self._last: tuple[logging.Logger, str, tuple[object, ...]] | None = None
+        self._timer: asyncio.TimerHandle | None = None
+
+    def note(self, logger: logging.Logger, message: str, *args: object) -> bool:
+        """Count one; log it unless one was logged within the interval. Whether logged."""
+        self.total += 1
+        now = time.monotonic()
+        if now >= self._quiet_until:
+            self._quiet_until = now + self._interval_s
+            logger.warning(message, *args)
+            return True
+        self._held += 1
+        self._last = (logger, message, args)
+        if self._timer is None:
+            try:
+                loop = asyncio.get_running_loop()
+            except RuntimeError:  # no loop in this thread: told with the next line instead
+                return False
+            self._timer = loop.call_later(self._quiet_until - now, self._tell)
+        return False
+
+    def _tell(self) -> None:
+        self._timer = None
+        if self._last is None or not self._held:
+            return
+        logger, message, args = self._last
+        logger.warning(
+            f"%d more since (%d in all); the last: {message}", self._held, self.total, *args
+        )
+        self._held = 0
+        self._last = None
+        self._quiet_until = time.monotonic() + self._interval_s
+
+    def close(self) -> None:
+        """Tell what is held now (leaving)."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self._tell()
+
+
+class _AcceptFailures(logging.Filter):
+    """asyncio's own report of ``accept()`` failing for want of file descriptors (on the
+    ``asyncio`` logger, with a traceback, up to 100 times per wake-up of a listening
+    socket): replaced by one line of ours, at most once per interval, with the count."""
+
+    _MESSAGE = "socket.accept() out of system resource"
+
+    def __init__(self, interval_s: float) -> None:
+        super().__init__()
+        self._throttled = _Throttled(interval_s)
+
+    @property
+    def total(self) -> int:
+        return self._throttled.total
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not isinstance(record.msg, str) or not record.msg.startswith(self._MESSAGE):
+            return True
+        exc = record.exc_info[1] if record.exc_info else None
+        self._throttled.note(
+            _log,
+            "accept() failed (%s): this process is out of file descriptors (ulimit -n); "
+            "new clients wait in the kernel's queue",
+            exc.strerror if isinstance(exc, OSError) else "out of system resources",
+        )
+        return False
+
+    def close(self) -> None:
+        self._throttled.close()
+
+
+def _capped_connection(server: RobotServer) -> Any:
+    """websockets' connection class, closing a TCP connection as soon as it is accepted
+    when ``max_clients`` and the handshakes beyond are all taken: it then holds no file
+    descriptor while it would wait for its handshake."""
+    from websockets.asyncio.server import ServerConnection  # noqa: PLC0415
+
+    class CappedConnection(ServerConnection):
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            super().connection_made(transport)
+            if not server._tcp_opened():
+                self.transport.abort()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            server._tcp_closed()
+            super().connection_lost(exc)
+
+    return CappedConnection
+
+
+def _descriptors_free() -> int | None:
+    """How many more files this process may open (``ulimit -n`` less those open), or
+    ``None`` when there is no limit or it cannot be told."""
+    try:
+        import resource  # noqa: PLC0415  # POSIX only
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if soft == resource.RLIM_INFINITY:
+            return None
+        open_now = len(os.listdir("/proc/self/fd"))  # the listing's own counted: one spare
+    except (ImportError, OSError):
+        return None
+    return int(soft) - open_now
 
 
 def is_loopback(host: str) -> bool:

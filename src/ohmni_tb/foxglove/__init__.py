@@ -2,7 +2,9 @@
 
 :class:`FoxgloveBridge` serves an open Robot's streams to the Foxglove app (WebSocket,
 ``ws://127.0.0.1:8765`` by default), with its parameters and services
-(:class:`RobotControl`); :class:`McapRecorder` writes them to an MCAP file, and
+(:class:`RobotControl`), which a client changes only after unlocking control with the
+token (:mod:`ohmni_tb.foxglove.access`; the Teleop panel's Twists through the daemon:
+:mod:`ohmni_tb.foxglove.teleop`); :class:`McapRecorder` writes them to an MCAP file, and
 :class:`McapReplay` serves such a file to the app as if live.
 Both publish the channels of :data:`CHANNELS` (:mod:`ohmni_tb.foxglove.channels`): the
 odometry as ``foxglove.FrameTransform`` and ``foxglove.PoseInFrame`` for the 3D panel,

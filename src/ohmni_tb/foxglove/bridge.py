@@ -13,6 +13,10 @@ reads the Robot's streams in its own tasks, through bounded subscriptions, and e
 a sample only for channels a client subscribed to: with nobody connected it costs the
 wake-ups alone. The SDK keeps a bounded queue per client (``message_backlog``) and drops
 that client's oldest messages when it reads too slowly; nothing waits for a client.
+
+Every client may watch. With a ``teleop`` or a writable ``control``, a client drives, sets
+parameters and calls services only after unlocking control for itself with the token
+(:mod:`ohmni_tb.foxglove.access`): the protocol has no authentication of its own.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import concurrent.futures
 import json
 import logging
 import math
+import threading
+import time
 from collections.abc import Callable, Coroutine
 from typing import Any, Final, TypeVar
 
@@ -42,8 +48,16 @@ from foxglove.websocket import (
 )
 
 from ohmni_tb._checks import integer
-from ohmni_tb.errors import OhmniError, TransportError
+from ohmni_tb.errors import ConfigError, OhmniError, TransportError
 from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
+from ohmni_tb.foxglove.access import (
+    LOCKED_MESSAGE,
+    LOCKED_STATUS_ID,
+    UNLOCK_SCHEMAS,
+    UNLOCK_SERVICE,
+    AccessStats,
+    ControlGate,
+)
 from ohmni_tb.foxglove.control import SERVICE_SCHEMAS, RobotControl
 
 __all__ = [
@@ -88,20 +102,25 @@ def parse_twist(data: bytes) -> tuple[float, float]:
 
 class _Listener(ServerListener):
     """What Foxglove clients send: Twists on :data:`TELEOP_TOPICS` (with a teleop),
-    parameter reads and writes (with a control). The SDK calls this from its own threads:
-    a Twist is handed to the event loop; a parameter request waits for the loop's answer
-    (at most :data:`_CALL_TIMEOUT_S`)."""
+    parameter reads and writes (with a control), each change only from a client the gate
+    unlocked. The SDK calls this from its own threads: a Twist is handed to the event
+    loop; a parameter request waits for the loop's answer (at most
+    :data:`_CALL_TIMEOUT_S`)."""
 
     def __init__(
         self,
         loop: asyncio.AbstractEventLoop,
         teleop: Teleop | None,
         control: RobotControl,
+        gate: ControlGate | None,
     ) -> None:
         self._loop = loop
         self._teleop = teleop
         self._control = control
+        self._gate = gate
         self._channels: set[tuple[int, int]] = set()
+        self._values: tuple[float, dict[str, float]] | None = None
+        self._values_lock = threading.Lock()
         self.server: WebSocketServer | None = None
 
     def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
@@ -117,6 +136,11 @@ class _Listener(ServerListener):
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
         if self._teleop is None or (client.id, client_channel_id) not in self._channels:
             return
+        gate = self._gate
+        if gate is not None and not gate.allows(client.id):
+            if gate.ignore_twist(client.id):  # counted; told once
+                self._status(LOCKED_MESSAGE, status_id=LOCKED_STATUS_ID)
+            return
         try:
             linear, angular = parse_twist(data)
         except ValueError as exc:
@@ -128,7 +152,7 @@ class _Listener(ServerListener):
         self, client: Client, param_names: list[str], request_id: str | None = None
     ) -> list[Parameter]:
         try:
-            values = _on_loop(self._loop, self._control.parameters())
+            values = self._parameters(fresh=False)
         except Exception as exc:  # told to the client, never raised into the SDK
             self._status(f"parameters unavailable: {exc}")
             return []
@@ -143,27 +167,51 @@ class _Listener(ServerListener):
         self, client: Client, parameters: list[Parameter], request_id: str | None = None
     ) -> list[Parameter]:
         values = {parameter.name: parameter.get_value() for parameter in parameters}
+        gate = self._gate
+        tried = False
+        if gate is not None and self._control.writable and not gate.allows(client.id):
+            self._status(str(gate.refuse_change("parameters not set")), StatusLevel.Error)
+        else:
+            try:
+                tried = True
+                _on_loop(self._loop, self._control.set_parameters(values))
+            except Exception as exc:  # told to the client, never raised into the SDK
+                self._status(f"parameters not set: {exc}", StatusLevel.Error)
+        # The values now, set or not: the app shows what the robot runs with (read anew
+        # only after a change was tried: a locked client asking in a loop costs nothing).
+        names = {parameter.name for parameter in parameters}
         try:
-            _on_loop(self._loop, self._control.set_parameters(values))
+            now = self._parameters(fresh=tried)
         except Exception as exc:  # told to the client, never raised into the SDK
-            self._status(f"parameters not set: {exc}", StatusLevel.Error)
-        # The values now, set or not: the app shows what the robot runs with.
-        return self.on_get_parameters(client, [parameter.name for parameter in parameters])
+            self._status(f"parameters unavailable: {exc}")
+            return []
+        return [
+            Parameter(name, value=value, type=ParameterType.Float64)
+            for name, value in now.items()
+            if name in names
+        ]
+
+    def _parameters(self, *, fresh: bool) -> dict[str, float]:
+        """The values, read on the event loop, or those read less than
+        :data:`_PARAMETERS_FRESH_S` ago (unless ``fresh``): a client asking in a loop
+        costs the robot, or the daemon's connection, a few reads a second."""
+        with self._values_lock:
+            kept = self._values
+        if not fresh and kept is not None and time.monotonic() - kept[0] < _PARAMETERS_FRESH_S:
+            return kept[1]
+        values = _on_loop(self._loop, self._control.parameters())
+        with self._values_lock:
+            self._values = (time.monotonic(), values)
+        return values
 
     def service(self, name: str) -> Service:
         """The SDK's service ``name``, answered by the control on the event loop."""
         request, response = SERVICE_SCHEMAS[name]
 
-        def schema(part: str, body: dict[str, object]) -> MessageSchema:
-            return MessageSchema(
-                encoding="json",
-                schema=foxglove.Schema(
-                    name=f"{name}/{part}", encoding="jsonschema", data=json.dumps(body).encode()
-                ),
-            )
-
         def handle(call: ServiceRequest) -> bytes:
             try:
+                if self._gate is not None and not self._gate.allows(call.client_id):
+                    raise self._gate.refuse_change(name)
                 return _on_loop(self._loop, self._control.call(name, call.payload))
             except OhmniError as exc:
                 _log.warning("foxglove service %s refused: %s", name, exc)
@@ -171,23 +219,66 @@ class _Listener(ServerListener):
             except TimeoutError as exc:
                 raise TimeoutError(f"{name}: the robot did not answer in time") from exc
 
-        return Service(
-            name,
-            schema=ServiceSchema(
-                name, request=schema("Request", request), response=schema("Response", response)
-            ),
-            handler=handle,
-        )
+        return _service(name, request, response, handle)
 
-    def _status(self, message: str, level: StatusLevel = StatusLevel.Warning) -> None:
+    def unlock_service(self, gate: ControlGate) -> Service:
+        """:data:`~ohmni_tb.foxglove.access.UNLOCK_SERVICE`, answered in the SDK's thread
+        (it needs nothing of the loop)."""
+
+        def handle(call: ServiceRequest) -> bytes:
+            try:
+                answer = gate.unlock(call.client_id, call.payload)
+            except OhmniError as exc:
+                _log.warning("foxglove client %d: %s", call.client_id, exc)
+                raise  # the SDK answers the client with the message
+            _log.info("foxglove client %d unlocked control", call.client_id)
+            return answer
+
+        return _service(UNLOCK_SERVICE, *UNLOCK_SCHEMAS, handle)
+
+    def _status(
+        self,
+        message: str,
+        level: StatusLevel = StatusLevel.Warning,
+        *,
+        status_id: str | None = None,
+    ) -> None:
         _log.warning("foxglove: %s", message)
         if self.server is not None:
-            self.server.publish_status(message, level)
+            self.server.publish_status(message, level, status_id)
+
+
+def _service(
+    name: str,
+    request: dict[str, Any],
+    response: dict[str, Any],
+    handle: Callable[[ServiceRequest], bytes],
+) -> Service:
+    """An SDK service with JSON request and response schemas."""
+
+    def schema(part: str, body: dict[str, Any]) -> MessageSchema:
+        return MessageSchema(
+            encoding="json",
+            schema=foxglove.Schema(
+                name=f"{name}/{part}", encoding="jsonschema", data=json.dumps(body).encode()
+            ),
+        )
+
+    return Service(
+        name,
+        schema=ServiceSchema(
+            name, request=schema("Request", request), response=schema("Response", response)
+        ),
+        handler=handle,
+    )
 
 
 #: How long an SDK thread waits for the event loop to answer a parameter request or a
 #: service call.
 _CALL_TIMEOUT_S: Final = 5.0
+#: Parameter values this recent answer a read: every read asks the Robot (through the
+#: daemon, three messages), and any client, locked or not, may read.
+_PARAMETERS_FRESH_S: Final = 0.2
 
 
 def _on_loop(loop: asyncio.AbstractEventLoop, coro: Coroutine[Any, Any, _T]) -> _T:
@@ -254,19 +345,27 @@ class FoxgloveBridge(_Served):
         name: The server's name, shown by the app.
         message_backlog: Messages queued per client before its oldest are dropped.
         queue: Samples each stream's subscription holds before its oldest are dropped.
-        teleop: Take ``geometry_msgs/Twist`` (JSON) that Foxglove clients publish on
-            :data:`TELEOP_TOPICS` (the Teleop panel) and call this with ``linear.x`` and
-            ``angular.z`` on the event loop; ``None`` (default): read-only, clients may not
-            publish. It is the caller's to decide what a Twist may move (``ohmni serve
-            --foxglove-control`` goes through the daemon's control lease).
+        teleop: Take ``geometry_msgs/Twist`` (JSON) that unlocked Foxglove clients
+            publish on :data:`TELEOP_TOPICS` (the Teleop panel) and call this with
+            ``linear.x`` and ``angular.z`` on the event loop; ``None`` (default):
+            read-only, clients may not publish. It is the caller's to decide what a Twist
+            may move and how often (``ohmni serve --foxglove-control`` coalesces them and
+            goes through the daemon's control lease:
+            :class:`~ohmni_tb.foxglove.teleop.FoxgloveTeleop`).
         control: The parameters and services (:mod:`ohmni_tb.foxglove.control`): a
-            writable :class:`~ohmni_tb.foxglove.control.RobotControl` lets clients set
-            parameters and call the services; ``None`` (default): the parameters can be
-            read, not set, and no service is offered.
+            writable :class:`~ohmni_tb.foxglove.control.RobotControl` lets unlocked
+            clients set parameters and call the services; ``None`` (default): the
+            parameters can be read, not set, and no service is offered.
+        token: Needed with a ``teleop`` or a writable ``control``: a client unlocks
+            control for itself by calling ``/tb_control/unlock`` with it
+            (:mod:`ohmni_tb.foxglove.access`); until then its Twists are ignored
+            (counted, and told once) and its changes refused.
 
     Raises:
         OutOfRangeError: ``port`` not 0..65535, or ``message_backlog`` / ``queue`` not
             1..100000.
+        ConfigError: Control offered without a token, or a token shorter than 16
+            characters.
     """
 
     def __init__(
@@ -280,9 +379,19 @@ class FoxgloveBridge(_Served):
         queue: int = DEFAULT_QUEUE,
         teleop: Teleop | None = None,
         control: RobotControl | None = None,
+        token: str | None = None,
     ) -> None:
         self._robot = robot
         self._control = control if control is not None else RobotControl(robot)
+        self._gate: ControlGate | None = None
+        if teleop is not None or self._control.writable:
+            if token is None:
+                raise ConfigError(
+                    "a Foxglove server that takes control needs a token: "
+                    "FoxgloveBridge(..., token=...); a client unlocks control with it "
+                    f"({UNLOCK_SERVICE}), since the protocol has no authentication"
+                )
+            self._gate = ControlGate(token)
         self._host = host
         self._port = integer("port", port, 0, 65535)
         self._name = name
@@ -313,6 +422,11 @@ class FoxgloveBridge(_Served):
         """Every channel's figures, by topic (messages go out only while a client listens)."""
         return {} if self._pump is None else self._pump.stats()
 
+    def access_stats(self) -> AccessStats | None:
+        """Clients unlocked, and what locked clients sent that was refused (``None``: the
+        server takes no control)."""
+        return None if self._gate is None else self._gate.stats()
+
     async def start(self) -> None:
         """Make the channels, listen, and start reading the streams.
 
@@ -321,11 +435,13 @@ class FoxgloveBridge(_Served):
         """
         # The channels exist before the server, so a client sees them all at once.
         self._pump = Pump(self._robot, self._context, queue=self._queue)
-        listener = _Listener(asyncio.get_running_loop(), self._teleop, self._control)
+        listener = _Listener(asyncio.get_running_loop(), self._teleop, self._control, self._gate)
         capabilities = [Capability.Parameters]
         if self._teleop is not None:
             capabilities.append(Capability.ClientPublish)
         services = [listener.service(name) for name in self._control.services]
+        if self._gate is not None:
+            services.insert(0, listener.unlock_service(self._gate))
         if services:
             capabilities.append(Capability.Services)
         try:

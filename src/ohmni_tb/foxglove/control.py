@@ -5,7 +5,7 @@ Parameters (the app's Parameters panel), named after tb_control's node:
 - ``/tb_control/pid_kp`` … ``pid_ff_offset``: the wheel PIDs' gains (:class:`PidGains`),
   changed bumplessly for both wheels;
 - ``/tb_control/rate/<stream>``: a polled stream's rate in Hz (``wheel_encoder`` is the
-  control tick, ``servo_neck`` …), 0.1..100;
+  control tick, ``servo_neck`` …);
 - ``/tb_control/max_linear_mps``, ``max_angular_radps``, ``max_wheel_mps``,
   ``watchdog_s``: the limits, read only (they are the Robot's configuration: a client on
   an unauthenticated port does not raise them).
@@ -18,9 +18,12 @@ Services (JSON requests and responses, schemas advertised):
   (HerkuleX neck; a worm-gear neck takes ``raw`` alone) → ``{"moved": true}``.
 
 Reading is always allowed; changing only through a :class:`RobotControl` made with
-``writable=True`` (``FoxgloveBridge(..., control=...)``, ``ohmni serve
---foxglove-control``). A refused change names the value and the allowed range, as every
-command does, and reaches the client; nothing reaches the wire.
+``writable=True`` (``FoxgloveBridge(..., control=..., token=...)``, ``ohmni serve
+--foxglove-control``), by a client that unlocked control. The ranges are the Robot's own
+(``Robot.set_pid``, ``Robot.set_rate``): this module keeps none. A refused change names
+the value and the allowed range, as every command does, and reaches the client at once
+(through the daemon too: each change is confirmed before the answer); nothing reaches
+the wire.
 """
 
 from __future__ import annotations
@@ -144,7 +147,8 @@ class RobotControl:
         Raises:
             StateError: Not writable, or a read-only limit.
             InvalidArgumentError: An unknown name, or a value that is not a finite number.
-            OutOfRangeError: A value outside its range (the Robot's own check).
+            OutOfRangeError: A value outside its range (the Robot's own check, through the
+                daemon too); the changes before it in ``values`` stay made.
         """
         self._check_writable()
         gains: dict[str, float] = {}
@@ -163,8 +167,10 @@ class RobotControl:
         if gains:
             current: PidGains = await _value(self._robot.get_pid())
             self._robot.set_pid(dataclasses.replace(current, **gains))
+            await self._confirm()
         for stream, hz in rates.items():
             self._robot.set_rate(stream, hz)
+            await self._confirm()
 
     async def call(self, service: str, request: bytes) -> bytes:
         """Answer a service call (JSON in, JSON out).
@@ -191,6 +197,7 @@ class RobotControl:
             pose = {key: number(key, args.get(key, 0.0)) for key in allowed}
             await self._change()
             self._robot.reset_odometry(**pose)
+            await self._confirm()
             return json.dumps(pose).encode()
         raw, rad = args.get("raw"), args.get("rad")
         if (raw is None) == (rad is None):
@@ -208,6 +215,14 @@ class RobotControl:
         """Just before a change reaches the Robot (the daemon's lease is taken here)."""
         if self._before_change is not None:
             await self._before_change()
+
+    async def _confirm(self) -> None:
+        """Wait for the daemon's answer to the commands sent (a RobotClient's are not
+        awaited): its refusal is this change's, told now, and not left to fail the next
+        command (a Teleop Twist). A Robot refuses as it is called."""
+        confirm = getattr(self._robot, "confirm", None)
+        if confirm is not None:
+            await confirm()
 
     def _check_writable(self) -> None:
         if not self.writable:

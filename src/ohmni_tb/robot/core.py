@@ -34,10 +34,10 @@ from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 
-from ohmni_tb._checks import check_seconds, host_port, number
+from ohmni_tb._checks import bounded, check_seconds, host_port, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
-from ohmni_tb.control.defaults import CONTROL_HZ_RANGE, WHEEL_GAIN_RANGES
+from ohmni_tb.control.defaults import CONTROL_HZ_RANGE, MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
 from ohmni_tb.control.kinematics import (
     LimitedTwist,
@@ -1889,11 +1889,19 @@ class Robot:
         """Set the odometry pose (tb_control's ``reset_odom``).
 
         Raises:
-            InvalidArgumentError: A value is not finite.
+            InvalidArgumentError: A value is not a finite number.
+            OutOfRangeError: A value is beyond ±1e6 (m or rad: :data:`MAX_POSE_M`).
             RobotClosedError: The Robot is closed.
         """
         self._check_open()
-        self._odometry.reset(number("x_m", x_m), number("y_m", y_m), number("yaw_rad", yaw_rad))
+        pose = []
+        for name, value, unit in (
+            ("x_m", x_m, "m"),
+            ("y_m", y_m, "m"),
+            ("yaw_rad", yaw_rad, "rad"),
+        ):
+            pose.append(bounded(name, number(name, value), -MAX_POSE_M, MAX_POSE_M, unit))
+        self._odometry.reset(*pose)
 
     # -- devices (public) --------------------------------------------------------------------
 
