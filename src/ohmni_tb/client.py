@@ -75,6 +75,7 @@ from ohmni_tb.errors import (
     OhmniError,
     OutOfRangeError,
     ProtocolError,
+    RobotClosedError,
     StateError,
     TransportClosedError,
     TransportError,
@@ -564,7 +565,8 @@ class RobotClient:
 
     def _command(self, method: str, args: dict[str, Any]) -> None:
         """Send a command without waiting for its answer, after the checks that can be
-        made here: the connection, an earlier refusal, the lease."""
+        made here: the client open, the connection, an earlier refusal, the lease."""
+        self._check_open()
         if self._lost is not None:
             raise self._lost
         self._raise_refusal()
@@ -627,7 +629,12 @@ class RobotClient:
     async def _call(self, method: str, args: dict[str, Any] | None = None) -> Any:
         return await self._request(lambda id: Call(id=id, method=method, args=args or {}), method)
 
+    def _check_open(self) -> None:
+        if self._closing:
+            raise RobotClosedError("the client is closed: connect again")
+
     async def _request(self, make: Any, what: str) -> Any:
+        self._check_open()
         if self._lost is not None:
             raise self._lost
         id = next(self._ids)

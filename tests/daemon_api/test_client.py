@@ -7,6 +7,7 @@ import contextlib
 import dataclasses
 import signal
 import socket
+from collections.abc import Callable
 
 import pytest
 
@@ -181,3 +182,22 @@ def test_clients_that_reconnect_ride_out_a_daemon_restart() -> None:
         asyncio.run(use())
     finally:
         stop_serving(first)
+
+
+async def test_a_closed_client_refuses_every_command_with_one_error(server: RobotServer) -> None:
+    from ohmni_tb.errors import RobotClosedError
+
+    async with RobotClient.connect(server.url) as client:
+        await client.acquire()
+    commands: list[Callable[[], object]] = [
+        lambda: client.drive(0.1, 0.0),
+        client.stop,
+        lambda: client.set_rate("tbcore_status", 5.0),
+    ]
+    for command in commands:
+        with pytest.raises(RobotClosedError, match="the client is closed"):
+            command()
+    with pytest.raises(RobotClosedError, match="the client is closed"):
+        await client.stats()
+    with pytest.raises(RobotClosedError, match="the client is closed"):
+        await client.estop()
