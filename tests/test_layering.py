@@ -133,3 +133,60 @@ def test_source_has_no_forbidden_import(module: str) -> None:
 )
 def test_the_scan_sees_a_forbidden_import(line: str) -> None:
     assert forbidden_imports(f"def f() -> None:\n    {line}\n") != []
+
+
+# -- no import circles ---------------------------------------------------------------------
+
+
+def _module_names() -> dict[str, Path]:
+    """Every module of the package by dotted name (packages by their ``__init__``)."""
+    found = {}
+    for path in SRC.rglob("*.py"):
+        parts = path.relative_to(SRC.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        found[name] = path
+    return found
+
+
+def _imports(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The project's modules ``name`` imports anywhere in its source: at the top, in a
+    function, or for type checking only — each is an edge of the module graph."""
+    edges: set[str] = set()
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            edges.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                edges.add(sub if sub in modules else base)
+    return {edge for edge in edges if edge in modules and edge != name}
+
+
+def test_the_modules_import_each_other_without_circles() -> None:
+    modules = _module_names()
+    graph = {name: _imports(name, path, modules) for name, path in modules.items()}
+    # Depth-first search for a back edge; the circle it closes is the message.
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(name: str) -> list[str] | None:
+        state[name] = 1
+        path.append(name)
+        for target in sorted(graph[name]):
+            if state.get(target) == 1:
+                return [*path[path.index(target) :], target]
+            if target not in state and (circle := visit(target)) is not None:
+                return circle
+        path.pop()
+        state[name] = 2
+        return None
+
+    for name in sorted(graph):
+        if name not in state:
+            circle = visit(name)
+            assert circle is None, "an import circle: " + " -> ".join(circle)

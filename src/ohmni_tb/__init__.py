@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from ohmni_tb._version import __version__
 from ohmni_tb.errors import OhmniError
 
 if TYPE_CHECKING:
@@ -18,8 +19,6 @@ if TYPE_CHECKING:
     from ohmni_tb.robot import Robot
 
 __all__ = ["OhmniError", "Robot", "RobotConfig", "__version__", "run"]
-
-__version__ = "0.1.0"
 
 _LAZY = {"Robot": "ohmni_tb.robot", "RobotConfig": "ohmni_tb.config", "run": "ohmni_tb.eventloop"}
 

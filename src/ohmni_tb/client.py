@@ -98,7 +98,7 @@ if TYPE_CHECKING:
     from websockets.asyncio.client import ClientConnection
 
     from ohmni_tb.config import RobotConfig
-    from ohmni_tb.robot.core import RobotStats
+    from ohmni_tb.robot.stats import RobotStats
 
 __all__ = [
     "DEFAULT_TIMEOUT_S",

@@ -31,10 +31,7 @@ transport boundary with ``raise ... from exc``, so the original stays in ``__cau
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from ohmni_tb.safety import StopReport
+from dataclasses import dataclass
 
 __all__ = [
     "BusClosedError",
@@ -71,6 +68,31 @@ def _brief(value: object) -> str:
     if len(text) > _MAX_REPR:
         return f"{text[: _MAX_REPR // 2]}…({len(text)} chars)"
     return text
+
+
+# Defined here, beside the error that carries it, so that this module imports nothing of
+# the project; ohmni_tb.safety, which makes it, exports it.
+@dataclass(frozen=True, slots=True)
+class StopReport:
+    """What :func:`stop_wheels` did.
+
+    Attributes:
+        confirmed: Whether the counts showed the wheels standing still (always ``True``
+            in a returned report; ``False`` in :attr:`StopNotConfirmedError.report`).
+        stops_sent: Wheel stops handed to the port.
+        reads: Count reads that were answered (each board's counted).
+        missed_reads: Count reads that got no reply.
+        elapsed_s: From the first stop to the confirmation (or to giving up).
+        counts: The last count read from each board, left and right as the boards hold
+            them (the right one mirrored), or ``None`` until both were read.
+    """
+
+    confirmed: bool
+    stops_sent: int
+    reads: int
+    missed_reads: int
+    elapsed_s: float
+    counts: tuple[int, int] | None
 
 
 class OhmniError(Exception):

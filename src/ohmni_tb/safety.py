@@ -33,7 +33,6 @@ windows must hold at once.
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
 
 from ohmni_tb._checks import check_seconds, integer
 from ohmni_tb.bus import BreakerState, Bus
@@ -44,6 +43,7 @@ from ohmni_tb.errors import (
     OhmniError,
     ProtocolError,
     StopNotConfirmedError,
+    StopReport,
     TransportError,
 )
 from ohmni_tb.protocol import Packet, ReadReply
@@ -84,29 +84,6 @@ _REPEATER_GRACE_S = 0.5
 #: Shortest gap between two readings of the counts.
 _READ_PERIOD_S = 0.01
 _SIDES = (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)
-
-
-@dataclass(frozen=True, slots=True)
-class StopReport:
-    """What :func:`stop_wheels` did.
-
-    Attributes:
-        confirmed: Whether the counts showed the wheels standing still (always ``True``
-            in a returned report; ``False`` in :attr:`StopNotConfirmedError.report`).
-        stops_sent: Wheel stops handed to the port.
-        reads: Count reads that were answered (each board's counted).
-        missed_reads: Count reads that got no reply.
-        elapsed_s: From the first stop to the confirmation (or to giving up).
-        counts: The last count read from each board, left and right as the boards hold
-            them (the right one mirrored), or ``None`` until both were read.
-    """
-
-    confirmed: bool
-    stops_sent: int
-    reads: int
-    missed_reads: int
-    elapsed_s: float
-    counts: tuple[int, int] | None
 
 
 class _Progress:

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Final
 import typer
 from typer.core import TyperCommand, TyperGroup
 
-from ohmni_tb import __version__
+from ohmni_tb._version import __version__
 
 __all__ = ["COMMANDS", "app", "main"]
 

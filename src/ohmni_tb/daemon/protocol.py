@@ -33,7 +33,6 @@ from typing import Annotated, Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
-from ohmni_tb.robot.core import RobotStats
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
     PidDebugSample,
@@ -45,6 +44,7 @@ from ohmni_tb.robot.samples import (
     WheelOdomSample,
     WormNeckSample,
 )
+from ohmni_tb.robot.stats import RobotStats
 
 __all__ = [
     "CLIENT_OPS",

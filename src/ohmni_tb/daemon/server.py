@@ -43,8 +43,8 @@ from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
-from ohmni_tb import __version__
 from ohmni_tb._checks import integer
+from ohmni_tb._version import __version__
 from ohmni_tb.control.defaults import MAX_POSE_M
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.daemon.auth import check_origin, check_token, presented_token

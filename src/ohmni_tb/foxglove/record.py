@@ -45,8 +45,8 @@ from typing import Final
 import foxglove
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
 
-from ohmni_tb import __version__
 from ohmni_tb._checks import bounded, integer, positive
+from ohmni_tb._version import __version__
 from ohmni_tb.bus import Bus
 from ohmni_tb.errors import InvalidArgumentError, OhmniError
 from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
