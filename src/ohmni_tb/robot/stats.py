@@ -24,7 +24,8 @@ class BusFigures:
         transactions_per_s: Replies per second.
         timeouts: Requests that got no reply.
         rejected_samples: Wheel counts refused as implausible.
-        clamped_commands: Drive commands scaled into the limits.
+        clamped_commands: Drive commands scaled into the limits, and wheel PWM the speed
+            governor capped or cut (a wheel over ``max_wheel_mps``).
         deadline_misses: Slots dropped because they could not start in time.
         link_losses: Times the link was lost.
         reconnects: Times it was reopened.
