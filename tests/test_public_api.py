@@ -110,7 +110,7 @@ PUBLIC = {
     ],
     "ohmni_tb.daemon.server": [
          "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_MAX_CLIENTS", "DEFAULT_PORT",
-         "HARD_MAX_MESSAGE_BYTES", "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES", "MAX_POSE_M",
+         "HARD_MAX_MESSAGE_BYTES", "MAX_MESSAGES_PER_S", "MAX_MESSAGE_BYTES",
          "READER_BURST", "READER_MESSAGES_PER_S", "REFUSAL_LOG_S", "SAMPLE_FLUSH_S",
          "STATS_INTERVAL_S", "ClientFigures", "RobotServer", "check_listen", "is_loopback",
     ],

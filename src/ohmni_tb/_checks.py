@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+from urllib.parse import urlsplit
 
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, _brief
 
@@ -151,3 +152,17 @@ def host_port(text: str, *, default_host: str | None = None) -> tuple[str, int] 
     if not port.isdigit() or not 0 <= int(port) <= 65535:
         return None
     return host, int(port)
+
+
+def ws_address(url: str) -> tuple[str, int] | None:
+    """A daemon's ``ws://HOST[:PORT]`` or ``wss://HOST[:PORT]`` URL as (host, port), the
+    port 80 or 443 when none is given; ``None`` when it is not one (another scheme, no
+    host, a port outside 1..65535, an unclosed ``[`` around an IPv6 host)."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port  # a number in 0..65535, or ValueError
+    except ValueError:
+        return None
+    if parts.scheme not in ("ws", "wss") or not parts.hostname or port == 0:
+        return None
+    return parts.hostname, port or (443 if parts.scheme == "wss" else 80)

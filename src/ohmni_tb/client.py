@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Final, Generic, Literal, TypeVar, overloa
 
 from pydantic import ValidationError
 
-from ohmni_tb._checks import number
+from ohmni_tb._checks import number, ws_address
 from ohmni_tb.control.kinematics import (
     DiffDrive,
     LimitedTwist,
@@ -810,16 +810,13 @@ class RobotClient:
 
 
 def _check_url(url: str) -> None:
-    """Raises ConfigError: ``url`` is not a daemon's URL (what websockets would refuse)."""
-    from websockets.exceptions import InvalidURI  # noqa: PLC0415  # loaded when used
-    from websockets.uri import parse_uri  # noqa: PLC0415
-
-    try:
-        parse_uri(url)
-    except (InvalidURI, ValueError) as exc:  # ValueError: urllib's, for "[" or the port
+    """Raises ConfigError: ``url`` is not a daemon's URL (as ``$OHMNI_DAEMON_URL`` is
+    checked: :func:`ohmni_tb._checks.ws_address`)."""
+    if ws_address(url) is None:
         raise ConfigError(
-            f"{url!r} is not a daemon URL: expected ws://HOST:PORT or wss://HOST:PORT ({exc})"
-        ) from exc
+            f"{url!r} is not a daemon URL: expected ws://HOST:PORT or wss://HOST:PORT "
+            "(port 1..65535)"
+        )
 
 
 async def _open(

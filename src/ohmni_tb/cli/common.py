@@ -14,13 +14,13 @@ import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn, TypeVar, cast
-from urllib.parse import urlsplit
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
 from ohmni_tb import eventloop
+from ohmni_tb._checks import ws_address
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 
 if TYPE_CHECKING:
@@ -224,14 +224,10 @@ def daemon_for(port_option: str | None, direct: bool) -> str | None:
 def _daemon_address(url: str) -> tuple[str, int]:
     """The host and port of ``$OHMNI_DAEMON_URL``; a malformed one ends the command
     (:func:`_bad_daemon_url`)."""
-    try:
-        parts = urlsplit(url)
-        port = parts.port  # a number in 0..65535, or ValueError
-    except ValueError:  # also an unclosed "[" around an IPv6 address
+    address = ws_address(url)
+    if address is None:
         _bad_daemon_url(url)
-    if parts.scheme not in ("ws", "wss") or not parts.hostname or port == 0:
-        _bad_daemon_url(url)
-    return parts.hostname, port or (443 if parts.scheme == "wss" else 80)
+    return address
 
 
 def _bad_daemon_url(url: str) -> NoReturn:

@@ -45,9 +45,8 @@ from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb._checks import integer
 from ohmni_tb._version import __version__
-from ohmni_tb.control.defaults import MAX_POSE_M
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.daemon.auth import check_origin, check_token, presented_token
+from ohmni_tb.daemon.auth import MIN_TOKEN_CHARS, check_origin, check_token, presented_token
 from ohmni_tb.daemon.protocol import (
     MAX_QUEUE,
     METHOD_SPECS,
@@ -65,7 +64,6 @@ from ohmni_tb.daemon.protocol import (
     Motion,
     MoveArgs,
     PidArgs,
-    PoseArgs,
     ReleasePortArgs,
     RequestError,
     RestArgs,
@@ -96,7 +94,6 @@ __all__ = [
     "HARD_MAX_MESSAGE_BYTES",
     "MAX_MESSAGES_PER_S",
     "MAX_MESSAGE_BYTES",
-    "MAX_POSE_M",
     "READER_BURST",
     "READER_MESSAGES_PER_S",
     "REFUSAL_LOG_S",
@@ -113,7 +110,6 @@ _log = logging.getLogger("ohmni_tb.daemon")
 #: Loopback: only this machine's programs (any other address needs a token).
 DEFAULT_HOST: Final = "127.0.0.1"
 #: The shortest token a server accepts.
-_MIN_TOKEN_CHARS = 16
 #: Foxglove's bridge takes 8765; the daemon the next one, so both can run.
 DEFAULT_PORT: Final = 8766
 #: A client message is a few hundred bytes; anything longer is refused with an error.
@@ -687,10 +683,6 @@ class RobotServer:
         wheels = self._robot.drive_wheels(args.left_mps, args.right_mps)
         return {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps}
 
-    def _reset_odometry(self, client: _Client, args: PoseArgs) -> Any:
-        self._robot.reset_odometry(args.x_m, args.y_m, args.yaw_rad)
-        return None
-
     def _set_pid(self, client: _Client, args: PidArgs) -> Any:
         self._robot.set_pid(PidGains(**args.model_dump()))
         return None
@@ -719,7 +711,9 @@ class RobotServer:
             args.enabled
         ),
         "set_pid": _set_pid,
-        "reset_odometry": _reset_odometry,
+        "reset_odometry": lambda self, client, args: self._robot.reset_odometry(
+            args.x_m, args.y_m, args.yaw_rad
+        ),
         "enable_stream": lambda self, client, args: self._robot.enable_stream(
             args.topic, args.enabled
         ),
@@ -1241,10 +1235,10 @@ def check_listen(host: str, token: str | None) -> None:
         ConfigError: ``host`` is not loopback and ``token`` is ``None``, or the token is
             shorter than 16 characters.
     """
-    if token is not None and len(token) < _MIN_TOKEN_CHARS:
+    if token is not None and len(token) < MIN_TOKEN_CHARS:
         raise ConfigError(
             f"a daemon token of {len(token)} characters is too easy to guess: at least "
-            f"{_MIN_TOKEN_CHARS} (load_or_create_token() makes one)"
+            f"{MIN_TOKEN_CHARS} (load_or_create_token() makes one)"
         )
     if token is None and not is_loopback(host):
         raise ConfigError(
