@@ -150,7 +150,8 @@ async def test_nothing_is_encoded_for_channels_nobody_listens_to(
     assert got
     assert {m.topic for m in got} == {"/tb_control/tbcore_status"}
     counts = {topic: stats.messages for topic, stats in bridge.stats().items()}
-    assert counts.pop("/tb_control/tbcore_status") == len(got)
+    # The bridge may have encoded one more after the client stopped listening.
+    assert counts.pop("/tb_control/tbcore_status") in (len(got), len(got) + 1)
     assert set(counts.values()) == {0}
     assert all(stats.dropped == 0 for stats in bridge.stats().values())
 
@@ -198,17 +199,25 @@ async def test_a_client_that_never_reads_costs_the_robot_nothing(
 ) -> None:
     # A client that stops reading cannot finish a close handshake either: a short wait.
     client = await FoxgloveClient.connect(bridge.url, close_timeout_s=0.1)
-    await client.subscribe(*client.channels)  # everything, then never reads a frame
-    before = robot.stats().streams["wheel_odom"].samples
-    await asyncio.sleep(2.0)
-    published = robot.stats().streams["wheel_odom"].samples - before
-    stats = bridge.stats()
-    # The bridge handed every sample to the SDK (which drops that client's oldest when
-    # its queue is full): it lost none, and the Robot kept its rate.
-    assert published >= 90
-    assert all(s.dropped == 0 for s in stats.values())
-    assert stats["/tf"].messages >= published
-    await client.close()
+    try:
+        await client.subscribe(*client.channels)  # everything, then never reads a frame
+        before = robot.stats().streams["wheel_odom"].samples
+        await asyncio.sleep(2.0)
+        published = robot.stats().streams["wheel_odom"].samples - before
+        # The bridge reads the Robot's streams in a task of its own: on a busy machine the
+        # last sample or two may still wait in its queue. It catches up; it loses none.
+        for _ in range(200):
+            if bridge.stats()["/tf"].messages >= published:
+                break
+            await asyncio.sleep(0.01)
+        assert bridge.stats()["/tf"].messages >= published
+        stats = bridge.stats()
+        # The bridge handed every sample to the SDK (which drops that client's oldest when
+        # its queue is full): it lost none, and the Robot kept its rate.
+        assert published >= 90
+        assert all(s.dropped == 0 for s in stats.values())
+    finally:
+        await client.close()
 
 
 async def test_robot_open_serves_the_foxglove_app_while_open() -> None:
