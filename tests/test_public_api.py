@@ -87,10 +87,11 @@ PUBLIC = {
          "user_config_dir",
     ],
     "ohmni_tb.robot": [
-        "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAM_NAMES", "BusFigures", "Link",
-        "PidDebugSample", "Robot", "RobotStateSample", "RobotStats", "Sample", "ServoHandle",
-        "ServoSample", "StreamStats", "Subscription", "TbcoreStatusSample",
-        "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
+        "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAMS", "STREAM_NAMES", "BusFigures",
+        "Link", "PidDebugSample", "Robot", "RobotStateSample", "RobotStats", "Sample",
+        "ServoHandle", "ServoSample", "StreamSpec", "StreamStats", "Subscription",
+        "TbcoreStatusSample", "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle",
+        "WormNeckSample",
     ],
     "ohmni_tb.client": [
          "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "MAX_UNSENT", "ClientSubscription", "RemoteServo",
@@ -98,7 +99,7 @@ PUBLIC = {
     ],
     "ohmni_tb.daemon.protocol": [
          "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS", "METHOD_SPECS",
-         "PROTOCOL_VERSION", "SAMPLE_TYPES", "AcquireArgs", "BatchMessage", "Call",
+         "PROTOCOL_VERSION", "AcquireArgs", "BatchMessage", "Call",
          "ClientMessage", "DriveArgs", "DrivePwmArgs", "DriveWheelsArgs", "EnabledArgs",
          "ErrorCode", "ErrorMessage", "Hello", "LatestArgs", "LeaseMessage", "LightArgs",
          "Limits", "MethodSpec", "Motion", "MoveArgs", "NoArgs", "PidArgs", "PoseArgs",

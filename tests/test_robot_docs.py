@@ -6,6 +6,7 @@ import re
 from pathlib import Path
 
 from ohmni_tb import RobotConfig
+from ohmni_tb.robot import STREAMS
 
 PAGE = Path(__file__).resolve().parent.parent / "docs" / "robot.md"
 #: A row of the settings table: | `name` | default | meaning |
@@ -42,3 +43,26 @@ def test_the_row_pattern_reads_a_row() -> None:
     # The check must be able to see a row, or it would pass on an empty table.
     assert len(documented()) >= 40
     assert documented()["watchdog_s"] == "0.5"
+
+
+#: A row of the streams table: | `name`[, `name`] | rate | `Sample` | fields | tb_control |
+_STREAM_ROW = re.compile(
+    r"^\| (?P<names>`\w+`(?:, `\w+`)*) \| (?P<rate>[^|]*) \| `(?P<sample>\w+)` \| [^|]* \| "
+    r"(?P<topic>[^|]*) \|$",
+    re.M,
+)
+
+
+def test_the_streams_table_is_the_streams_declaration() -> None:
+    section = PAGE.read_text(encoding="utf-8").split("## Streams", 1)[1].split("\n## ", 1)[0]
+    rows = {}
+    for match in _STREAM_ROW.finditer(section):
+        for name in re.findall(r"`(\w+)`", match["names"]):
+            rows[name] = match
+    assert list(rows) == list(STREAMS), "docs/robot.md's streams table lists other streams"
+    for name, spec in STREAMS.items():
+        match = rows[name]
+        assert match["sample"] == spec.sample_type.__name__, name
+        if spec.tb_control:
+            assert f"`{spec.tb_control}`" in match["topic"], name
+        assert f"`{spec.rate_setting}`" in match["rate"], name

@@ -506,8 +506,8 @@ class RobotClient:
         self._command("enable_stream", {"topic": name, "enabled": enabled})
 
     def set_rate(self, name: str, hz: float) -> None:
-        """:meth:`Robot.set_rate`, for every client (needs the lease; the control tick's
-        10..100 Hz, a feedback stream's 0.1..100 Hz)."""
+        """:meth:`Robot.set_rate`, for every client (needs the lease; each stream's range is
+        its :attr:`~ohmni_tb.robot.StreamSpec.rate_range_hz`)."""
         _check_topic(name)
         self._command("set_rate", {"topic": name, "hz": number("hz", hz)})
 

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from ohmni_tb import Robot
-from ohmni_tb.daemon.protocol import SAMPLE_TYPES, sample_from_json, sample_json
+from ohmni_tb.daemon.protocol import sample_from_json, sample_json
 from ohmni_tb.foxglove.channels import (
     CHANNELS,
     WallClock,
@@ -20,6 +20,7 @@ from ohmni_tb.foxglove.channels import (
     encoder_for,
 )
 from ohmni_tb.robot import STREAM_NAMES, Link, RobotStateSample, WheelOdomSample
+from ohmni_tb.robot.samples import STREAMS
 from ohmni_tb.sim.clock import run_virtual
 
 from ._wire import Descriptors
@@ -76,7 +77,7 @@ def test_each_schema_is_what_the_channel_says(topic: str) -> None:
     assert "$defs" not in body
     assert body["type"] == "object"
     assert body["title"] == spec.schema_name
-    fields = SAMPLE_TYPES[spec.stream].__dataclass_fields__
+    fields = STREAMS[spec.stream].sample_type.__dataclass_fields__
     assert set(body["properties"]) == set(fields)
 
 

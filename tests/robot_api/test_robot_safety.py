@@ -909,7 +909,7 @@ def refused(id_: str, act: Act, error: type[Exception], *words: str, url: str = 
             lambda r: r.set_rate("servo_neck", 0),
             OutOfRangeError,
             "rate=0",
-            "0.1..100.0",
+            "0.1..50.0",
         ),
         refused(
             "subscribe-nope",

@@ -35,14 +35,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
-    PidDebugSample,
-    RobotStateSample,
+    STREAMS,
     Sample,
-    ServoSample,
-    TbcoreStatusSample,
-    WheelEncoderSample,
-    WheelOdomSample,
-    WormNeckSample,
 )
 from ohmni_tb.robot.stats import RobotStats
 
@@ -54,7 +48,6 @@ __all__ = [
     "METHODS",
     "METHOD_SPECS",
     "PROTOCOL_VERSION",
-    "SAMPLE_TYPES",
     "AcquireArgs",
     "BatchMessage",
     "Call",
@@ -105,18 +98,6 @@ __all__ = [
 PROTOCOL_VERSION: Final = 3
 #: What a client may ask (``op``).
 CLIENT_OPS: Final = ("subscribe", "unsubscribe", "call")
-#: Every stream's sample type, by stream name.
-SAMPLE_TYPES: Final[dict[str, type[Sample]]] = {
-    "wheel_encoder": WheelEncoderSample,
-    "wheel_odom": WheelOdomSample,
-    "tbcore_status": TbcoreStatusSample,
-    "servo_neck": ServoSample,
-    "servo_ext1": ServoSample,
-    "servo_ext2": ServoSample,
-    "new_neck": WormNeckSample,
-    "robot_state": RobotStateSample,
-    "pid_debug": PidDebugSample,
-}
 #: Longest string ``id`` a client may use.
 _MAX_ID_CHARS = 64
 #: Longest error message: it quotes what was wrong, shortened (a frame is up to 16 KiB).
@@ -249,8 +230,8 @@ class StreamArgs(_Request):
 
 
 class RateArgs(_Request):
-    """``set_rate``: a polled stream's rate: 10..100 Hz for ``wheel_encoder`` (the control
-    tick), 0.1..100 Hz for a feedback stream."""
+    """``set_rate``: a polled stream's rate, within its ``rate_range_hz`` (the streams table,
+    :data:`~ohmni_tb.robot.STREAMS`): 10..100 Hz for ``wheel_encoder`` (the control tick)."""
 
     topic: Topic
     hz: Number
@@ -500,7 +481,7 @@ _SERVER: TypeAdapter[
     Hello | SampleMessage | BatchMessage | Result | ErrorMessage | LeaseMessage
 ] = TypeAdapter(ServerMessage)
 _SAMPLES: dict[type[Any], TypeAdapter[Any]] = {
-    cls: TypeAdapter(cls) for cls in dict.fromkeys(SAMPLE_TYPES.values())
+    cls: TypeAdapter(cls) for cls in dict.fromkeys(spec.sample_type for spec in STREAMS.values())
 }
 _STATS: TypeAdapter[RobotStats] = TypeAdapter(RobotStats)
 
@@ -612,7 +593,7 @@ def sample_from_json(topic: str, data: Any) -> Sample:
         KeyError: No such topic.
         ValueError: The data does not fit the topic's sample (a ``ValidationError``).
     """
-    sample: Sample = _SAMPLES[SAMPLE_TYPES[topic]].validate_python(data)
+    sample: Sample = _SAMPLES[STREAMS[topic].sample_type].validate_python(data)
     return sample
 
 
@@ -635,7 +616,9 @@ def json_schema() -> dict[str, Any]:
         "protocol": PROTOCOL_VERSION,
         "client_to_server": _CLIENT.json_schema(),
         "server_to_client": _SERVER.json_schema(),
-        "samples": {topic: _SAMPLES[cls].json_schema() for topic, cls in SAMPLE_TYPES.items()},
+        "samples": {
+            topic: _SAMPLES[spec.sample_type].json_schema() for topic, spec in STREAMS.items()
+        },
         "methods": {
             name: {
                 "lease": spec.lease,

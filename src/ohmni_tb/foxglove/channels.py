@@ -38,8 +38,7 @@ from foxglove.messages import (
 )
 from pydantic import TypeAdapter
 
-from ohmni_tb.daemon.protocol import SAMPLE_TYPES
-from ohmni_tb.robot.samples import RobotStateSample, Sample, WheelOdomSample
+from ohmni_tb.robot.samples import STREAMS, RobotStateSample, Sample, WheelOdomSample
 
 __all__ = [
     "BASE_FRAME",
@@ -82,7 +81,7 @@ class ChannelSpec:
 
 
 def _json_channel(stream: str, topic: str | None = None, what: str = "") -> ChannelSpec:
-    cls = SAMPLE_TYPES[stream]
+    cls = STREAMS[stream].sample_type
     return ChannelSpec(
         topic or f"{_PREFIX}/{stream}",
         stream,
@@ -156,7 +155,7 @@ def channel_schema(spec: ChannelSpec) -> Schema:
 def json_schema_of(stream: str, title: str) -> str:
     """The JSON Schema of a stream's sample, its ``$ref`` s resolved in place (the
     Foxglove app reads plain schemas), with ``title`` as its name."""
-    schema = TypeAdapter(SAMPLE_TYPES[stream]).json_schema()
+    schema = TypeAdapter(STREAMS[stream].sample_type).json_schema()
     definitions = schema.pop("$defs", {})
     resolved = _resolve(schema, definitions)
     resolved["title"] = title
@@ -215,7 +214,7 @@ def _resolve(node: Any, definitions: dict[str, Any]) -> Any:
 def _json_dumper(stream: str) -> Callable[[Sample], bytes]:
     # pydantic's serializer, the daemon's rules (sample_json), straight to bytes in Rust:
     # a few µs a sample instead of a dict and json.dumps.
-    adapter: TypeAdapter[Any] = TypeAdapter(SAMPLE_TYPES[stream])
+    adapter: TypeAdapter[Any] = TypeAdapter(STREAMS[stream].sample_type)
     return adapter.dump_json
 
 

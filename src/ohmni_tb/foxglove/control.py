@@ -37,6 +37,7 @@ from typing import Any, Final
 from ohmni_tb._checks import number
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, StateError
+from ohmni_tb.robot.samples import STREAMS
 
 __all__ = [
     "LIMIT_PARAMETERS",
@@ -60,14 +61,7 @@ PID_PARAMETERS: Final = {
     "pid_ff_offset": "ff_offset",
 }
 #: ``/tb_control/rate/<stream>``: the polled streams whose rate can be read and set.
-RATE_STREAMS: Final = (
-    "wheel_encoder",
-    "servo_neck",
-    "servo_ext1",
-    "servo_ext2",
-    "tbcore_status",
-    "new_neck",
-)
+RATE_STREAMS: Final = tuple(name for name, spec in STREAMS.items() if spec.polled)
 #: Read-only limits: the RobotConfig fields shown.
 LIMIT_PARAMETERS: Final = ("max_linear_mps", "max_angular_radps", "max_wheel_mps", "watchdog_s")
 

@@ -6,11 +6,13 @@ from ohmni_tb.robot.core import BusFigures, Robot, RobotStats
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
+    STREAMS,
     Link,
     PidDebugSample,
     RobotStateSample,
     Sample,
     ServoSample,
+    StreamSpec,
     TbcoreStatusSample,
     WheelEncoderSample,
     WheelOdomSample,
@@ -21,6 +23,7 @@ from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE, StreamStats, Subscription
 __all__ = [
     "COMMAND_PRIORITY",
     "DEFAULT_QUEUE_SIZE",
+    "STREAMS",
     "STREAM_NAMES",
     "BusFigures",
     "Link",
@@ -31,6 +34,7 @@ __all__ = [
     "Sample",
     "ServoHandle",
     "ServoSample",
+    "StreamSpec",
     "StreamStats",
     "Subscription",
     "TbcoreStatusSample",

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 from ohmni_tb._checks import bounded, check_seconds, host_port, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
-from ohmni_tb.control.defaults import CONTROL_HZ_RANGE, MAX_POSE_M, WHEEL_GAIN_RANGES
+from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.encoder import COUNT_BITS, WheelEncoder, WheelSample, unwrap_delta
 from ohmni_tb.control.kinematics import (
     LimitedTwist,
@@ -73,6 +73,7 @@ from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
+    STREAMS,
     Link,
     PidDebugSample,
     RobotStateSample,
@@ -118,8 +119,6 @@ _CONTROL_CYCLES_MAX = 256
 #: that way (49.0 Hz); a slot that starts at three quarters still ends, with its
 #: command computed at send time, before the next cycle is due.
 CONTROL_SLACK = 0.75
-#: A feedback stream's rate range, Hz (the control tick's is ``CONTROL_HZ_RANGE``).
-FEEDBACK_HZ_RANGE = (0.1, 100.0)
 #: The speed governor, on the PWM after the PID (or the open-loop PWM): at most the PWM
 #: the configured feed-forward (``pid_kff``, ``pid_ff_offset``) gives for this share of
 #: ``max_wheel_mps``; and none at all for a wheel measured faster than that share of it
@@ -611,22 +610,18 @@ class Robot:
             fail=self._control_failed,
             skipped=self._control_skipped,
         )
-        self._topics["wheel_encoder"].requested_hz = config.wheel_hz
-        self._topics["wheel_odom"].requested_hz = config.wheel_hz
-        self._topics["pid_debug"].requested_hz = config.wheel_hz
+        for name, spec in STREAMS.items():
+            if spec.source != "polled":  # the control tick's and the state's own rates
+                self._topics[name].requested_hz = getattr(config, spec.rate_setting)
         for index, (sid, watch) in enumerate(self._servos.items()):
             self._add_servo_stream(sid, watch.stream, index)
         if self._neck_kind == "worm":
             self._add_worm_stream()
         if int(DeviceId.CORE) in self._present:
             self._add_core_stream()
-        self._topics["robot_state"].requested_hz = config.state_hz
-        for name in STREAM_NAMES:
-            topic = self._topics[name]
-            if name not in ("robot_state", "pid_debug", "wheel_odom") and (
-                name not in self._periodic
-            ):
-                topic.enabled = False
+        for name, spec in STREAMS.items():
+            if spec.source == "polled" and name not in self._periodic:
+                self._topics[name].enabled = False  # no device: no reads
 
     def _add_servo_stream(self, sid: int, stream: str, index: int) -> None:
         hz = self.config.servo_hz
@@ -1529,7 +1524,7 @@ class Robot:
         if not isinstance(enabled, bool):
             raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
         periodic = self._periodic.get(name)
-        if name in ("wheel_encoder", "wheel_odom", "robot_state", "pid_debug"):
+        if STREAMS[name].source != "polled":
             topic.enabled = enabled  # the control slot and the state keep running
             return
         if periodic is None:
@@ -1548,7 +1543,8 @@ class Robot:
 
         The control tick (``wheel_encoder``, which ``wheel_odom`` and ``pid_debug``
         follow) takes 10..100 Hz (:data:`~ohmni_tb.control.defaults.CONTROL_HZ_RANGE`, as
-        ``wheel_hz``); a feedback stream 0.1..100 Hz.
+        ``wheel_hz``); a feedback stream 0.1 Hz up to the top of its setting's range
+        (:attr:`StreamSpec.rate_range_hz <ohmni_tb.robot.samples.StreamSpec>`).
 
         Raises:
             InvalidArgumentError: No such stream, or it is not polled.
@@ -1557,17 +1553,26 @@ class Robot:
         """
         self._check_open()
         self._topic(name)
-        low, high = CONTROL_HZ_RANGE if name == "wheel_encoder" else FEEDBACK_HZ_RANGE
+        spec = STREAMS[name]
+        if spec.rate_range_hz is None:
+            how = (
+                f"it comes with every {spec.follows} sample (set that one's rate)"
+                if spec.follows
+                else f"its rate is the {spec.rate_setting} setting"
+            )
+            raise InvalidArgumentError(f"stream {name!r} is not polled: {how}")
+        low, high = spec.rate_range_hz
         if not low <= number("hz", hz) <= high:
             raise OutOfRangeError(f"{name} rate", hz, low, high, "Hz")
         periodic = self._periodic.get(name)
         if periodic is None:
             raise InvalidArgumentError(f"stream {name!r} is not polled on this robot")
         periodic.set_rate(hz)
-        if name == "wheel_encoder":
+        if spec.source == "control":
             periodic.slack_s = CONTROL_SLACK / hz
-            for linked in ("wheel_encoder", "wheel_odom", "pid_debug"):
-                self._topics[linked].requested_hz = hz
+            for linked, other in STREAMS.items():
+                if name in (linked, other.follows):
+                    self._topics[linked].requested_hz = hz
         else:
             periodic.slack_s = 1.0 / hz
             self._topics[name].requested_hz = hz

@@ -8,38 +8,31 @@ reply (a USB adapter may hold replies up to 16 ms).
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Literal
 
+from ohmni_tb.control.defaults import CONTROL_HZ_RANGE
 from ohmni_tb.control.pid import PidStep
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.protocol.messages import StatusDetail, StatusError
 from ohmni_tb.protocol.worm_neck import WormFlags
 
 __all__ = [
+    "STREAMS",
     "STREAM_NAMES",
     "Link",
     "PidDebugSample",
     "RobotStateSample",
     "Sample",
     "ServoSample",
+    "StreamSpec",
     "TbcoreStatusSample",
     "WheelEncoderSample",
     "WheelOdomSample",
     "WormNeckSample",
 ]
-
-#: Every stream of a Robot, in schedule order (tb_control's topic names).
-STREAM_NAMES: tuple[str, ...] = (
-    "wheel_encoder",
-    "wheel_odom",
-    "tbcore_status",
-    "servo_neck",
-    "servo_ext1",
-    "servo_ext2",
-    "new_neck",
-    "robot_state",
-    "pid_debug",
-)
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,3 +241,95 @@ Sample = (
     | RobotStateSample
     | PidDebugSample
 )
+
+
+@dataclass(frozen=True, slots=True)
+class StreamSpec:
+    """What one stream is: the one table (:data:`STREAMS`) the Robot, the daemon, its
+    client, the Foxglove bridge and the documentation read.
+
+    Attributes:
+        name: The stream's name (tb_control's topic name).
+        sample_type: The dataclass its samples are.
+        source: Where its samples come from: ``"control"``, the control slot's wheel
+            counts (its rate is the control tick's); ``"derived"``, computed from another
+            stream's reads (:attr:`follows`); ``"polled"``, reads of its own on the
+            schedule; ``"state"``, the Robot's own state, on every change and at a
+            steady rate.
+        rate_setting: The :class:`~ohmni_tb.config.RobotConfig` field with its rate.
+        rate_range_hz: What :meth:`Robot.set_rate` takes for it, or None when its rate is
+            not set on its own (a derived stream follows its source; the state's rate is
+            a setting only).
+        follows: For a derived stream, the stream whose reads it is computed from.
+        tb_control: The vendor node's topic for it, if it has one.
+    """
+
+    name: str
+    sample_type: type[Sample]
+    source: Literal["control", "derived", "polled", "state"]
+    rate_setting: str
+    rate_range_hz: tuple[float, float] | None
+    follows: str | None = None
+    tb_control: str | None = None
+
+    @property
+    def polled(self) -> bool:
+        """Whether it has bus reads of its own whose rate can be set."""
+        return self.rate_range_hz is not None
+
+
+#: A polled feedback stream's rate range for :meth:`Robot.set_rate`, Hz: the top of
+#: its setting's range (0, off, is :meth:`Robot.enable_stream`'s job).
+_SERVO_HZ = (0.1, 50.0)
+
+
+def _table(*specs: StreamSpec) -> Mapping[str, StreamSpec]:
+    return MappingProxyType({spec.name: spec for spec in specs})
+
+
+#: Every stream of a Robot, in schedule order: the one declaration of the streams.
+STREAMS: Mapping[str, StreamSpec] = _table(
+    StreamSpec(
+        "wheel_encoder",
+        WheelEncoderSample,
+        "control",
+        "wheel_hz",
+        CONTROL_HZ_RANGE,
+        tb_control="/tb_control/wheel_encoder",
+    ),
+    StreamSpec(
+        "wheel_odom",
+        WheelOdomSample,
+        "derived",
+        "wheel_hz",
+        None,
+        follows="wheel_encoder",
+        tb_control="/tb_control/wheel_odom",
+    ),
+    StreamSpec(
+        "tbcore_status",
+        TbcoreStatusSample,
+        "polled",
+        "core_hz",
+        (0.1, 20.0),
+        tb_control="/tb_control/tbcore_status",
+    ),
+    StreamSpec("servo_neck", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_neck"),
+    StreamSpec("servo_ext1", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_ext1"),
+    StreamSpec("servo_ext2", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_ext2"),
+    StreamSpec(
+        "new_neck", WormNeckSample, "polled", "new_neck_hz", _SERVO_HZ, tb_control="new_neck"
+    ),
+    StreamSpec("robot_state", RobotStateSample, "state", "state_hz", None),
+    StreamSpec(
+        "pid_debug",
+        PidDebugSample,
+        "derived",
+        "wheel_hz",
+        None,
+        follows="wheel_encoder",
+        tb_control="pid_debug",
+    ),
+)
+#: Every stream's name, in schedule order.
+STREAM_NAMES: tuple[str, ...] = tuple(STREAMS)
