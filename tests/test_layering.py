@@ -190,3 +190,60 @@ def test_the_modules_import_each_other_without_circles() -> None:
         if name not in state:
             circle = visit(name)
             assert circle is None, "an import circle: " + " -> ".join(circle)
+
+
+# -- imports go down the layers ------------------------------------------------------------
+
+#: The layers, bottom first: a module may import its own layer's and lower layers' modules,
+#: never a higher layer's (docs/design "Layers"). The package's own ``__init__`` (the
+#: lazy public names) sits with the client: it re-exports the Robot, never the CLI.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("ohmni_tb._checks", "ohmni_tb.errors", "ohmni_tb._version", "ohmni_tb._files"),
+    (
+        "ohmni_tb.protocol",
+        "ohmni_tb.control",
+        "ohmni_tb.herkulex",
+        "ohmni_tb.transport",
+        "ohmni_tb.sim",
+        "ohmni_tb.eventloop",
+    ),
+    ("ohmni_tb.safety", "ohmni_tb.bus", "ohmni_tb.config"),
+    ("ohmni_tb.robot",),
+    ("ohmni_tb.client", "ohmni_tb.daemon", "ohmni_tb.foxglove", "ohmni_tb.monitor", "ohmni_tb"),
+    ("ohmni_tb.cli", "ohmni_tb.__main__"),
+)
+
+
+def layer_of(module: str) -> int:
+    """The layer ``module`` belongs to: the one naming it or the package it is in
+    (``ohmni_tb`` itself names the package's ``__init__`` only)."""
+    for index, prefixes in enumerate(LAYERS):
+        for prefix in prefixes:
+            inside = prefix != "ohmni_tb" and module.startswith(prefix + ".")
+            if module == prefix or inside:
+                return index
+    raise AssertionError(f"{module} is in no layer: place it in LAYERS")
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(
+        f"{name} (layer {layer_of(name)}) imports {target} (layer {layer_of(target)})"
+        for name, targets in graph.items()
+        for target in targets
+        if layer_of(target) > layer_of(name)
+    )
+
+
+def test_imports_only_go_down_the_layers() -> None:
+    modules = _module_names()
+    graph = {name: _imports(name, path, modules) for name, path in modules.items()}
+    assert upward_imports(graph) == []
+
+
+def test_the_layer_rule_sees_an_upward_import() -> None:
+    graph = {"ohmni_tb.robot.core": {"ohmni_tb.foxglove.bridge"}, "ohmni_tb.foxglove.bridge": set()}
+    assert upward_imports(graph) == [
+        "ohmni_tb.robot.core (layer 3) imports ohmni_tb.foxglove.bridge (layer 4)"
+    ]
+    with pytest.raises(AssertionError, match=r"ohmni_tb\.nowhere is in no layer"):
+        layer_of("ohmni_tb.nowhere")

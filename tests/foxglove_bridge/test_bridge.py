@@ -15,7 +15,7 @@ from websockets.exceptions import ConnectionClosed
 
 from ohmni_tb import Robot
 from ohmni_tb.daemon.protocol import sample_from_json
-from ohmni_tb.errors import ConfigError, TransportError
+from ohmni_tb.errors import TransportError
 from ohmni_tb.foxglove import CHANNELS, FoxgloveBridge
 from ohmni_tb.robot import TbcoreStatusSample, WheelOdomSample
 
@@ -220,32 +220,17 @@ async def test_a_client_that_never_reads_costs_the_robot_nothing(
         await client.close()
 
 
-async def test_robot_open_serves_the_foxglove_app_while_open() -> None:
-    async with Robot.open("sim://", foxglove="127.0.0.1:0") as robot:
-        assert robot.foxglove is not None
-        url = robot.foxglove.url
-        client = await FoxgloveClient.connect(url)
-        try:
-            await client.subscribe("/tb_control/wheel_odom")
-            messages = await client.messages(0.5)
-        finally:
-            await client.close()
-        assert len(messages) >= 15  # 50 Hz
-        assert "/tf" in client.channels
-    assert closed_view(robot)
-    with pytest.raises(ConnectionRefusedError):  # closed with the Robot
-        await FoxgloveClient.connect(url)
-
-
-def closed_view(robot: Robot) -> bool:
-    """The view is gone (a call, so a type checker does not pin it across the block)."""
-    return robot.foxglove is None
-
-
-@pytest.mark.parametrize("address", ["localhost:99999", "nowhere", -1, 3.5])
-async def test_robot_open_refuses_a_bad_foxglove_address_before_the_port_opens(
-    address: object,
-) -> None:
-    with pytest.raises(ConfigError, match=r"foxglove must be 'HOST:PORT' or a port 0\.\.65535"):
-        async with Robot.open("sim://", foxglove=address):  # type: ignore[arg-type]  # on purpose
-            pass
+async def test_the_bridge_serves_beside_a_robot_and_closes_before_it() -> None:
+    async with Robot.open("sim://") as robot:
+        async with FoxgloveBridge(robot, port=0) as view:
+            url = view.url
+            client = await FoxgloveClient.connect(url)
+            try:
+                await client.subscribe("/tb_control/wheel_odom")
+                messages = await client.messages(0.5)
+            finally:
+                await client.close()
+            assert len(messages) >= 15  # 50 Hz
+            assert "/tf" in client.channels
+        with pytest.raises(ConnectionRefusedError):  # closed before the Robot
+            await FoxgloveClient.connect(url)

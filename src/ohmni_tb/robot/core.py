@@ -32,9 +32,9 @@ import logging
 import math
 from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
+from typing import Any, Literal, TypeVar, overload
 
-from ohmni_tb._checks import bounded, check_seconds, host_port, number
+from ohmni_tb._checks import bounded, check_seconds, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
@@ -51,7 +51,6 @@ from ohmni_tb.control.pid import PidController, PidGains, PidStep
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
-    ConfigError,
     InvalidArgumentError,
     MalformedReplyError,
     OhmniError,
@@ -88,9 +87,6 @@ from ohmni_tb.robot.stats import BusFigures, RobotStats
 from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE, Subscription, Topic
 from ohmni_tb.safety import stop_wheels
 from ohmni_tb.transport import SerialTransport, Transport, open_transport
-
-if TYPE_CHECKING:
-    from ohmni_tb.foxglove import FoxgloveBridge
 
 __all__ = ["BusFigures", "Robot", "RobotStats"]
 
@@ -257,8 +253,6 @@ class Robot:
         #: Why the stop on the way out was not confirmed, if it was not (also raised
         #: from ``async with`` when the block itself ended without an error).
         self.exit_error: StopNotConfirmedError | None = None
-        #: The Foxglove view ``Robot.open(foxglove=...)`` serves (its ``url``), else None.
-        self.foxglove: FoxgloveBridge | None = None
         self._early_pending = False
         self._early_slot: Slot | None = None
         self._early_writes = 0
@@ -279,7 +273,6 @@ class Robot:
         port: str | Transport | None = None,
         *,
         config: RobotConfig | None = None,
-        foxglove: str | int | None = None,
         **overrides: Any,
     ) -> AsyncIterator[Robot]:
         """Open the robot on ``port`` (a URL: ``sim://``, ``/dev/ttyUSB0`` …) and run it.
@@ -296,19 +289,12 @@ class Robot:
                 :class:`~ohmni_tb.transport.Transport` (reopened after a loss only when
                 it is a simulated line).
             config: The settings (default: :class:`RobotConfig` from the environment).
-            foxglove: Serve the streams to the Foxglove app as well, on ``"HOST:PORT"``
-                or a port on loopback (``0``: a free one): a read-only
-                :class:`~ohmni_tb.foxglove.FoxgloveBridge`, at :attr:`foxglove` while
-                open, closed before the Robot stops the wheels. Needs the ``foxglove``
-                extra.
             overrides: Settings that replace the config's, by field name.
 
         Raises:
-            ConfigError: A setting is invalid; the message names it (``foxglove`` too,
-                and when the extra is not installed).
-            TransportError: The port cannot be opened, nor the Foxglove address bound.
+            ConfigError: A setting is invalid; the message names it.
+            TransportError: The port cannot be opened.
         """
-        view = None if foxglove is None else _foxglove_address(foxglove)
         if config is None:
             config = RobotConfig(**overrides)
         elif overrides:
@@ -333,14 +319,10 @@ class Robot:
             await bus.aclose(final=[wheel_command(0, 0)])
             raise
         try:
-            if view is not None:
-                robot.foxglove = await _serve_foxglove(robot, *view)
             yield robot
         except BaseException:
-            await robot._close_view()
             await robot._close_shielded()
             raise
-        await robot._close_view()
         # A clean exit whose stop the wheel counts did not confirm raises: the robot may
         # be moving and nobody else would say so.
         await robot._close_shielded()
@@ -358,12 +340,6 @@ class Robot:
         if self._expected - self._present:
             self._reprobe_timer = self._loop.call_later(REPROBE_S, self._reprobe)
         self._publish_state("opened")
-
-    async def _close_view(self) -> None:
-        """Close the Foxglove view ``open(foxglove=...)`` started, if any."""
-        view, self.foxglove = self.foxglove, None
-        if view is not None:
-            await asyncio.shield(view.aclose())
 
     async def _close_shielded(self) -> None:
         """Close, and finish closing even if the caller is cancelled meanwhile."""
@@ -1926,32 +1902,6 @@ class Robot:
         from ohmni_tb.transport.ports import list_ports  # noqa: PLC0415  # slow: when asked
 
         return [port.as_dict() for port in list_ports()]
-
-
-def _foxglove_address(value: str | int) -> tuple[str, int]:
-    """``Robot.open(foxglove=...)``: ``"HOST:PORT"``, ``"PORT"`` or a port number.
-
-    Raises:
-        ConfigError: Not such an address, or a port outside 0..65535.
-    """
-    text = str(value) if isinstance(value, int) and not isinstance(value, bool) else value
-    address = host_port(text, default_host="127.0.0.1") if isinstance(text, str) else None
-    if address is None:
-        raise ConfigError(f"foxglove must be 'HOST:PORT' or a port 0..65535, not {value!r}")
-    return address
-
-
-async def _serve_foxglove(robot: Robot, host: str, port: int) -> FoxgloveBridge:
-    try:
-        from ohmni_tb.foxglove import FoxgloveBridge  # noqa: PLC0415  # the optional extra
-    except ImportError as exc:
-        raise ConfigError(
-            "Robot.open(foxglove=...) needs the foxglove extra: pip install 'ohmni_tb[foxglove]'"
-        ) from exc
-    bridge = FoxgloveBridge(robot, host=host, port=port)
-    await bridge.start()
-    _log.info("serving the Foxglove app on %s", bridge.url)
-    return bridge
 
 
 _coarse_timers_told = False
