@@ -207,7 +207,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "ohmni_tb.sim",
         "ohmni_tb.eventloop",
     ),
-    ("ohmni_tb.safety", "ohmni_tb.bus", "ohmni_tb.config"),
+    ("ohmni_tb.safety", "ohmni_tb.bus", "ohmni_tb.config", "ohmni_tb.config_file"),
     ("ohmni_tb.robot",),
     ("ohmni_tb.client", "ohmni_tb.daemon", "ohmni_tb.foxglove", "ohmni_tb.monitor", "ohmni_tb"),
     ("ohmni_tb.cli", "ohmni_tb.__main__"),

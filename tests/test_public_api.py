@@ -86,6 +86,7 @@ PUBLIC = {
          "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
          "user_config_dir",
     ],
+    "ohmni_tb.config_file": ["WriteOutcome", "read_settings", "write_settings"],
     "ohmni_tb.robot": [
         "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAMS", "STREAM_NAMES", "BusFigures",
         "Link", "PidDebugSample", "Robot", "RobotStateSample", "RobotStats", "Sample",

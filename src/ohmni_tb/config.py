@@ -461,6 +461,22 @@ class RobotConfig(BaseSettings):
             for name, info in cls.model_fields.items()
         ]
 
+    @classmethod
+    def check_setting(cls, name: str, value: object) -> None:
+        """Check one setting's value alone, as a file or the environment would give it,
+        without loading any (the checks between settings are not made).
+
+        Raises:
+            ConfigError: No such setting, or a value it does not take: the message names
+                the value and what is allowed.
+        """
+        if name not in cls.model_fields:
+            raise ConfigError(_unknown_message(name, ""))
+        try:
+            cls.__pydantic_validator__.validate_assignment(cls.model_construct(), name, value)
+        except ValidationError as exc:
+            raise ConfigError(_explain(exc, {name: value})) from None
+
     def replace(self, **changes: Any) -> RobotConfig:
         """A copy with ``changes`` applied and validated (the config itself is frozen).
 

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn
 
@@ -43,7 +41,6 @@ __all__ = [
     "light",
     "pid_app",
     "ports",
-    "write_settings",
 ]
 
 #: Read-only commands leave the neck as they found it (the default frees it on exit).
@@ -326,6 +323,7 @@ def pid_get(file: FileOption = None, as_json: JsonOption = False) -> None:
     Example: ohmni pid get --json
     """
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415
+    from ohmni_tb.config_file import read_settings  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
 
     if file is not None and not file.is_file():
@@ -333,7 +331,7 @@ def pid_get(file: FileOption = None, as_json: JsonOption = False) -> None:
     path = file if file is not None else _loaded_file()
     try:
         config = RobotConfig.load(file)
-        in_file = _settings_in(path) if path is not None else {}
+        in_file = read_settings(path) if path is not None else {}
     except ConfigError as exc:
         _fail(str(exc))
     gains = config.pid_gains()
@@ -428,6 +426,8 @@ def pid_set(
             raise typer.BadParameter(f"{flag}: {lines[0].removesuffix(' (argument)')}") from None
         values[field] = number
     path = file if file is not None else _default_file()
+    from ohmni_tb.config_file import write_settings  # noqa: PLC0415
+
     try:
         outcome = write_settings(path, values)
     except ConfigError as exc:
@@ -495,191 +495,3 @@ def _parse_number(text: str, flag: str) -> float:
             f"{flag} must be a finite number, not {shown}: allowed {GAINS[flag][1]}"
         )
     return number + 0.0  # -0.0 is written as 0.0
-
-
-# -- the config file, edited line by line -------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class WriteOutcome:
-    """What :func:`write_settings` did.
-
-    Attributes:
-        created: The file did not exist before.
-        previous: Each written setting's value in the file before (``None``: not set).
-    """
-
-    created: bool
-    previous: dict[str, Any]
-
-
-_HEADER = re.compile(r"^\s*\[")
-
-
-def _key_line(key: str) -> re.Pattern[str]:
-    """A ``key = value`` line (bare or quoted key), with its trailing comment."""
-    names = "|".join((re.escape(key), f'"{re.escape(key)}"', f"'{re.escape(key)}'"))
-    return re.compile(
-        rf"^(?P<indent>[ \t]*)(?P<key>{names})(?P<eq>[ \t]*=[ \t]*)(?P<value>[^#\r\n]*?)"
-        rf"(?P<comment>[ \t]*#[^\r\n]*)?(?P<eol>\r?\n)?$"
-    )
-
-
-def _settings_in(path: Path) -> dict[str, Any]:
-    """The settings of a config file as :meth:`RobotConfig.load` merges them.
-
-    Raises:
-        ConfigError: It cannot be read or is not TOML, or ``[robot]`` is not a table.
-    """
-    from ohmni_tb.config import toml_settings  # noqa: PLC0415
-    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
-
-    try:
-        text = _read(path)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
-    return _merged(toml_settings(text, path), path)
-
-
-def _read(path: Path) -> str:
-    """The file's text, line ends as they are."""
-    return path.read_bytes().decode("utf-8")
-
-
-def _merged(data: dict[str, Any], path: Path) -> dict[str, Any]:
-    """Top-level settings and the ``[robot]`` table's, merged (as the loader does)."""
-    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
-
-    merged = dict(data)
-    table = merged.pop("robot", None)
-    if table is None:
-        return merged
-    if not isinstance(table, dict):
-        raise ConfigError(f"{path}: robot must be a [robot] table, not {table!r}")
-    for key, value in table.items():
-        if key in merged:
-            raise ConfigError(f"{path}: {key} is set both at top level and in [robot]")
-        merged[key] = value
-    return merged
-
-
-def write_settings(path: Path, values: Mapping[str, float]) -> WriteOutcome:
-    """Set top-level settings (numbers) in a TOML config file, keeping everything else.
-
-    A ``key = value`` line already there (at top level, or in the ``[robot]`` table) is
-    rewritten in place, keeping its comment; a new key goes after the last setting before
-    the first table (or at the end of ``[robot]`` when the file uses one). The result is
-    parsed again before it replaces the file: every other setting must read back the
-    same, and these the new values; otherwise nothing is written. A missing file (and its
-    directory) is created. The file is replaced atomically.
-
-    Raises:
-        ConfigError: The file cannot be read or written, is not valid TOML, or holds a
-            setting in a form this line editor does not change safely (the message says
-            which: set it by hand).
-    """
-    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
-
-    created = not path.exists()
-    if created:
-        text = "# ohmni settings (ohmni pid set wrote the pid_* gains)\n"
-        before: dict[str, Any] = {}
-    else:
-        if not path.is_file():
-            raise ConfigError(f"config file is not a file: {path}")
-        before = _settings_in(path)
-        text = _read(path)
-    lower = {key.lower(): key for key in before}
-    for key in values:
-        other = lower.get(key.lower())
-        if other is not None and other != key:
-            raise ConfigError(f"{path}: {other} is written in another case than {key}: fix it")
-    newline = "\r\n" if "\r\n" in text else "\n"
-    lines = text.splitlines(keepends=True)
-    if lines and not lines[-1].endswith("\n"):
-        lines[-1] += newline
-    robot_table = _table_span(lines, "robot")
-    for key, number in values.items():
-        lines = _set_line(lines, key, repr(number), newline, robot_table)
-        robot_table = _table_span(lines, "robot")
-    result = "".join(lines)
-    _check_result(path, result, before, values)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        temporary.write_text(result, encoding="utf-8", newline="")
-        if not created:
-            os.chmod(temporary, path.stat().st_mode & 0o7777)
-        temporary.replace(path)
-    except OSError as exc:
-        temporary.unlink(missing_ok=True)
-        raise ConfigError(f"cannot write config file {path}: {exc}") from exc
-    return WriteOutcome(created, {key: before.get(key) for key in values})
-
-
-def _table_span(lines: list[str], name: str) -> tuple[int, int] | None:
-    """Lines ``[start, end)`` of the body of table ``[name]``, or ``None``."""
-    header = re.compile(rf"^\s*\[\s*{re.escape(name)}\s*\]\s*(#.*)?$")
-    for i, line in enumerate(lines):
-        if header.match(line.rstrip("\r\n")):
-            end = next((j for j in range(i + 1, len(lines)) if _HEADER.match(lines[j])), len(lines))
-            return i + 1, end
-    return None
-
-
-def _set_line(
-    lines: list[str],
-    key: str,
-    value: str,
-    newline: str,
-    robot_table: tuple[int, int] | None,
-) -> list[str]:
-    """``lines`` with ``key = value`` set at top level or in ``[robot]``."""
-    pattern = _key_line(key)
-    first_table = next((i for i, line in enumerate(lines) if _HEADER.match(line)), len(lines))
-    spans = [(0, first_table)]
-    if robot_table is not None:
-        spans.append(robot_table)
-    for start, end in spans:
-        for i in range(start, end):
-            match = pattern.match(lines[i])
-            if match is not None:
-                comment = match["comment"] or ""
-                eol = match["eol"] or ""
-                lines = list(lines)
-                lines[i] = f"{match['indent']}{match['key']}{match['eq']}{value}{comment}{eol}"
-                return lines
-    # A new key: after the last setting of [robot] if the file has one, else of the top.
-    start, end = robot_table if robot_table is not None else (0, first_table)
-    at = end
-    while at > start and not lines[at - 1].strip():
-        at -= 1
-    return [*lines[:at], f"{key} = {value}{newline}", *lines[at:]]
-
-
-def _check_result(
-    path: Path, text: str, before: Mapping[str, Any], values: Mapping[str, float]
-) -> None:
-    """Refuse an edit that would not read back as intended."""
-    from ohmni_tb.config import toml_settings  # noqa: PLC0415
-    from ohmni_tb.errors import ConfigError  # noqa: PLC0415
-
-    try:
-        after = _merged(toml_settings(text, path), path)
-    except ConfigError as exc:
-        keys = ", ".join(values)
-        raise ConfigError(
-            f"{path}: cannot set {keys} safely by editing lines ({exc}); nothing was "
-            "written: set them by hand"
-        ) from exc
-    expected = {**before, **values}
-    if after != expected:
-        changed = sorted(
-            key
-            for key in {*after, *expected}
-            if key not in after or key not in expected or after[key] != expected[key]
-        )
-        raise ConfigError(
-            f"{path}: cannot set {', '.join(values)} safely by editing lines (it would "
-            f"change {', '.join(changed)}); nothing was written: set them by hand"
-        )
