@@ -12,9 +12,10 @@ Run by the benchmark, not by hand::
 subscribed to every stream of :data:`TOPICS` with one task per subscription reading it
 continuously; ``--stalled`` adds K raw WebSocket connections that subscribe to the same
 and never read (a small receive buffer, so the daemon sees them stall within a second).
-``churn``: a new connection every ``--every-s``, visiting for 0.5–3.5 s (about ten at a
-time): most subscribe to a few topics and unsubscribe politely, some leave with their
-subscriptions open, some cut the TCP connection without a closing handshake.
+``churn``: a new raw WebSocket connection every ``--every-s``, visiting for 0.5–3.5 s
+(about ten at a time): most subscribe to a few topics (some capped at 5 Hz) and
+unsubscribe politely, some leave with their subscriptions open, some cut the TCP
+connection without a closing handshake.
 ``driver``: one connection takes the control lease and sends a new open-loop PWM
 (``drive_pwm``, so the wheel packet carries exactly the value) every 50–150 ms, as a
 teleop does, noting ``time.monotonic()`` just before each; N readers of every stream
@@ -49,7 +50,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ohmni_tb.client import ClientSubscription, RobotClient
+from ohmni_tb.client import RobotClient
+from ohmni_tb.robot import SampleStream
 
 #: Every stream the Robot runs by default (not ``new_neck``: the simulated neck is a
 #: HerkuleX servo; not ``pid_debug``: off unless configured).
@@ -77,7 +79,9 @@ class Tally:
     """What the clients received and lost, cumulative."""
 
     received: Counter[str] = field(default_factory=Counter)
-    subscriptions: list[ClientSubscription[Any]] = field(default_factory=list)
+    subscriptions: list[SampleStream[Any]] = field(default_factory=list)
+    #: The readers' connections: what the daemon dropped for each is in ``lost_samples``.
+    clients: list[RobotClient] = field(default_factory=list)
     connected: int = 0
     visits: Counter[str] = field(default_factory=Counter)
     errors: Counter[str] = field(default_factory=Counter)
@@ -94,7 +98,8 @@ class Tally:
         return {
             "event": event,
             "received": dict(self.received),
-            "dropped": sum(s.dropped for s in self.subscriptions),
+            "dropped": sum(s.dropped for s in self.subscriptions)
+            + sum(c.lost_samples for c in self.clients),
             "connected": self.connected,
             "visits": dict(self.visits),
             "errors": dict(self.errors),
@@ -118,7 +123,7 @@ def say(message: dict[str, Any]) -> None:
     sys.stdout.flush()
 
 
-async def count(subscription: ClientSubscription[Any], received: Counter[str]) -> None:
+async def count(subscription: SampleStream[Any], received: Counter[str]) -> None:
     async for _ in subscription:
         received[subscription.name] += 1
 
@@ -132,6 +137,7 @@ async def reader(
             await stack.enter_async_context(client.subscribe(topic)) for topic in TOPICS
         ]
         tally.subscriptions.extend(subscriptions)
+        tally.clients.append(client)
         tally.connected += 1
         subscribed()
         async with asyncio.TaskGroup() as group:
@@ -174,30 +180,42 @@ async def visit(url: str, kind: str, stay_s: float, rng: random.Random, tally: T
         if kind == "abort":
             await _visit_abort(url, topics, stay_s)
             return
-        async with RobotClient.connect(url) as client:
-            tally.connected += 1
-            try:
-                if rng.random() < 0.3:
-                    await client.stats()
-                received: Counter[str] = Counter()
-                async with contextlib.AsyncExitStack() as stack:
-                    subscriptions = []
-                    for topic in topics:
-                        max_hz = rng.choice((None, None, 5.0))
-                        subscription = client.subscribe(topic, max_hz=max_hz)
-                        if kind == "polite":
-                            await stack.enter_async_context(subscription)
-                        else:
-                            await subscription.start()  # left open: the daemon cleans up
-                        subscriptions.append(subscription)
-                    with contextlib.suppress(TimeoutError):
-                        async with asyncio.timeout(stay_s), asyncio.TaskGroup() as group:
-                            for subscription in subscriptions:
-                                group.create_task(count(subscription, received))
-            finally:
-                tally.connected -= 1
+        await _visit(url, topics, stay_s, rng, polite=kind == "polite", tally=tally)
     except Exception as exc:  # counted and shown: the churn goes on, the daemon is judged
         tally.error(exc)
+
+
+async def _visit(
+    url: str, topics: list[str], stay_s: float, rng: random.Random, *, polite: bool, tally: Tally
+) -> None:
+    """Subscribe to ``topics`` (some capped at 5 Hz), maybe ask ``stats``, read for
+    ``stay_s``; then unsubscribe (``polite``) or leave them open, and close."""
+    from websockets.asyncio.client import connect  # noqa: PLC0415
+
+    async with connect(url, compression=None) as ws:
+        tally.connected += 1
+        try:
+            await ws.recv()  # hello
+            n = 0
+            if rng.random() < 0.3:
+                n += 1
+                await ws.send(json.dumps({"op": "call", "id": n, "method": "stats"}))
+            for topic in topics:
+                n += 1
+                max_hz = rng.choice((None, None, 5.0))
+                await ws.send(
+                    json.dumps({"op": "subscribe", "id": n, "topic": topic, "max_hz": max_hz})
+                )
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(stay_s):
+                    async for _ in ws:
+                        pass
+            if polite:
+                for topic in topics:
+                    n += 1
+                    await ws.send(json.dumps({"op": "unsubscribe", "id": n, "topic": topic}))
+        finally:
+            tally.connected -= 1
 
 
 async def _visit_abort(url: str, topics: list[str], stay_s: float) -> None:

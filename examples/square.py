@@ -27,7 +27,7 @@ from typing import Any
 import ohmni_tb
 from ohmni_tb import Robot, RobotConfig
 from ohmni_tb.errors import StateError
-from ohmni_tb.robot import Subscription, WheelOdomSample
+from ohmni_tb.robot import SampleStream, WheelOdomSample
 
 #: drive() is re-sent at 20 Hz: well inside the 0.5 s watchdog.
 COMMAND_PERIOD_S = 0.05
@@ -72,7 +72,7 @@ class Square:
         sample = self.robot.latest("wheel_odom")
         if sample is not None:
             return sample
-        samples: Subscription[WheelOdomSample] = self.robot.subscribe("wheel_odom")
+        samples: SampleStream[WheelOdomSample] = self.robot.subscribe("wheel_odom")
         async for first in samples:
             return first
         raise StateError("the Robot closed before the first odometry sample")

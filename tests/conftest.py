@@ -14,6 +14,8 @@ from collections.abc import AsyncIterator
 import pytest
 from hypothesis import settings
 
+from ohmni_tb import eventloop
+from ohmni_tb.sim.clock import VirtualClockLoop
 from ohmni_tb.transport import MemoryTransport
 
 # CI (CI=true) replays the same examples every run, so a landing is never decided by a
@@ -85,6 +87,16 @@ async def memory_pair() -> AsyncIterator[tuple[MemoryTransport, MemoryTransport]
     yield host, device
     await host.aclose()
     await device.aclose()
+
+
+@pytest.fixture
+def virtual_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Commands run in the test's process (``ohmni ...`` through typer's
+    CliRunner, :func:`ohmni_tb.run`) go on the simulator's virtual clock
+    (:mod:`ohmni_tb.sim.clock`): their waits take no wall time, and what they time is
+    exact. For commands on ``sim://`` only: a pseudo-terminal, a subprocess or a thread
+    keeps real time, so a test that has one does not ask for this."""
+    monkeypatch.setattr(eventloop, "new_event_loop", VirtualClockLoop)
 
 
 @pytest.fixture(autouse=True)

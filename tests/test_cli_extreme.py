@@ -297,6 +297,7 @@ def check(target: Target, value: str, wire: Wire) -> int:
     return result.exit_code
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("target", TARGETS, ids=str)
 @pytest.mark.parametrize("value", ["nan", "-1e308", "9" * 30, "٣"])
 def test_each_parameter_refuses_what_none_can_take(target: Target, value: str, wire: Wire) -> None:
@@ -308,6 +309,7 @@ def test_each_parameter_refuses_what_none_can_take(target: Target, value: str, w
     deadline=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
+@pytest.mark.usefixtures("virtual_time")
 @given(target=st.sampled_from(TARGETS), value=VALUES)
 @example(target=TARGETS[0], value="inf")
 def test_extreme_values_never_crash_the_cli(target: Target, value: str, wire: Wire) -> None:

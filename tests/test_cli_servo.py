@@ -14,6 +14,9 @@ from ohmni_tb.cli import bus as bus_cli
 from ohmni_tb.protocol import Command, PacketDecoder
 from ohmni_tb.transport import Transport, open_transport
 
+#: Every command here runs in this process on ``sim://``: on virtual time.
+pytestmark = pytest.mark.usefixtures("virtual_time")
+
 runner = CliRunner()
 SIM = ["--port", "sim://"]
 

@@ -6,6 +6,7 @@ session would. The examples in module docstrings listed below run too.
 
 from __future__ import annotations
 
+import asyncio
 import importlib
 import re
 import shlex
@@ -15,8 +16,10 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from ohmni_tb import eventloop
 from ohmni_tb.cli import app
 from ohmni_tb.protocol import BROADCAST_ID, PacketDecoder
+from ohmni_tb.sim.clock import VirtualClockLoop, run_virtual
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -31,8 +34,18 @@ def test_docs_have_examples() -> None:
     assert {"README.md", "docs/herkulex.md", "docs/protocol.md", "docs/index.md"} <= with_examples
 
 
+#: Pages whose examples serve the robot to other programs (the daemon, the Foxglove app's
+#: threads): they keep real time. The others run on the simulator's virtual time.
+REAL_TIME_PAGES = frozenset({"docs/daemon.md", "docs/foxglove.md"})
+
+
 @pytest.mark.parametrize("page", sorted(name for name, blocks in PAGES.items() if blocks))
-def test_doc_examples_run(page: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_doc_examples_run(
+    page: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if page not in REAL_TIME_PAGES:
+        monkeypatch.setattr(asyncio, "run", run_virtual)
+        monkeypatch.setattr(eventloop, "new_event_loop", VirtualClockLoop)
     namespace: dict[str, object] = {"__name__": "__main__"}
     for i, code in enumerate(PAGES[page]):
         # asyncio.run inside a block is fine: the test itself is synchronous.

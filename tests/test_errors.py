@@ -18,14 +18,22 @@ from ohmni_tb.errors import (
     InvalidArgumentError,
     LeaseError,
     MalformedReplyError,
+    MotionAbortedError,
+    MotionError,
+    MotionPreemptedError,
+    MotionResult,
+    MotionTimeoutError,
     OhmniError,
     OutOfRangeError,
+    PositionError,
+    PositionTimeoutError,
     ProtocolError,
     RobotClosedError,
     StateError,
     StopNotConfirmedError,
     TransportClosedError,
     TransportError,
+    WheelStallError,
 )
 
 ALL_ERRORS: list[type[OhmniError]] = [
@@ -39,14 +47,21 @@ ALL_ERRORS: list[type[OhmniError]] = [
     InvalidArgumentError,
     LeaseError,
     MalformedReplyError,
+    MotionAbortedError,
+    MotionError,
+    MotionPreemptedError,
+    MotionTimeoutError,
     OhmniError,
     OutOfRangeError,
+    PositionError,
+    PositionTimeoutError,
     ProtocolError,
     RobotClosedError,
     StateError,
     StopNotConfirmedError,
     TransportClosedError,
     TransportError,
+    WheelStallError,
 ]
 
 #: Each error and the ohmni_tb error it derives from, as the module docstring draws it.
@@ -61,11 +76,18 @@ PARENT: dict[type[OhmniError], type[OhmniError] | None] = {
     DeviceUnavailableError: BusTimeoutError,
     DeviceStatusError: DeviceError,
     StopNotConfirmedError: DeviceError,
+    PositionError: DeviceError,
+    PositionTimeoutError: PositionError,
     StateError: OhmniError,
     BusClosedError: StateError,
     DeadlineMissedError: StateError,
     LeaseError: StateError,
     RobotClosedError: StateError,
+    MotionError: StateError,
+    MotionPreemptedError: MotionError,
+    MotionAbortedError: MotionError,
+    MotionTimeoutError: MotionError,
+    WheelStallError: MotionError,
     ConfigError: OhmniError,
     InvalidArgumentError: OhmniError,
     OutOfRangeError: InvalidArgumentError,
@@ -163,3 +185,41 @@ def test_device_errors_carry_the_sid_and_status() -> None:
     assert (err.sid, err.status_error, err.status_detail) == (3, 0x10, 0x40)
     assert str(err) == "overload"
     assert DeviceError("gone", sid=4).sid == 4
+
+
+def _result(reason: str = "timeout") -> MotionResult:
+    return MotionResult(
+        kind="drive_distance",
+        reason=reason,  # type: ignore[arg-type]  # one of MotionEnd's, as the goals give it
+        distance_m=0.25,
+        heading_change_rad=0.0,
+        x_m=0.25,
+        y_m=0.0,
+        yaw_rad=0.0,
+        remaining_m=0.25,
+        remaining_rad=0.0,
+        elapsed_s=1.5,
+    )
+
+
+def test_motion_errors_carry_what_the_goal_did_and_timeouts_are_timeouts() -> None:
+    late = MotionTimeoutError("late", result=_result(), timeout_s=3.0)
+    assert isinstance(late, TimeoutError)
+    assert (late.result.distance_m, late.timeout_s) == (0.25, 3.0)
+    taken = MotionPreemptedError("taken", result=_result("preempted"), by="stop")
+    assert (taken.by, taken.result.reason) == ("stop", "preempted")
+    stalled = WheelStallError("stuck", result=_result("stalled"), wheels=("left",))
+    assert stalled.wheels == ("left",)
+    assert MotionAbortedError("gone", result=_result("closed")).result.reason == "closed"
+    for error in (taken, stalled):
+        assert not isinstance(error, TimeoutError | ValueError)
+
+
+def test_position_errors_carry_the_target_and_the_last_sample() -> None:
+    late = PositionTimeoutError("late", sid=3, target_raw=400, sample=None)
+    assert isinstance(late, TimeoutError)
+    assert isinstance(late, DeviceError)
+    assert (late.sid, late.target_raw, late.sample) == (3, 400, None)
+    stalled = PositionError("stalled", sid=4, target_raw=-1000, sample="last")
+    assert not isinstance(stalled, TimeoutError)
+    assert stalled.sample == "last"

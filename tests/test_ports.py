@@ -150,10 +150,10 @@ def test_help_imports_no_command_and_no_heavy_module() -> None:
 def test_robot_ports_lists_the_same_with_the_adapter_marked(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from ohmni_tb.robot import Robot
+    from ohmni_tb.robot import LocalRobot
 
     _system(monkeypatch, FakePort("/dev/ttyS0"), FakePort("/dev/ttyUSB0", "FT230X", 0x0403, 0x6015))
-    listed = Robot.ports()
+    listed = LocalRobot.ports()
     assert [(p["device"], p["likely_bus"], p["usb_id"]) for p in listed] == [
         ("/dev/ttyUSB0", True, "0403:6015"),
         ("/dev/ttyS0", False, ""),

@@ -77,7 +77,7 @@ PUBLIC = {
     "ohmni_tb.sim.url": ["build_line", "open_sim"],
     "ohmni_tb.sim.robot": ["NECK_CHOICES", "SimRobot"],
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
-    "ohmni_tb": ["OhmniError", "Robot", "RobotConfig", "__version__", "run"],
+    "ohmni_tb": ["MotionResult", "OhmniError", "Robot", "RobotConfig", "__version__", "run"],
     "ohmni_tb.eventloop": [
         "DEFAULT_RT_PRIORITY", "PreciseEpollSelector", "new_event_loop", "realtime_priority",
         "run", "set_realtime", "timer_resolution_s",
@@ -89,26 +89,36 @@ PUBLIC = {
     "ohmni_tb.config_file": ["WriteOutcome", "read_settings", "write_settings"],
     "ohmni_tb.robot": [
         "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAMS", "STREAM_NAMES", "BusFigures",
-        "Link", "PidDebugSample", "Robot", "RobotStateSample", "RobotStats", "Sample",
-        "ServoHandle", "ServoSample", "StreamSpec", "StreamStats", "Subscription",
-        "TbcoreStatusSample", "WheelEncoderSample", "WheelOdomSample", "WormNeckHandle",
-        "WormNeckSample",
+        "HerkulexHandle", "Link", "LocalRobot", "MotionResult", "NeckHandle",
+        "PidDebugSample", "RemoteRobot", "RemoteServo", "Robot", "RobotStateSample",
+        "RobotStats", "Sample", "SampleStream", "ServoHandle", "ServoSample", "StreamSpec",
+        "StreamStats", "Subscription", "TbcoreStatusSample", "WheelEncoderSample",
+        "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
     ],
     "ohmni_tb.client": [
-         "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "MAX_UNSENT", "ClientSubscription", "RemoteServo",
-         "RobotClient",
+        "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "RobotClient",
     ],
-    "ohmni_tb.daemon.protocol": [
-         "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS", "METHOD_SPECS",
-         "PROTOCOL_VERSION", "AcquireArgs", "BatchMessage", "Call",
-         "ClientMessage", "DriveArgs", "DrivePwmArgs", "DriveWheelsArgs", "EnabledArgs",
-         "ErrorCode", "ErrorMessage", "Hello", "LatestArgs", "LeaseMessage", "LightArgs",
-         "Limits", "MethodSpec", "Motion", "MoveArgs", "NoArgs", "PidArgs", "PoseArgs",
-         "RateArgs", "ReleasePortArgs", "RequestError", "RestArgs", "Result", "SampleMessage",
-         "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe", "call_args",
-         "encode", "json_schema", "parse_client_message", "parse_server_message",
-         "sample_from_json", "sample_json", "schema_text", "stats_from_json", "stats_json",
-         "write_schema",
+    "ohmni_tb.robot.wire": [
+        "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS",
+        "METHOD_SPECS", "PROTOCOL_VERSION", "TOKEN_ENV", "AcquireArgs", "BatchMessage",
+        "Call", "ClientMessage", "DriveArgs", "DriveDistanceArgs", "DrivePwmArgs",
+        "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "GoToArgs", "Hello",
+        "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion",
+        "MoveArgs", "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",
+        "RequestError", "RestArgs", "Result", "RotateArgs", "SampleMessage",
+        "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe",
+        "call_args", "encode", "goal_from_json", "goal_json", "info_from_json",
+        "json_schema", "parse_client_message", "parse_server_message", "pid_from_json",
+        "raised_error", "result_json", "sample_from_json", "sample_json",
+        "schedule_from_json", "schema_text", "stats_from_json", "stats_json",
+        "write_schema",
+    ],
+    "ohmni_tb.robot.api": [
+        "HerkulexHandle", "NeckHandle", "Robot", "SampleStream",
+    ],
+    "ohmni_tb.robot.remote": [
+        "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "STATS_IDLE_REFRESH_S", "STATS_IDLE_S",
+        "STATS_REFRESH_S", "RemoteRobot", "RemoteServo",
     ],
     "ohmni_tb.daemon.server": [
          "BURST_MESSAGES", "DEFAULT_HOST", "DEFAULT_MAX_CLIENTS", "DEFAULT_PORT",
@@ -159,9 +169,13 @@ PUBLIC = {
 def test_the_robot_and_its_config_are_importable_from_the_package() -> None:
     from ohmni_tb import Robot, RobotConfig
     from ohmni_tb.config import RobotConfig as Config
+    from ohmni_tb.robot import LocalRobot, RemoteRobot
     from ohmni_tb.robot import Robot as RobotClass
+    from ohmni_tb.robot.api import Robot as Contract
 
-    assert Robot is RobotClass
+    assert Robot is RobotClass is Contract
+    assert issubclass(LocalRobot, Robot)
+    assert issubclass(RemoteRobot, Robot)
     assert RobotConfig is Config
 
 

@@ -352,6 +352,7 @@ def _words(text: str) -> str:
     return " ".join(text.split())
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_demo_does_not_drive_when_no_drive_board_answers() -> None:
     # The Robot finds no drive board: the demo says so and does not drive; the Robot,
     # which never heard from them, sends the stop and has nothing to confirm it with.
@@ -364,6 +365,7 @@ def test_the_demo_does_not_drive_when_no_drive_board_answers() -> None:
     assert "Traceback" not in result.output
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_demo_says_loudly_when_the_drive_boards_go_silent_mid_run(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

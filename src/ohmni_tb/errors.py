@@ -13,14 +13,22 @@ catches the right thing::
     │   ├── BusTimeoutError         no reply in time    (+ TimeoutError)    (.sid, .cmd)
     │   │   └── DeviceUnavailableError  silent for a while: fails fast until it answers
     │   ├── DeviceStatusError       a reply carried error bits (.status_error, .status_detail)
-    │   └── StopNotConfirmedError   the wheels were not seen to stop: they may still move
-    │                                                               (.sid, .report)
+    │   ├── StopNotConfirmedError   the wheels were not seen to stop: they may still move
+    │   │                                                           (.sid, .report)
+    │   └── PositionError           a servo or the neck did not get to its target: stalled
+    │       │                                           (.sid, .target_raw, .sample)
+    │       └── PositionTimeoutError  not there in time, or it went silent (+ TimeoutError)
     ├── StateError                  the call does not fit the object's state
     │   ├── BusClosedError          the bus is closed
     │   ├── RobotClosedError        a command to a Robot (or client) already closed
     │   ├── DeadlineMissedError     a slot could not start before its deadline
     │   │                                                 (+ TimeoutError)  (.deadline, .late_s)
-    │   └── LeaseError              a daemon command without its control lease (.holder)
+    │   ├── LeaseError              a daemon command without its control lease (.holder)
+    │   └── MotionError             a motion goal ended short of its goal          (.result)
+    │       ├── MotionPreemptedError  another motion command took over             (.by)
+    │       ├── MotionAbortedError  the watchdog, a lost link, no wheel counts or closing
+    │       ├── MotionTimeoutError  not there within its time  (+ TimeoutError) (.timeout_s)
+    │       └── WheelStallError     a wheel commanded to turn did not turn         (.wheels)
     ├── ConfigError                 bad settings or URL             (+ ValueError)
     └── InvalidArgumentError        a bad argument; nothing was sent (+ ValueError)
         └── OutOfRangeError         a value outside its allowed range (.name, .value, .low, .high)
@@ -32,6 +40,7 @@ transport boundary with ``raise ... from exc``, so the original stays in ``__cau
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 __all__ = [
     "BusClosedError",
@@ -44,14 +53,21 @@ __all__ = [
     "InvalidArgumentError",
     "LeaseError",
     "MalformedReplyError",
+    "MotionAbortedError",
+    "MotionError",
+    "MotionPreemptedError",
+    "MotionTimeoutError",
     "OhmniError",
     "OutOfRangeError",
+    "PositionError",
+    "PositionTimeoutError",
     "ProtocolError",
     "RobotClosedError",
     "StateError",
     "StopNotConfirmedError",
     "TransportClosedError",
     "TransportError",
+    "WheelStallError",
 ]
 
 
@@ -93,6 +109,56 @@ class StopReport:
     missed_reads: int
     elapsed_s: float
     counts: tuple[int, int] | None
+
+
+#: Which goal a :class:`MotionResult` is of.
+MotionKind = Literal["drive_distance", "rotate", "go_to"]
+#: Why a motion goal ended (:attr:`MotionResult.reason`).
+MotionEnd = Literal[
+    "arrived", "preempted", "stalled", "timeout", "watchdog", "link_lost", "no_counts", "closed"
+]
+
+
+# Here for the same reason as StopReport; ohmni_tb.robot.motion and ohmni_tb export it.
+@dataclass(frozen=True, slots=True)
+class MotionResult:
+    """What a motion goal did (``Robot.drive_distance``, ``rotate``, ``go_to``), by odometry.
+
+    A goal returns it when it got there; every :class:`MotionError` carries the one of a
+    goal that ended short of it (:attr:`MotionError.result`).
+
+    Attributes:
+        kind: ``"drive_distance"``, ``"rotate"`` or ``"go_to"``.
+        reason: Why it ended: ``"arrived"``, else ``"preempted"`` (another motion
+            command), ``"stalled"`` (a wheel did not turn), ``"timeout"``, ``"watchdog"``,
+            ``"link_lost"``, ``"no_counts"`` (the wheel counts stopped coming) or
+            ``"closed"`` (the Robot closed).
+        distance_m: The mean travel of both wheels since the goal began, forward positive.
+        heading_change_rad: The heading's change since the goal began, counter-clockwise
+            positive (unwrapped: a full turn is 2π).
+        x_m: The odometry pose at the end (``wheel_odom``'s frame), x.
+        y_m: The odometry pose at the end, y.
+        yaw_rad: The odometry pose at the end, yaw wrapped to −π..π.
+        remaining_m: What is left of the goal's distance: for ``drive_distance`` the
+            distance still to go along the drive (negative: past the goal); for ``go_to``
+            the straight-line distance from the pose to the point; 0 for ``rotate``.
+        remaining_rad: What is left of the goal's angle: for ``rotate`` the angle still to
+            turn (negative: past the goal); for ``go_to`` with ``yaw_rad`` the yaw still to
+            turn, wrapped to −π..π; else 0.
+        elapsed_s: From the call to the end; when the goal stopped the robot, up to the
+            wheel counts showing it at rest.
+    """
+
+    kind: MotionKind
+    reason: MotionEnd
+    distance_m: float
+    heading_change_rad: float
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    remaining_m: float
+    remaining_rad: float
+    elapsed_s: float
 
 
 class OhmniError(Exception):
@@ -215,6 +281,28 @@ class StopNotConfirmedError(DeviceError):
         self.reason = reason
 
 
+class PositionError(DeviceError):
+    """A servo or the worm-gear neck did not get to its target (``move(..., wait=True)``):
+    the worm gear stalled (only a power cycle clears it).
+
+    Attributes:
+        sid: The servo or neck.
+        target_raw: The target it was sent to.
+        sample: The last feedback sample read after the move (a ``ServoSample`` or a
+            ``WormNeckSample``), or ``None`` when none came.
+    """
+
+    def __init__(self, message: str, *, sid: int, target_raw: int, sample: object) -> None:
+        super().__init__(message, sid=sid)
+        self.target_raw = target_raw
+        self.sample = sample
+
+
+class PositionTimeoutError(PositionError, TimeoutError):
+    """The position did not read back at the target within the time allowed, or no
+    feedback came (the device went silent)."""
+
+
 class StateError(OhmniError):
     """The call does not fit the object's current state."""
 
@@ -258,6 +346,64 @@ class LeaseError(StateError):
     def __init__(self, message: str, *, holder: str | None = None) -> None:
         super().__init__(message)
         self.holder = holder
+
+
+class MotionError(StateError):
+    """A motion goal (``Robot.drive_distance``, ``rotate``, ``go_to``) ended short of its goal.
+
+    Attributes:
+        result: What the goal did up to its end, by odometry (``result.reason`` says why
+            it ended).
+    """
+
+    def __init__(self, message: str, *, result: MotionResult) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class MotionPreemptedError(MotionError):
+    """Another motion command took over the goal: ``drive``, ``drive_wheels``,
+    ``drive_pwm``, ``stop``, ``estop``, ``enable_controllers(False)``, ``release_port`` or
+    another goal. The newer command stands: the goal sent nothing after it.
+
+    Attributes:
+        by: The command that took over (``"drive"``, ``"stop"``, ``"rotate"``…).
+    """
+
+    def __init__(self, message: str, *, result: MotionResult, by: str) -> None:
+        super().__init__(message, result=result)
+        self.by = by
+
+
+class MotionAbortedError(MotionError):
+    """The goal could not go on: the motion watchdog tripped, the link was lost, the wheel
+    counts stopped coming, or the Robot closed (``result.reason``: ``"watchdog"``,
+    ``"link_lost"``, ``"no_counts"``, ``"closed"``). The wheels' target is zero."""
+
+
+class MotionTimeoutError(MotionError, TimeoutError):
+    """The goal was not reached within its time; the robot was stopped.
+
+    Attributes:
+        timeout_s: The time it had.
+    """
+
+    def __init__(self, message: str, *, result: MotionResult, timeout_s: float) -> None:
+        super().__init__(message, result=result)
+        self.timeout_s = timeout_s
+
+
+class WheelStallError(MotionError):
+    """A wheel commanded to turn did not turn (an obstacle, a jammed motor); the robot was
+    stopped.
+
+    Attributes:
+        wheels: The stalled wheels, ``("left",)``, ``("right",)`` or both.
+    """
+
+    def __init__(self, message: str, *, result: MotionResult, wheels: tuple[str, ...]) -> None:
+        super().__init__(message, result=result)
+        self.wheels = wheels
 
 
 class ConfigError(OhmniError, ValueError):

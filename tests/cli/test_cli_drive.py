@@ -32,6 +32,7 @@ from typer.testing import CliRunner
 from cli._helpers import needs_pty, sim_on_pty
 from ohmni_tb.cli import app, common
 from ohmni_tb.cli import drive as drive_cli
+from ohmni_tb.robot import LocalRobot
 from ohmni_tb.sim.transport import SimTransport
 
 runner = CliRunner()
@@ -654,6 +655,7 @@ def test_a_goal_drive_whose_counts_stop_coming_stops_at_once(
 
             def silence() -> None:
                 silenced.append(loop.time())
+                assert isinstance(robot, LocalRobot)  # the port, opened by the command
                 transport = robot.bus.transport
                 assert isinstance(transport, SimTransport)
                 transport.line.faults.silent = {0, 1}

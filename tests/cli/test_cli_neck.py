@@ -11,7 +11,7 @@ import pytest
 
 from ohmni_tb.cli import neck as neck_cli
 from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read, ram_write
-from ohmni_tb.robot.devices import ServoHandle, WormNeckHandle
+from ohmni_tb.protocol import Command, Packet
 from ohmni_tb.sim.robot import SimRobot
 from ohmni_tb.sim.servo import SimServo
 from ohmni_tb.sim.worm_neck import SimWormNeck
@@ -295,25 +295,32 @@ def test_the_neck_stays_where_it_was_sent_between_commands() -> None:
         assert json.loads(rest.stdout)["torque"] == "free"
 
 
-def _silence_neck_after_the_move(
-    monkeypatch: pytest.MonkeyPatch, opened: Opened, handle: Any, sid: int, after_s: float
-) -> None:
-    """The neck stops answering ``after_s`` after the command sends its move."""
-    real = handle.move
+def _silence_neck_after_the_move(monkeypatch: pytest.MonkeyPatch, sid: int, after_s: float) -> None:
+    """The simulated neck stops answering ``after_s`` after its move command arrives."""
+    opened: Opened
 
-    async def move(self: Any, *args: Any, **kwargs: Any) -> Any:
-        result = await real(self, *args, **kwargs)
-        faults = opened.transports[-1].line.faults  # type: ignore[attr-defined]
-        asyncio.get_running_loop().call_later(after_s, faults.silent.add, sid)
-        return result
+    def setup(sim: SimRobot) -> None:
+        neck = sim.neck
+        real = neck.handle
 
-    monkeypatch.setattr(handle, "move", move)
+        def handle(packet: Packet, now_s: float) -> Packet | None:
+            moves = packet.cmd in (Command.S_JOG, Command.I_JOG) or (
+                sid == 4 and packet.cmd == Command.RAM_WRITE
+            )
+            if packet.sid == sid and moves:
+                faults = opened.transports[-1].line.faults  # type: ignore[attr-defined]
+                asyncio.get_running_loop().call_later(after_s, faults.silent.add, sid)
+            return real(packet, now_s)
+
+        monkeypatch.setattr(neck, "handle", handle)
+
+    opened = spy_on_ports(monkeypatch, setup=setup)
 
 
 def test_a_herkulex_neck_silent_after_the_move_says_how_long_it_waited(
-    monkeypatch: pytest.MonkeyPatch, opened: Opened
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    _silence_neck_after_the_move(monkeypatch, opened, ServoHandle, 3, 0.0)
+    _silence_neck_after_the_move(monkeypatch, 3, 0.0)
     result = invoke("neck", "--raw", "300", "--playtime", "0.2", *SIM)
     assert result.code == 1, result.out
     # It waited the playtime + 1.5 s (not the 1 s a single sample may take).
@@ -323,10 +330,10 @@ def test_a_herkulex_neck_silent_after_the_move_says_how_long_it_waited(
 
 
 def test_a_worm_neck_silent_mid_move_is_not_reported_as_still_moving_now(
-    monkeypatch: pytest.MonkeyPatch, opened: Opened
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(neck_cli, "WORM_TIMEOUT_S", 2.5)
-    _silence_neck_after_the_move(monkeypatch, opened, WormNeckHandle, 4, 0.3)
+    _silence_neck_after_the_move(monkeypatch, 4, 0.3)
     result = invoke("neck", "up", *WORM)
     assert result.code == 1, result.out
     text = words(result.out)

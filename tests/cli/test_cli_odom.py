@@ -41,6 +41,7 @@ def json_lines(*args: str) -> list[dict[str, Any]]:
     return [json.loads(line) for line in result.stdout.splitlines()]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_count_prints_that_many_json_lines_at_the_rate() -> None:
     rows = json_lines(*SIM, "--count", "5", "--rate", "10")
     assert len(rows) == 5
@@ -52,6 +53,7 @@ def test_count_prints_that_many_json_lines_at_the_rate() -> None:
     assert {(row["x_m"], row["y_m"], row["yaw_rad"]) for row in rows} == {(0.0, 0.0, 0.0)}
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_text_lines() -> None:
     result = invoke("odom", *SIM, "--count", "3")
     assert result.code == 0, result.out
@@ -61,6 +63,7 @@ def test_text_lines() -> None:
         assert LINE.match(line), line
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize(("rate", "expected"), [("50", 25), ("30", 15), ("4", 2)])
 def test_duration_at_a_rate(rate: str, expected: int) -> None:
     rows = json_lines(*SIM, "--rate", rate, "--duration", "0.5")
@@ -71,6 +74,7 @@ def test_duration_at_a_rate(rate: str, expected: int) -> None:
     assert sum(gaps) / len(gaps) == pytest.approx(1 / float(rate), rel=0.15)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_count_and_duration_together_stop_at_whichever_comes_first() -> None:
     assert len(json_lines(*SIM, "--count", "3", "--duration", "60")) == 3
     rows = json_lines(*SIM, "--count", "1000", "--duration", "0.3", "--rate", "50")
@@ -107,6 +111,7 @@ def driving(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
     return seen
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_lines_follow_the_robot(driving: dict[str, Any]) -> None:
     rows = json_lines(*SIM, "--rate", "50", "--duration", "1.5")
     last = rows[-1]
@@ -169,6 +174,7 @@ def test_a_reader_that_stops_reading_ends_it_quietly() -> None:
     assert all(set(json.loads(line)) == KEYS for line in lines)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_no_drive_boards_is_one_error_line() -> None:
     result = invoke("odom", "--port", "sim://?silent=0,1", "--count", "1")
     assert result.code == 1, result.out
@@ -202,6 +208,7 @@ def test_bad_arguments_are_refused_before_the_port_opens(
     assert opened.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_reset_sets_and_prints_the_pose() -> None:
     result = invoke("odom", "reset", "--x", "1", "--y", "-0.5", "--yaw", "1.5", *SIM, "--json")
     assert result.code == 0, result.out

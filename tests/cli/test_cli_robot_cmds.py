@@ -46,6 +46,7 @@ def config_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 # -- info -------------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_info_json_names_every_device() -> None:
     result = invoke("info", *SIM, "--json")
     assert result.code == 0, result.out
@@ -68,6 +69,7 @@ def test_info_json_names_every_device() -> None:
     }
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_info_worm_neck_and_a_silent_servo() -> None:
     result = invoke("info", "--port", "sim://?neck=worm&silent=12", "--json")
     assert result.code == 0, result.out
@@ -78,6 +80,7 @@ def test_info_worm_neck_and_a_silent_servo() -> None:
     assert found["absent"] == [12]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_info_table() -> None:
     result = invoke("info", "--port", "sim://?neck=0201&silent=12")
     assert result.code == 0, result.out
@@ -146,6 +149,7 @@ def test_ports_says_when_there_are_none(
 # -- light ------------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_light_sets_the_simulated_ring(opened: Opened) -> None:
     result = invoke("light", "120", "255", "0x80", *SIM)
     assert result.code == 0, result.out
@@ -177,6 +181,7 @@ def test_light_refuses_bad_values_before_opening(
     assert opened.urls == []  # nothing opened, so nothing sent
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_light_without_the_core_board_is_an_error() -> None:
     result = invoke("light", "1", "2", "3", "--port", "sim://?silent=20")
     assert result.code == 1

@@ -23,7 +23,7 @@ from ohmni_tb.cli import status as status_cli
 from ohmni_tb.cli.common import open_robot
 from ohmni_tb.cli.status import FRAME_S
 from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read, ram_write
-from ohmni_tb.robot import Robot
+from ohmni_tb.robot import LocalRobot, Robot
 from ohmni_tb.sim.robot import SimRobot
 from ohmni_tb.sim.servo import SimServo
 
@@ -158,6 +158,7 @@ def check_schema(data: dict[str, Any]) -> None:
 # -- one status -----------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_json_is_the_documented_schema_with_the_simulators_values() -> None:
     data = status_json()
     check_schema(data)
@@ -204,6 +205,7 @@ def test_json_is_the_documented_schema_with_the_simulators_values() -> None:
     assert data["bus"]["timeouts"] == 0
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_docked_robot_is_docked_and_charging() -> None:
     battery = status_json("sim://?docked=1")["battery"]
     assert battery["docked"] is True
@@ -211,6 +213,7 @@ def test_docked_robot_is_docked_and_charging() -> None:
     assert battery["current_a"] > 0
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_worm_neck() -> None:
     data = status_json("sim://?neck=worm")
     check_schema(data)
@@ -224,6 +227,7 @@ def test_worm_neck() -> None:
     assert not data["bus"]["streams"]["servo_neck"]["enabled"]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_silent_devices_are_absent_and_null() -> None:
     data = status_json("sim://?silent=11,20")
     check_schema(data)
@@ -246,6 +250,18 @@ def screen(data: dict[str, Any], width: int) -> str:
     return words(re.sub("[─╭╮╰╯]", " ", text))
 
 
+@pytest.mark.usefixtures("virtual_time")
+def test_status_without_drive_boards_shows_the_rest() -> None:
+    # The command to find out what is missing must work when the drive boards are.
+    result = invoke("status", "--port", "sim://?silent=0,1", "--json")
+    assert result.code == 0, result.out
+    data = json.loads(result.stdout)
+    assert data["absent"] == [0, 1]
+    assert data["battery"] is not None
+    assert result.out == result.stdout  # nothing on stderr
+
+
+@pytest.mark.usefixtures("virtual_time")
 def test_no_neck_at_all() -> None:
     data = status_json("sim://?silent=3")
     assert data["neck_kind"] == "none"
@@ -253,6 +269,7 @@ def test_no_neck_at_all() -> None:
     assert "neck none answered" in screen(data, width=120)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_values_are_the_simulated_robots(monkeypatch: pytest.MonkeyPatch) -> None:
     def prepare(sim: SimRobot) -> None:
         assert isinstance(sim.neck, SimServo)
@@ -269,6 +286,7 @@ def test_the_values_are_the_simulated_robots(monkeypatch: pytest.MonkeyPatch) ->
     assert data["battery"]["cell_v"] == pytest.approx([mv / 1000 for mv in cells], abs=0.005)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_screen_shows_every_part() -> None:
     result = invoke("status", *SIM)
     assert result.code == 0, result.out
@@ -305,6 +323,7 @@ def neck_torque(sim: SimRobot) -> int:
     return parse_reply(reply).data[-1]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_neck_is_left_as_it_was(monkeypatch: pytest.MonkeyPatch) -> None:
     # A status reads: it does not free (or rest) the neck on its way out, as a Robot
     # closing with the default on_exit_neck=free would.
@@ -324,6 +343,7 @@ def test_a_port_that_cannot_open_is_one_error_line() -> None:
     assert "Traceback" not in result.out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_bad_simulator_option_is_one_error_line() -> None:
     result = invoke("status", "--port", "sim://?neck=9999")
     assert result.code == 1
@@ -403,14 +423,15 @@ class Frames:
 
 
 @pytest.fixture
-def robots(monkeypatch: pytest.MonkeyPatch) -> list[Robot]:
+def robots(monkeypatch: pytest.MonkeyPatch) -> list[LocalRobot]:
     """Every Robot the status command opens."""
-    opened: list[Robot] = []
+    opened: list[LocalRobot] = []
     real = open_robot
 
     @contextlib.asynccontextmanager
     async def spy(port: str, **overrides: Any) -> AsyncIterator[Robot]:
         async with real(port, **overrides) as robot:
+            assert isinstance(robot, LocalRobot)  # the port, opened by the command
             opened.append(robot)
             yield robot
 
@@ -418,8 +439,9 @@ def robots(monkeypatch: pytest.MonkeyPatch) -> list[Robot]:
     return opened
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_watch_redraws_at_10_hz_and_ctrl_c_ends_it_cleanly(
-    monkeypatch: pytest.MonkeyPatch, robots: list[Robot]
+    monkeypatch: pytest.MonkeyPatch, robots: list[LocalRobot]
 ) -> None:
     frames = Frames(monkeypatch, stop_after=12)
     renders: list[Any] = []
@@ -449,8 +471,9 @@ def test_watch_redraws_at_10_hz_and_ctrl_c_ends_it_cleanly(
     assert robots[0].exit_error is None
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_watch_ends_cleanly_on_a_real_sigint(
-    monkeypatch: pytest.MonkeyPatch, robots: list[Robot]
+    monkeypatch: pytest.MonkeyPatch, robots: list[LocalRobot]
 ) -> None:
     # SIGINT as Ctrl-C sends it: asyncio.run cancels the command's task.
     Frames(monkeypatch, stop_after=3, sigint=True)
@@ -460,6 +483,7 @@ def test_watch_ends_cleanly_on_a_real_sigint(
     assert robots[0].closed
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_watch_json_prints_one_object_per_frame(monkeypatch: pytest.MonkeyPatch) -> None:
     Frames(monkeypatch, stop_after=4)
     result = invoke("status", *SIM, "--watch", "--json")
@@ -470,6 +494,7 @@ def test_watch_json_prints_one_object_per_frame(monkeypatch: pytest.MonkeyPatch)
         check_schema(json.loads(line))
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_watch_ctrl_c_before_the_first_frame_exits_0(monkeypatch: pytest.MonkeyPatch) -> None:
     async def interrupted(robot: Any, not_before_s: float) -> None:
         raise KeyboardInterrupt
@@ -571,6 +596,7 @@ def test_watch_json_into_a_pipe_that_closes() -> None:
     assert b"BrokenPipe" not in err
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_present_device_without_a_reading_says_so() -> None:
     data = status_json()
     data["neck"] = None

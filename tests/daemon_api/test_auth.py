@@ -90,7 +90,7 @@ async def test_with_a_token_no_token_or_a_wrong_one_is_refused_and_logged(
         assert server.clients == []
         # The right one, as a header or (a browser) in the URL.
         async with RobotClient.connect(server.url, token=TOKEN) as client:
-            assert await client.latest("robot_state") is not None
+            assert client.latest("robot_state") is not None
         async with connect(f"{server.url}/?token={TOKEN}") as ws:
             assert '"op":"hello"' in str(await ws.recv())
 
@@ -139,7 +139,7 @@ def test_ohmni_serve_beyond_loopback_makes_the_token_and_requires_it(tmp_path: P
                 async with RobotClient.connect(local):
                     pass
             async with RobotClient.connect(local, token=token) as client:
-                assert await client.latest("robot_state") is not None
+                assert client.latest("robot_state") is not None
 
         asyncio.run(use())
     finally:

@@ -96,7 +96,7 @@ async def test_one_driver_moves_the_robot_while_readers_watch_it_move(
         # The readers see it move in the Robot's own samples.
         seen = [await anext(odom) for _ in range(odom.pending)]
         assert max(sample.linear_mps for sample in seen) > 0.2
-        latest = await reader2.latest("wheel_odom")
+        latest = reader2.latest("wheel_odom")
         assert latest is not None
         assert latest.x_m > 0.1
         # A reader's command is refused here, before anything is sent.
@@ -142,7 +142,7 @@ async def test_a_command_without_the_lease_is_refused_to_that_client_and_moves_n
         assert robot.stats().streams["tbcore_status"].achieved_hz > 5
         # The bystander got no error of the intruder's, and its stream went on.
         await anext(state)
-        assert await bystander.latest("robot_state") is not None
+        assert bystander.latest("robot_state") is not None
 
 
 async def test_acquire_is_refused_while_another_holds_the_lease_and_steal_takes_it(
@@ -212,7 +212,7 @@ async def test_the_watchdog_still_stops_a_driver_that_goes_quiet(
     assert driver.has_lease
     # Holding the lease is not driving: no command for watchdog_s, and the wheels stop.
     await until(lambda: speed(robot) == 0.0, 2.0)
-    state = await driver.latest("robot_state")
+    state = driver.latest("robot_state")
     assert state is not None
     assert state.watchdog_tripped
     assert driver.has_lease
@@ -288,7 +288,7 @@ async def test_the_driver_drives_the_neck_servos_pid_odometry_streams_and_light(
     driver.enable_stream("tbcore_status", False)
     await driver.confirm()
     assert robot.get_pid() == gains
-    assert await driver.get_pid() == gains
+    assert driver.get_pid() == gains
     odom = robot.latest("wheel_odom")
     await until(lambda: (s := robot.latest("wheel_odom")) is not None and s is not odom)
     sample = robot.latest("wheel_odom")

@@ -22,7 +22,7 @@ from ohmni_tb.daemon.server import RobotServer
 from ohmni_tb.errors import LeaseError, StateError, TransportError
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import parse_count, read_count
-from ohmni_tb.robot import RobotStateSample
+from ohmni_tb.robot import RobotStateSample, SampleStream
 
 from ._serving import free_port, start_serving, stop_serving
 
@@ -34,11 +34,14 @@ def pty_path() -> Iterator[str]:
 
 
 async def link_becomes(
-    client: RobotClient, states: object, link: str, timeout_s: float = 5.0
+    client: RobotClient,
+    states: SampleStream[RobotStateSample],
+    link: str,
+    timeout_s: float = 5.0,
 ) -> RobotStateSample:
     """The first ``robot_state`` sample with ``link`` (samples before it are skipped)."""
     async with asyncio.timeout(timeout_s):
-        async for state in states:  # type: ignore[attr-defined]  # a ClientSubscription
+        async for state in states:
             if state.link.value == link:
                 sample: RobotStateSample = state
                 return sample

@@ -23,9 +23,9 @@ from websockets.exceptions import InvalidStatus
 
 from ohmni_tb import Robot
 from ohmni_tb.client import RobotClient
-from ohmni_tb.daemon.protocol import ErrorMessage, RequestError, encode, parse_client_message
 from ohmni_tb.daemon.server import RobotServer
 from ohmni_tb.errors import TransportError
+from ohmni_tb.robot.wire import ErrorMessage, RequestError, encode, parse_client_message
 
 #: ``args`` nested deeper than Python's JSON reader goes (its recursion limit).
 DEEP_ARGS = (
@@ -294,7 +294,7 @@ async def test_idle_connections_beyond_the_cap_are_refused_and_descriptors_remai
             while True:
                 try:
                     async with RobotClient.connect(url, timeout_s=5.0) as client:
-                        assert await client.latest("robot_state") is not None
+                        assert client.latest("robot_state") is not None
                         break
                 except TransportError:
                     await asyncio.sleep(0.1)

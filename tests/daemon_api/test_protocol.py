@@ -10,8 +10,22 @@ from pathlib import Path
 import pytest
 
 from ohmni_tb import Robot
-from ohmni_tb.daemon import protocol
-from ohmni_tb.daemon.protocol import (
+from ohmni_tb.errors import (
+    InvalidArgumentError,
+    MotionAbortedError,
+    MotionEnd,
+    MotionError,
+    MotionPreemptedError,
+    MotionResult,
+    MotionTimeoutError,
+    OhmniError,
+    OutOfRangeError,
+    StateError,
+    WheelStallError,
+)
+from ohmni_tb.robot import STREAM_NAMES
+from ohmni_tb.robot import wire as protocol
+from ohmni_tb.robot.wire import (
     Call,
     LatestArgs,
     RequestError,
@@ -22,7 +36,6 @@ from ohmni_tb.daemon.protocol import (
     sample_from_json,
     sample_json,
 )
-from ohmni_tb.robot import STREAM_NAMES
 from ohmni_tb.sim.clock import run_virtual
 
 SCHEMA = Path(__file__).resolve().parents[2] / "docs" / "daemon-schema.json"
@@ -137,7 +150,7 @@ def test_the_schema_documents_every_method_its_arguments_and_whether_it_needs_th
 def test_the_checked_in_schema_matches_the_code() -> None:
     assert SCHEMA.read_text(encoding="utf-8") == protocol.schema_text(), (
         "docs/daemon-schema.json is out of date: regenerate it with "
-        "`.venv/bin/python -m ohmni_tb.daemon.protocol docs/daemon-schema.json`"
+        "`.venv/bin/python -c 'import ohmni_tb.robot.wire as w; w.write_schema()'`"
     )
 
 
@@ -179,3 +192,61 @@ def test_the_servers_sample_frame_is_a_valid_sample_message() -> None:
     assert message.dropped == 3
     state = sample_from_json(message.topic, message.data)
     assert state.link.value == "connected"  # type: ignore[union-attr]  # a RobotStateSample
+
+
+def _motion_result(reason: MotionEnd) -> MotionResult:
+    return MotionResult(
+        kind="drive_distance",
+        reason=reason,
+        distance_m=0.25,
+        heading_change_rad=0.01,
+        x_m=0.25,
+        y_m=0.0,
+        yaw_rad=0.01,
+        remaining_m=0.25,
+        remaining_rad=0.0,
+        elapsed_s=1.5,
+    )
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        MotionPreemptedError("preempted by stop", result=_motion_result("preempted"), by="stop"),
+        MotionTimeoutError("not there in 3 s", result=_motion_result("timeout"), timeout_s=3.0),
+        WheelStallError(
+            "the left wheel stalled", result=_motion_result("stalled"), wheels=("left",)
+        ),
+        MotionAbortedError("the watchdog tripped", result=_motion_result("watchdog")),
+    ],
+)
+def test_a_goals_error_goes_to_json_and_back_as_the_same_error(error: MotionError) -> None:
+    data = json.loads(json.dumps(protocol.goal_json(error)))
+    with pytest.raises(type(error)) as raised:
+        protocol.goal_from_json(data)
+    assert str(raised.value) == str(error)
+    assert raised.value.result == error.result
+    assert vars(raised.value) == vars(error)
+
+
+def test_a_goal_that_arrived_is_its_result() -> None:
+    result = _motion_result("arrived")
+    assert protocol.goal_from_json(json.loads(json.dumps(protocol.goal_json(result)))) == result
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        OutOfRangeError("servo 3 position", 2000, 280, 650, "count"),
+        OutOfRangeError("pid kp", 1e9, 0.0, 10000.0),
+        InvalidArgumentError("give exactly one of pos_raw or angle_rad"),
+        StateError("an emergency stop is latched: call robot.clear_estop() first"),
+    ],
+)
+def test_the_robots_refusal_comes_back_as_the_robot_raised_it(error: OhmniError) -> None:
+    reply = RequestError("bad_value", f"move: {error}", 7, raised=error).reply()
+    message = protocol.parse_server_message(protocol.encode(reply))
+    assert isinstance(message, protocol.ErrorMessage)
+    again = protocol.raised_error(message.raised, message.message.removeprefix("move: "))
+    assert type(again) is type(error)
+    assert str(again) == str(error)

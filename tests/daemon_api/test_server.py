@@ -16,11 +16,11 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosedError
 
 from ohmni_tb import Robot
-from ohmni_tb.client import ClientSubscription, RobotClient
-from ohmni_tb.daemon.protocol import PROTOCOL_VERSION
+from ohmni_tb.client import RobotClient
 from ohmni_tb.daemon.server import MAX_MESSAGE_BYTES, RobotServer
 from ohmni_tb.errors import ConfigError, TransportClosedError
-from ohmni_tb.robot import Subscription
+from ohmni_tb.robot import SampleStream
+from ohmni_tb.robot.wire import PROTOCOL_VERSION
 
 #: Samples a stream's rate is judged over (seconds of real time).
 WINDOW_S = 3.0
@@ -56,22 +56,39 @@ def samples_in(message: dict[str, Any]) -> list[dict[str, Any]]:
     return [message] if message["op"] == "sample" else []
 
 
-async def collect(client: RobotClient, topic: str, duration_s: float, **options: Any) -> list[Any]:
+async def collect(client: RobotClient, topic: str, duration_s: float) -> list[Any]:
     """Every sample of ``topic`` for ``duration_s``; none lost."""
     samples: list[Any] = []
 
-    async def read(subscription: ClientSubscription[Any]) -> None:
+    async def read(subscription: SampleStream[Any]) -> None:
         async for sample in subscription:
             samples.append(sample)  # noqa: PERF401  # each kept at once: the timeout ends it
 
-    async with client.subscribe(topic, **options) as subscription:
+    async with client.subscribe(topic) as subscription:
         with contextlib.suppress(TimeoutError):  # the window ends it, not the stream
             await asyncio.wait_for(read(subscription), duration_s)
         assert subscription.dropped == 0
     return samples
 
 
-async def drain(subscription: ClientSubscription[Any]) -> None:
+async def stamps_with(url: str, topic: str, duration_s: float, **options: Any) -> list[float]:
+    """The stamps of ``topic``'s samples a bare client subscribed with ``options`` (the
+    protocol's ``max_hz``, ``every``) gets in ``duration_s``."""
+    ws = await raw(url)
+    await ws.send(json.dumps({"op": "subscribe", "id": 1, "topic": topic, **options}))
+    stamps: list[float] = []
+    loop = asyncio.get_running_loop()
+    until = loop.time() + duration_s
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout_at(until):
+            while True:
+                for sample in samples_in(json.loads(await ws.recv())):
+                    stamps.append(sample["data"]["stamp_s"])  # noqa: PERF401  # until the time is up
+    await ws.close()
+    return stamps
+
+
+async def drain(subscription: SampleStream[Any]) -> None:
     async for _ in subscription:
         pass
 
@@ -108,7 +125,7 @@ async def test_twenty_readers_each_get_every_odometry_and_battery_sample(
         assert len(core) >= 0.6 * 10 * WINDOW_S
 
 
-def _queued(subscription: Subscription[Any]) -> list[Any]:
+def _queued(subscription: SampleStream[Any]) -> list[Any]:
     """What a subscription holds now, oldest first."""
     samples = []
     while (sample := subscription.get_nowait()) is not None:
@@ -159,18 +176,16 @@ async def test_a_stalled_client_loses_its_oldest_samples_and_slows_nothing(
 
 
 async def test_a_rate_cap_sends_at_most_that_rate(server: RobotServer) -> None:
-    async with RobotClient.connect(server.url) as client:
-        odom = await collect(client, "wheel_odom", WINDOW_S, max_hz=10)
+    odom = await stamps_with(server.url, "wheel_odom", WINDOW_S, max_hz=10)
     assert 0.85 * 10 * WINDOW_S <= len(odom) <= 10 * WINDOW_S + 1
-    gaps = [b.stamp_s - a.stamp_s for a, b in itertools.pairwise(odom)]
+    gaps = [b - a for a, b in itertools.pairwise(odom)]
     assert min(gaps) >= 0.06  # never two in quick succession (a 50 Hz stream, capped)
 
 
 async def test_every_nth_sample_decimates_the_stream(server: RobotServer) -> None:
-    async with RobotClient.connect(server.url) as client:
-        odom = await collect(client, "wheel_odom", WINDOW_S, every=5)
+    odom = await stamps_with(server.url, "wheel_odom", WINDOW_S, every=5)
     assert 0.85 * 10 * WINDOW_S <= len(odom) <= 10 * WINDOW_S + 1
-    gaps = sorted(b.stamp_s - a.stamp_s for a, b in itertools.pairwise(odom))
+    gaps = sorted(b - a for a, b in itertools.pairwise(odom))
     # Five 20 ms periods apart: never closer (a missed cycle may make one gap longer).
     assert gaps[0] >= 0.09
     assert gaps[len(gaps) // 2] == pytest.approx(0.1, abs=0.005)
@@ -215,7 +230,7 @@ async def test_a_bad_message_is_answered_to_its_sender_only_and_the_connection_s
         for _ in range(10):
             await anext(odom)
         assert odom.dropped == 0
-        assert await bystander.latest("wheel_odom") is not None
+        assert bystander.latest("wheel_odom") is not None
 
 
 async def test_a_flooding_client_is_told_and_closed_with_1008(server: RobotServer) -> None:
@@ -273,6 +288,6 @@ async def test_loopback_addresses_serve(robot: Robot, host: str) -> None:
         pytest.skip(f"{host}: {exc}")
     try:
         async with RobotClient.connect(server.url) as client:
-            assert client.hello.protocol == PROTOCOL_VERSION == 3
+            assert client.hello.protocol == PROTOCOL_VERSION == 4
     finally:
         await server.aclose()

@@ -147,7 +147,7 @@ def _drive_until_moving(sim: Simulator, url: str) -> Driver:
 async def _reads_robot_state(url: str) -> bool:
     try:
         async with RobotClient.connect(url) as client:
-            return await client.latest("robot_state") is not None
+            return client.latest("robot_state") is not None
     except TransportError:
         return False  # nothing listens there (yet)
 

@@ -28,6 +28,8 @@ SERVICE_CALL_REQUEST = 0x02
 SERVICE_CALL_RESPONSE = 0x03
 #: The service that unlocks control for the calling client.
 UNLOCK = "/tb_control/unlock"
+#: How long the server may take to answer (a loaded machine runs its threads late).
+_ANSWER_TIMEOUT_S = 10.0
 
 # -- protobuf's wire format -----------------------------------------------------------------
 
@@ -201,7 +203,11 @@ class FoxgloveClient:
     async def connect(
         cls, url: str, *, close_timeout_s: float = 10.0, origin: str | None = None
     ) -> FoxgloveClient:
-        """Connect as the app does; ``origin``: as a web page of that origin would."""
+        """Connect as the app does; ``origin``: as a web page of that origin would.
+
+        Returns once the server has said what it offers: its info, then its channels
+        (``advertise``) and, when it has services, those (``advertiseServices``), which
+        the server sends right after the info."""
         ws = await connect(
             url,
             subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
@@ -211,30 +217,38 @@ class FoxgloveClient:
         client = cls(ws)
         client.server_info = json.loads(await client.ws.recv())
         assert client.server_info["op"] == "serverInfo", client.server_info
-        while True:  # the channels come in one advertise or more, right after
-            try:
-                async with asyncio.timeout(0.5):
-                    frame = await client.ws.recv()
-            except TimeoutError:
-                break
-            message = json.loads(frame)
-            if message["op"] == "advertiseServices":
-                for service in message["services"]:
-                    client.services[service["name"]] = service
-            if message["op"] == "advertise":
-                for channel in message["channels"]:
-                    schema = channel["schema"]
-                    encoding = channel.get("schemaEncoding", "")
-                    raw = base64.b64decode(schema) if encoding == "protobuf" else schema.encode()
-                    client.channels[channel["topic"]] = Advertised(
-                        channel["id"],
-                        channel["topic"],
-                        channel["encoding"],
-                        channel["schemaName"],
-                        encoding,
-                        raw,
-                    )
+        offers = {"advertise"}
+        if "services" in client.server_info.get("capabilities", []):
+            offers.add("advertiseServices")
+        async with asyncio.timeout(_ANSWER_TIMEOUT_S):
+            while offers:
+                frame = await client.ws.recv()
+                if isinstance(frame, str):
+                    offers.discard(client._take(json.loads(frame)).get("op"))
         return client
+
+    def _take(self, message: dict[str, Any]) -> dict[str, Any]:
+        """Keep what a text message tells of the server (channels, services, statuses)."""
+        op = message.get("op")
+        if op == "status":
+            self.statuses.append(message)
+        elif op == "advertiseServices":
+            for service in message["services"]:
+                self.services[service["name"]] = service
+        elif op == "advertise":
+            for channel in message["channels"]:
+                schema = channel["schema"]
+                encoding = channel.get("schemaEncoding", "")
+                raw = base64.b64decode(schema) if encoding == "protobuf" else schema.encode()
+                self.channels[channel["topic"]] = Advertised(
+                    channel["id"],
+                    channel["topic"],
+                    channel["encoding"],
+                    channel["schemaName"],
+                    encoding,
+                    raw,
+                )
+        return message
 
     async def subscribe(self, *topics: str) -> None:
         subscriptions = []
@@ -256,20 +270,20 @@ class FoxgloveClient:
                     frame = await self.ws.recv()
             except (TimeoutError, ConnectionClosed):
                 break
-            if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA:
+            if isinstance(frame, str):
+                self._take(json.loads(frame))
+            elif frame[0] == MESSAGE_DATA:
                 subscription, log_time = struct.unpack_from("<IQ", frame, 1)
                 out.append(Message(self._topics[subscription], log_time, frame[13:]))
         return out
 
-    async def _next(self, want: Any, seconds: float = 10.0) -> Any:
+    async def _next(self, want: Any, seconds: float = _ANSWER_TIMEOUT_S) -> Any:
         """The next frame ``want(frame)`` accepts; status messages are kept on the way."""
         async with asyncio.timeout(seconds):
             while True:
                 frame = await self.ws.recv()
                 if isinstance(frame, str):
-                    message = json.loads(frame)
-                    if message.get("op") == "status":
-                        self.statuses.append(message)
+                    message = self._take(json.loads(frame))
                     if want(message):
                         return message
                 elif want(frame):
@@ -364,4 +378,14 @@ class FoxgloveClient:
         return message
 
     async def close(self) -> None:
-        await self.ws.close()
+        """Close as the app does: reading on until the server's close frame, which waits
+        behind every message already on its way (a client that stops reading first
+        cannot finish the handshake, and waits ``close_timeout_s``)."""
+        closing = asyncio.create_task(self.ws.close())
+        try:
+            while not closing.done():
+                await self.ws.recv()
+        except ConnectionClosed:
+            pass
+        finally:
+            await closing

@@ -14,10 +14,10 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 
 from ohmni_tb import Robot
-from ohmni_tb.daemon.protocol import sample_from_json
 from ohmni_tb.errors import TransportError
 from ohmni_tb.foxglove import CHANNELS, FoxgloveBridge
 from ohmni_tb.robot import TbcoreStatusSample, WheelOdomSample
+from ohmni_tb.robot.wire import sample_from_json
 
 from ._wire import Descriptors, FoxgloveClient, Message
 
@@ -86,11 +86,19 @@ async def test_odometry_and_battery_arrive_and_decode(robot: Robot, client: Foxg
     await drive
     after_ns = time.time_ns()
 
-    # In real time on a shared machine: the rates within a few samples.
-    assert 65 <= len(received["/tf"]) <= 80, len(received["/tf"])
-    assert 12 <= len(received["/tb_control/tbcore_status"]) <= 17
-    for topic in topics:
-        assert len(received[topic]) == len(received["/tf"]), topic
+    # Every sample reaches the view on all three channels, with one stamp. Only at the
+    # window's two ends may a sample lack a channel: the edge fell between them.
+    stamps = {topic: [m.log_time_ns for m in received[topic]] for topic in topics}
+    whole = sorted(set.intersection(*(set(each) for each in stamps.values())))
+    for topic, each in stamps.items():
+        inner = [t for t in each if whole[0] <= t <= whole[-1]]
+        assert inner == whole, topic
+        assert len(each) - len(inner) <= 2, topic
+    # 1.5 s of a 50 Hz and a 10 Hz stream: no more than that (nothing twice), and no less
+    # than a loaded machine's share of it (the spacing, judged below, is the rate).
+    assert 40 <= len(whole) <= 80, len(whole)
+    assert 8 <= len(received["/tb_control/tbcore_status"]) <= 17
+    kept = set(whole)
 
     transforms = Descriptors.parse(client.channels["/tf"].schema)
     poses = Descriptors.parse(client.channels["/tb_control/wheel_odom"].schema)
@@ -100,7 +108,9 @@ async def test_odometry_and_battery_arrive_and_decode(robot: Robot, client: Foxg
     }
     xs = []
     for message, pose_message in zip(
-        received["/tf"], received["/tb_control/wheel_odom"], strict=True
+        [m for m in received["/tf"] if m.log_time_ns in kept],
+        [m for m in received["/tb_control/wheel_odom"] if m.log_time_ns in kept],
+        strict=True,
     ):
         # log_time is the sample's stamp on the wall clock: within this test's run, and
         # the same for the transform, the pose and the JSON sample it came from.
@@ -121,8 +131,7 @@ async def test_odometry_and_battery_arrive_and_decode(robot: Robot, client: Foxg
     assert xs[-1] > xs[0] + 0.1  # the robot drove forward, and the view saw it
     assert xs == sorted(xs)
     # The 50 Hz stream's spacing survives the clock conversion.
-    stamps = [m.log_time_ns for m in received["/tf"]]
-    gaps = sorted(b - a for a, b in itertools.pairwise(stamps))
+    gaps = sorted(b - a for a, b in itertools.pairwise(whole))
     assert gaps[len(gaps) // 2] == pytest.approx(20_000_000, abs=1_000_000)
 
     battery = [

@@ -11,7 +11,6 @@ from typing import Any
 import pytest
 
 from ohmni_tb import Robot
-from ohmni_tb.daemon.protocol import sample_from_json, sample_json
 from ohmni_tb.foxglove.channels import (
     CHANNELS,
     WallClock,
@@ -21,6 +20,7 @@ from ohmni_tb.foxglove.channels import (
 )
 from ohmni_tb.robot import STREAM_NAMES, Link, RobotStateSample, WheelOdomSample
 from ohmni_tb.robot.samples import STREAMS
+from ohmni_tb.robot.wire import sample_from_json, sample_json
 from ohmni_tb.sim.clock import run_virtual
 
 from ._wire import Descriptors

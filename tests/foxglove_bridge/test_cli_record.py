@@ -1,5 +1,6 @@
-"""``ohmni record`` as a user runs it: real time, its own process where signals and file
-limits matter, and the file read back with the ``mcap`` reader."""
+"""``ohmni record`` as a user runs it: its own process where signals and file limits
+matter (real time), in this process on virtual time where they do not, and the file read
+back with the ``mcap`` reader."""
 
 from __future__ import annotations
 
@@ -25,14 +26,14 @@ from .test_record import RATES_HZ, read_back
 runner = CliRunner()
 OHMNI = [sys.executable, "-m", "ohmni_tb"]
 #: The requirement is each channel's count within 2 % of its rate × the duration; in
-#: virtual time the counts are exact (test_record.py), and test_record.py checks in real
-#: time that the file holds every sample the Robot published. Here, in real time, what
-#: the recorder does is checked exactly (nothing dropped, the file matches its summary)
-#: and the counts only for the right channels at about their rates: the Robot's own rate
-#: on a shared 2-core machine is bench/robot.py's to judge. Quiet runs of 3 s gave 149–150
-#: on the 50 Hz channels, 89–90 on the servos, 30 on the battery; one CI run beside
-#: another busy process gave 86 on a servo (−4.4 %).
-TOLERANCE = 0.10
+#: virtual time the counts are exact (here and in test_record.py), and test_record.py
+#: checks in real time that the file holds every sample the Robot published. Through a
+#: daemon, in real time, what the recorder does is checked exactly (nothing dropped, the
+#: file matches its summary) and the counts only for the right channels at about their
+#: rates: the Robot's own rate on a shared 2-core machine is bench/robot.py's to judge.
+#: Quiet runs of 3 s gave 149–150 on the 50 Hz channels, 89–90 on the servos, 30 on the
+#: battery; runs beside other busy processes gave 86 and 77 on a servo (−4.4 %, −14 %).
+TOLERANCE = 0.25
 
 
 def _counts_within(counts: dict[str, int], seconds: float, *, pid_debug: bool = False) -> None:
@@ -48,17 +49,14 @@ def _counts_within(counts: dict[str, int], seconds: float, *, pid_debug: bool = 
         assert abs(counts.get(topic, 0) - expected) <= allowed, (topic, counts.get(topic), expected)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_three_seconds_hold_every_channel_at_its_rate(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
-    done = subprocess.run(
-        [*OHMNI, "record", str(path), "--port", "sim://", "--duration", "3", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
+    result = runner.invoke(
+        app, ["record", str(path), "--port", "sim://", "--duration", "3", "--json"]
     )
-    assert done.returncode == 0, done.stderr
-    summary = json.loads(done.stdout)
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
     assert summary["path"] == str(path)
     assert summary["bytes"] == path.stat().st_size
     recorded = {t: c["messages"] for t, c in summary["channels"].items()}
@@ -93,6 +91,7 @@ def _wait_for(proc: subprocess.Popen[bytes], words: bytes, timeout_s: float = 30
 
 def test_ctrl_c_ends_an_open_recording_normally(tmp_path: Path) -> None:
     path = tmp_path / "open.mcap"
+    started = time.monotonic()
     proc = _start(str(path), "--port", "sim://")
     try:
         _wait_for(proc, b"Ctrl-C to stop")
@@ -103,13 +102,20 @@ def test_ctrl_c_ends_an_open_recording_normally(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+    ended = time.monotonic()
     assert proc.returncode == 0, err.decode()
     first = out.decode().splitlines()[0]
-    assert first.startswith(("recorded 1.", "recorded 2.")), first
+    assert first.startswith("recorded "), first
     assert f"to {path}:" in first
+    # From before it said it records to the signal 1.5 s later, at most as long as the
+    # process lived (a loaded machine delivers the signal late).
+    seconds = float(first.split()[1])
+    assert 1.5 <= seconds <= ended - started, first
     counts, _ = read_back(path)
-    assert 60 <= counts["/tf"] <= 110, counts
-    assert counts["/tb_control/tbcore_status"] >= 12
+    # The rates over that time (said to 0.1 s): no more than they give, and most of it on
+    # a loaded machine.
+    assert (1 - TOLERANCE) * 50 * seconds <= counts["/tf"] <= 50 * (seconds + 0.05) + 1, counts
+    assert counts["/tb_control/tbcore_status"] >= (1 - TOLERANCE) * 10 * seconds - 1, counts
 
 
 def test_a_file_size_limit_stops_it_with_one_line_and_the_file_reads(tmp_path: Path) -> None:

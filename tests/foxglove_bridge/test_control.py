@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import secrets
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 
@@ -49,6 +50,13 @@ async def connected(robot: Robot, *, writable: bool) -> tuple[FoxgloveBridge, Fo
     if writable:
         assert await client.unlock(TOKEN) == {"unlocked": True}
     return bridge, client
+
+
+async def next_sample(robot: Robot, stream: str) -> Any:
+    """The stream's next sample (the Robot publishes its first ones a moment after opening,
+    later on a loaded machine)."""
+    async with robot.subscribe(stream) as samples, asyncio.timeout(10.0):
+        return await anext(samples)
 
 
 async def test_every_parameter_reads_what_the_robot_runs_with(robot: Robot) -> None:
@@ -152,18 +160,16 @@ async def test_the_services_reset_odometry_and_move_the_neck(robot: Robot) -> No
 
         pose = {"x_m": 1.5, "y_m": -0.25, "yaw_rad": 0.5}
         assert await client.call_service(RESET_ODOM_SERVICE, pose) == pose
-        await asyncio.sleep(0.1)
-        odom = robot.latest("wheel_odom")
-        assert odom is not None
+        # The next sample, 20 ms on (later on a loaded machine), is at the new pose.
+        odom = await next_sample(robot, "wheel_odom")
         assert (odom.x_m, odom.y_m, odom.yaw_rad) == pytest.approx((1.5, -0.25, 0.5), abs=1e-3)
 
         answer = await client.call_service(
             NECK_MOVE_SERVICE, {"raw": 420, "playtime_s": 0.2}, call_id=2
         )
         assert answer == {"moved": True}
-        await asyncio.sleep(0.6)
-        neck = robot.latest("servo_neck")
-        assert neck is not None
+        await asyncio.sleep(0.6)  # the move's playtime, and the servo settling
+        neck = await next_sample(robot, "servo_neck")
         assert neck.position_raw == pytest.approx(420, abs=3)
     finally:
         await client.close()
@@ -183,14 +189,11 @@ async def test_a_refused_service_call_fails_with_the_reason_and_sends_nothing(
 ) -> None:
     bridge, client = await connected(robot, writable=True)
     try:
-        await asyncio.sleep(0.1)
-        before = robot.latest("servo_neck")
-        assert before is not None
+        before = await next_sample(robot, "servo_neck")
         answer = await client.call_service(NECK_MOVE_SERVICE, request_json)
         assert words in answer["failure"]
         await asyncio.sleep(0.5)  # a move sent would show by now
-        after = robot.latest("servo_neck")
-        assert after is not None
+        after = await next_sample(robot, "servo_neck")
         assert after.position_raw == before.position_raw
         assert after.torque == before.torque
     finally:

@@ -27,7 +27,7 @@ from ohmni_tb.errors import ConfigError
 from ohmni_tb.foxglove import FoxgloveBridge
 
 from ._wire import UNLOCK, FoxgloveClient
-from .test_serve_foxglove import serving_with_view, unlock_token
+from .test_serve_foxglove import gains_now, serving_with_view, unlock_token
 
 P = "/tb_control/"
 
@@ -41,7 +41,7 @@ def config_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 async def odom_x(url: str) -> float:
     async with RobotClient.connect(url) as client:
-        odom = await client.latest("wheel_odom")
+        odom = client.latest("wheel_odom")
         assert odom is not None
         return float(odom.x_m)
 
@@ -72,9 +72,9 @@ def test_a_client_drives_changes_and_calls_only_after_unlocking(config_home: Pat
                     assert UNLOCK in said["message"]
 
                     async with RobotClient.connect(url) as reader:
-                        kp = (await reader.get_pid()).kp
+                        kp = reader.get_pid().kp
                         await locked.set_parameters({P + "pid_kp": kp + 50.0})
-                        assert (await reader.get_pid()).kp == kp
+                        assert (await gains_now(url)).kp == kp
                     assert any(
                         "control is locked" in s["message"] and "parameters not set" in s["message"]
                         for s in locked.statuses
@@ -162,8 +162,8 @@ def test_a_refused_parameter_is_told_at_once_and_the_next_twist_drives(
                     )
                     assert answered.get(name, before[name]) == before[name]
                     async with RobotClient.connect(url) as reader:
-                        gains = await reader.get_pid()
-                        stats = await reader.stats()
+                        gains = reader.get_pid()
+                        stats = reader.stats()
                     assert (gains.kp, gains.ff_offset) == (
                         before[P + "pid_kp"],
                         before[P + "pid_ff_offset"],

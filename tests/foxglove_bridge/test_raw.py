@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from ohmni_tb import Robot
 from ohmni_tb.cli import app
 from ohmni_tb.cli import record as record_cli
 from ohmni_tb.errors import InvalidArgumentError
@@ -20,6 +19,7 @@ from ohmni_tb.foxglove.record import RAW_TOPICS
 from ohmni_tb.foxglove.replay import raw_bus_bytes
 from ohmni_tb.monitor import BusMonitor
 from ohmni_tb.protocol import Command, PacketDecoder
+from ohmni_tb.robot import LocalRobot
 from ohmni_tb.sim.clock import run_virtual
 
 from .test_record import read_back
@@ -29,7 +29,7 @@ def test_the_recording_holds_every_byte_the_robot_wrote_and_read(tmp_path: Path)
     path = tmp_path / "raw.mcap"
 
     async def record() -> tuple[int, int, dict[str, int]]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(0.5037)  # off every stream's phase
             async with McapRecorder(robot, path, duration_s=1.0, raw=True) as recorder:
                 # The window starts now (virtual time: opening took none) and lasts 1 s.
@@ -84,10 +84,11 @@ def test_raw_needs_the_robot_that_owns_the_port(tmp_path: Path) -> None:
             raise AssertionError("not reached")
 
     with pytest.raises(InvalidArgumentError, match="raw bus bytes need the Robot"):
-        McapRecorder(DaemonClientLike(), tmp_path / "x.mcap", raw=True)
+        McapRecorder(DaemonClientLike(), tmp_path / "x.mcap", raw=True)  # type: ignore[arg-type]  # not a LocalRobot, on purpose
     assert not (tmp_path / "x.mcap").exists()
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_ohmni_record_raw_then_bus_monitor_decodes_it(tmp_path: Path) -> None:
     path = tmp_path / "bus.mcap"
     runner = CliRunner()
@@ -108,6 +109,7 @@ def test_ohmni_record_raw_then_bus_monitor_decodes_it(tmp_path: Path) -> None:
     assert all(0 < e["latency_ms"] < 100 for e in replies)  # times kept: replies after requests
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_recording_without_raw_bytes_is_refused_by_the_monitor(tmp_path: Path) -> None:
     path = tmp_path / "streams.mcap"
     runner = CliRunner()

@@ -20,11 +20,11 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
 from ohmni_tb import Robot
-from ohmni_tb.daemon.protocol import sample_from_json
 from ohmni_tb.foxglove import CHANNELS, McapRecorder, RecordingError
 from ohmni_tb.foxglove import record as record_module
 from ohmni_tb.foxglove.record import _McapScanner
 from ohmni_tb.robot import STREAM_NAMES, WheelOdomSample
+from ohmni_tb.robot.wire import sample_from_json
 from ohmni_tb.sim.clock import run_virtual
 
 from ._wire import Descriptors
@@ -134,24 +134,26 @@ def test_a_worm_neck_is_recorded_on_new_neck(tmp_path: Path) -> None:
     assert counts["/tb_control/pid_debug"] == 0
 
 
-async def test_the_file_is_not_clobbered_and_a_bad_path_is_one_clear_error(
-    tmp_path: Path,
-) -> None:
+def test_the_file_is_not_clobbered_and_a_bad_path_is_one_clear_error(tmp_path: Path) -> None:
     existing = tmp_path / "old.mcap"
     existing.write_bytes(b"keep me")
-    async with Robot.open("sim://") as robot:
-        for path, words in (
-            (existing, "exists: choose another name, or overwrite it"),
-            (tmp_path, "it is a directory"),
-            (tmp_path / "missing" / "x.mcap", f"the directory {tmp_path / 'missing'} does not"),
-        ):
-            with pytest.raises(RecordingError, match=words) as caught:
-                await McapRecorder(robot, path).start()
-            assert "\n" not in str(caught.value)
-            assert caught.value.path == str(path)
-        assert existing.read_bytes() == b"keep me"
-        async with McapRecorder(robot, existing, overwrite=True, duration_s=0.3) as recorder:
-            await recorder.wait()
+
+    async def main() -> None:
+        async with Robot.open("sim://") as robot:
+            for path, words in (
+                (existing, "exists: choose another name, or overwrite it"),
+                (tmp_path, "it is a directory"),
+                (tmp_path / "missing" / "x.mcap", f"the directory {tmp_path / 'missing'} does not"),
+            ):
+                with pytest.raises(RecordingError, match=words) as caught:
+                    await McapRecorder(robot, path).start()
+                assert "\n" not in str(caught.value)
+                assert caught.value.path == str(path)
+            assert existing.read_bytes() == b"keep me"
+            async with McapRecorder(robot, existing, overwrite=True, duration_s=0.3) as recorder:
+                await recorder.wait()
+
+    run_virtual(main())
     counts, _ = read_back(existing)
     assert counts["/tf"] >= 10
 

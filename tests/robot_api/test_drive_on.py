@@ -17,10 +17,11 @@ from typing import Any
 
 import pytest
 
-from ohmni_tb import Robot, RobotConfig
+from ohmni_tb import RobotConfig
 from ohmni_tb.control.defaults import CONTROL_HZ_RANGE, WHEEL_GAIN_RANGES
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import ConfigError, OutOfRangeError, RobotClosedError, StateError
+from ohmni_tb.robot import LocalRobot
 from ohmni_tb.sim.clock import VirtualClockLoop
 
 from .test_robot_safety import (
@@ -43,7 +44,7 @@ RAMP_S = 0.5
 @pytest.mark.parametrize("hz", [0.1, 1.0, 9.9, 100.5])
 def test_the_control_tick_has_one_range_with_a_floor(hz: float) -> None:
     async def main() -> tuple[str, float]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             with pytest.raises(OutOfRangeError) as caught:
                 robot.set_rate("wheel_encoder", hz)
             return str(caught.value), robot.stats().streams["wheel_encoder"].requested_hz
@@ -57,7 +58,7 @@ def test_the_control_tick_has_one_range_with_a_floor(hz: float) -> None:
 
 def test_at_the_slowest_tick_the_watchdog_stops_the_wheels_on_time() -> None:
     async def main() -> tuple[float, float, list[tuple[float, tuple[int, int]]], float]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             robot.set_rate("wheel_encoder", SLOWEST_HZ)
             states = robot.subscribe("robot_state")
             wire = Wire(robot)
@@ -76,7 +77,7 @@ def test_at_the_slowest_tick_the_watchdog_stops_the_wheels_on_time() -> None:
 
 def test_stop_puts_the_brake_on_the_wire_at_once_whatever_the_tick() -> None:
     async def main() -> tuple[float, list[tuple[float, tuple[int, int]]]]:
-        async with Robot.open("sim://", watchdog_s=0) as robot:
+        async with LocalRobot.open("sim://", watchdog_s=0) as robot:
             robot.set_rate("wheel_encoder", SLOWEST_HZ)
             wire = Wire(robot)
             robot.drive_pwm(600, 600)
@@ -109,7 +110,7 @@ def test_a_saturated_loop_still_gets_the_watchdogs_stop_out() -> None:
     control cycles are skipped, but the braking command goes anyway, late not never."""
 
     async def main() -> tuple[float, float, float, int]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             loop = asyncio.get_running_loop()
             assert isinstance(loop, VirtualClockLoop)
             last = await keep_commanding(lambda: robot.drive(0.5, 0.0), 2.0)
@@ -142,7 +143,7 @@ def test_every_gain_has_one_range_everywhere(gain: str, value: float) -> None:
     low, high = WHEEL_GAIN_RANGES[gain]
 
     async def main() -> tuple[str, PidGains, PidGains]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             before = robot.get_pid()
             with pytest.raises(OutOfRangeError) as caught:
                 robot.set_pid(_pid_gains(**{gain: value}))
@@ -156,9 +157,9 @@ def test_every_gain_has_one_range_everywhere(gain: str, value: float) -> None:
         RobotConfig(**settings)
 
 
-def _top_speed(act: Callable[[Robot], object], **settings: Any) -> float:
+def _top_speed(act: Callable[[LocalRobot], object], **settings: Any) -> float:
     async def main() -> float:
-        async with Robot.open("sim://", **settings) as robot:
+        async with LocalRobot.open("sim://", **settings) as robot:
             top = 0.0
             for _ in range(60):  # 3 s
                 act(robot)
@@ -178,11 +179,11 @@ def _top_speed(act: Callable[[Robot], object], **settings: Any) -> float:
     ],
 )
 def test_the_wheels_are_held_to_max_wheel_mps_after_the_pid(
-    why: str, act: Callable[[Robot], object], settings: dict[str, Any]
+    why: str, act: Callable[[LocalRobot], object], settings: dict[str, Any]
 ) -> None:
     limit = 0.3
 
-    def act_with_gains(robot: Robot) -> object:
+    def act_with_gains(robot: LocalRobot) -> object:
         if why == "the highest gains":
             highest = {name: high for name, (_, high) in WHEEL_GAIN_RANGES.items()}
             robot.set_pid(PidGains(**highest))
@@ -196,7 +197,7 @@ def test_the_wheels_are_held_to_max_wheel_mps_after_the_pid(
 
 # -- a closed Robot ------------------------------------------------------------------------
 
-COMMANDS: list[tuple[str, Callable[[Robot], object]]] = [
+COMMANDS: list[tuple[str, Callable[[LocalRobot], object]]] = [
     ("drive", lambda r: r.drive(0.1, 0.0)),
     ("drive_wheels", lambda r: r.drive_wheels(0.1, 0.1)),
     ("drive_pwm", lambda r: r.drive_pwm(100, 100)),
@@ -215,7 +216,7 @@ COMMANDS: list[tuple[str, Callable[[Robot], object]]] = [
 ]
 
 
-async def _perform(command: Callable[[Robot], object], robot: Robot) -> None:
+async def _perform(command: Callable[[LocalRobot], object], robot: LocalRobot) -> None:
     result = command(robot)
     if asyncio.iscoroutine(result):
         await result
@@ -223,10 +224,10 @@ async def _perform(command: Callable[[Robot], object], robot: Robot) -> None:
 
 @pytest.mark.parametrize(("name", "command"), COMMANDS, ids=[name for name, _ in COMMANDS])
 def test_a_closed_robot_refuses_every_command_with_one_error(
-    name: str, command: Callable[[Robot], object]
+    name: str, command: Callable[[LocalRobot], object]
 ) -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             neck = robot.neck
         assert robot.closed
         with pytest.raises(RobotClosedError, match="the robot is closed"):

@@ -30,7 +30,7 @@ from ohmni_tb.errors import (
 from ohmni_tb.herkulex import TorqueControl, parse_reply, ram_read
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import parse_count, read_count
-from ohmni_tb.robot import Link, Robot, RobotStateSample, ServoHandle, Subscription
+from ohmni_tb.robot import Link, LocalRobot, RobotStateSample, SampleStream, ServoHandle
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.line import SimLine
 from ohmni_tb.sim.robot import SimRobot
@@ -51,13 +51,13 @@ def virtual(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
     return run_virtual(main())
 
 
-def sim_line(robot: Robot) -> SimLine:
+def sim_line(robot: LocalRobot) -> SimLine:
     transport = robot.bus.transport
     assert isinstance(transport, SimTransport)
     return transport.line
 
 
-def sim_robot(robot: Robot) -> SimRobot:
+def sim_robot(robot: LocalRobot) -> SimRobot:
     assert isinstance(robot.sim, SimRobot)
     return robot.sim
 
@@ -67,17 +67,17 @@ def line_bytes(line: SimLine) -> tuple[int, int]:
     return line.stats.bytes_to_devices, line.stats.bytes_to_host
 
 
-def link(robot: Robot) -> Link:
+def link(robot: LocalRobot) -> Link:
     """The Robot's link now (a call, so a type checker does not narrow it)."""
     return robot.state.link
 
 
-def fastest(robot: Robot) -> float:
+def fastest(robot: LocalRobot) -> float:
     """The faster of the simulated robot's true wheel speeds, m/s."""
     return max(abs(v) for v in sim_robot(robot).wheel_speeds_mps())
 
 
-def neck_torque(robot: Robot) -> TorqueControl:
+def neck_torque(robot: LocalRobot) -> TorqueControl:
     """The simulated neck's torque mode now, asked of the servo, not over the wire."""
     sim = sim_robot(robot)
     neck = sim.neck
@@ -87,7 +87,7 @@ def neck_torque(robot: Robot) -> TorqueControl:
     return TorqueControl(parse_reply(reply).value("torque_control"))
 
 
-def drain(subscription: Subscription[T]) -> list[T]:
+def drain(subscription: SampleStream[T]) -> list[T]:
     out = []
     while (item := subscription.get_nowait()) is not None:
         out.append(item)
@@ -99,7 +99,7 @@ def events(samples: list[RobotStateSample], words: str) -> list[RobotStateSample
     return [s for s in samples if s.event is not None and words in s.event]
 
 
-async def next_event(states: Subscription[RobotStateSample], words: str) -> RobotStateSample:
+async def next_event(states: SampleStream[RobotStateSample], words: str) -> RobotStateSample:
     """Wait for the next robot_state event holding ``words``."""
     async with asyncio.timeout(30):
         async for sample in states:
@@ -108,14 +108,14 @@ async def next_event(states: Subscription[RobotStateSample], words: str) -> Robo
     raise AssertionError(f"robot_state ended before an event with {words!r}")
 
 
-async def keep_driving(robot: Robot, seconds: float) -> None:
+async def keep_driving(robot: LocalRobot, seconds: float) -> None:
     """drive(0.3, 0) every 50 ms (a teleop loop) for ``seconds``."""
     for _ in range(round(seconds / 0.05)):
         robot.drive(0.3, 0.0)
         await asyncio.sleep(0.05)
 
 
-async def encoder_samples_in(robot: Robot, seconds: float) -> int:
+async def encoder_samples_in(robot: LocalRobot, seconds: float) -> int:
     """How many wheel_encoder samples arrive in the next ``seconds``."""
     encoder = robot.subscribe("wheel_encoder", maxlen=1000)
     await asyncio.sleep(seconds)
@@ -127,7 +127,7 @@ async def encoder_samples_in(robot: Robot, seconds: float) -> int:
 
 def test_a_released_port_is_silent_refuses_driving_and_comes_back_on_reclaim() -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state", maxlen=1000)
             await keep_driving(robot, 1.0)
             out: dict[str, Any] = {"moving": fastest(robot), "before": robot.stats().bus}
@@ -204,7 +204,7 @@ def test_releasing_does_with_the_neck_what_closing_does_and_neck_commands_are_re
     on_exit_neck: str, expected: TorqueControl
 ) -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://", on_exit_neck=on_exit_neck) as robot:
+        async with LocalRobot.open("sim://", on_exit_neck=on_exit_neck) as robot:
             await robot.neck.move(raw=400, playtime_s=0.3)
             await asyncio.sleep(0.5)
             out: dict[str, Any] = {"holding": neck_torque(robot)}
@@ -245,7 +245,7 @@ def test_releasing_does_with_the_neck_what_closing_does_and_neck_commands_are_re
 
 def test_a_cancelled_release_still_stops_the_wheels_and_releases_the_port() -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await keep_driving(robot, 1.0)
             out: dict[str, Any] = {"moving": fastest(robot)}
             releasing = asyncio.create_task(robot.release_port())
@@ -267,7 +267,7 @@ def test_a_cancelled_release_still_stops_the_wheels_and_releases_the_port() -> N
 
 def test_a_stream_turned_off_stays_off_after_a_reclaim() -> None:
     async def main() -> tuple[int, int]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             robot.enable_stream("servo_ext1", False)
             await robot.release_port()
             await robot.reclaim_port()
@@ -283,7 +283,7 @@ def test_a_stream_turned_off_stays_off_after_a_reclaim() -> None:
 
 def test_a_timed_release_takes_the_port_back_by_itself() -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state", maxlen=1000)
             loop = asyncio.get_running_loop()
             await robot.release_port(duration_s=2.0)
@@ -308,7 +308,7 @@ def test_a_timed_release_takes_the_port_back_by_itself() -> None:
 @pytest.mark.parametrize("again_s", [3.0, None])
 def test_releasing_again_replaces_the_timer(again_s: float | None) -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state", maxlen=1000)
             loop = asyncio.get_running_loop()
             await robot.release_port(duration_s=1.0)
@@ -346,7 +346,7 @@ def test_a_stop_the_counts_do_not_confirm_is_raised_after_the_port_is_released()
     # As on exit: the robot may be moving, so the caller hears of it; the port goes all
     # the same (the other program may be what is needed to deal with it).
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state", maxlen=1000)
             await asyncio.sleep(0.2)
             line = sim_line(robot)
@@ -373,7 +373,7 @@ def test_a_stop_the_counts_do_not_confirm_is_raised_after_the_port_is_released()
 def test_closing_a_released_robot_is_quick_and_sends_nothing() -> None:
     async def main() -> dict[str, Any]:
         loop = asyncio.get_running_loop()
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             line = sim_line(robot)
             await robot.release_port(duration_s=2.0)
             quiet_from = line_bytes(line)
@@ -415,7 +415,7 @@ def test_a_bad_duration_is_refused_by_value_and_range_and_nothing_changes(
     duration_s: Any, error: type[Exception]
 ) -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state", maxlen=1000)
             line = sim_line(robot)
             with pytest.raises(error) as refused:
@@ -443,7 +443,7 @@ def test_a_robot_on_an_injected_transport_that_cannot_reopen_refuses_to_release(
         host, device = MemoryTransport.pair("injected")
         serving = asyncio.create_task(line.serve(device))
         try:
-            async with Robot.open(host) as robot:
+            async with LocalRobot.open(host) as robot:
                 await asyncio.sleep(0.2)
                 sent = line.stats.bytes_to_devices
                 with pytest.raises(StateError, match="cannot reopen its port") as refused:
@@ -485,7 +485,7 @@ async def left_count(bus: Bus) -> int:
 async def test_on_a_pty_another_program_uses_the_released_port_then_the_robot_takes_it_back(
     pty_path: str,
 ) -> None:
-    async with Robot.open(pty_path) as robot:
+    async with LocalRobot.open(pty_path) as robot:
         states = robot.subscribe("robot_state", maxlen=1000)
         # While the Robot holds it, the port's exclusive lock refuses a second opener.
         with pytest.raises(TransportError):
@@ -510,7 +510,7 @@ async def test_on_a_pty_a_reclaim_waits_while_another_program_holds_the_port(
     pty_path: str,
 ) -> None:
     loop = asyncio.get_running_loop()
-    async with Robot.open(pty_path, reconnect_max_backoff_s=0.2) as robot:
+    async with LocalRobot.open(pty_path, reconnect_max_backoff_s=0.2) as robot:
         states = robot.subscribe("robot_state", maxlen=1000)
         await robot.release_port()
         async with await Bus.open(pty_path, timeout_s=1.0) as other:

@@ -31,7 +31,7 @@ from ohmni_tb.protocol import BROADCAST_ID, Command, Packet, PacketDecoder
 from ohmni_tb.protocol.connection import DEFAULT_PROBE_INTERVAL_S
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import DRIVE_PROFILE, decode_wheel_command
-from ohmni_tb.robot import Link, Robot, RobotStateSample, Subscription, WheelOdomSample
+from ohmni_tb.robot import Link, LocalRobot, RobotStateSample, SampleStream, WheelOdomSample
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.line import SimLine
 from ohmni_tb.sim.robot import SimRobot
@@ -73,7 +73,7 @@ def virtual(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
 class Wire:
     """Every packet the host writes on the robot's simulated line, with the loop time."""
 
-    def __init__(self, robot: Robot) -> None:
+    def __init__(self, robot: LocalRobot) -> None:
         self.packets: list[tuple[float, Packet]] = []
         line = sim_line(robot)
         write = line.host_write
@@ -129,29 +129,29 @@ def idle_schedule(packet: Packet) -> bool:
     return is_read(packet)
 
 
-def sim_transport(robot: Robot) -> SimTransport:
+def sim_transport(robot: LocalRobot) -> SimTransport:
     transport = robot.bus.transport
     assert isinstance(transport, SimTransport)
     return transport
 
 
-def sim_line(robot: Robot) -> SimLine:
+def sim_line(robot: LocalRobot) -> SimLine:
     return sim_transport(robot).line
 
 
-def sim_robot(robot: Robot) -> SimRobot:
+def sim_robot(robot: LocalRobot) -> SimRobot:
     sim = robot.sim
     assert isinstance(sim, SimRobot)
     return sim
 
 
-def sim_neck(robot: Robot) -> SimServo:
+def sim_neck(robot: LocalRobot) -> SimServo:
     neck = sim_robot(robot).neck
     assert isinstance(neck, SimServo)
     return neck
 
 
-def sim_servo(robot: Robot, sid: int) -> SimServo:
+def sim_servo(robot: LocalRobot, sid: int) -> SimServo:
     sim = sim_robot(robot)
     found = [servo for servo in (sim.neck, *sim.ext_servos) if servo.sid == sid]
     assert len(found) == 1
@@ -159,7 +159,7 @@ def sim_servo(robot: Robot, sid: int) -> SimServo:
     return found[0]
 
 
-def register(robot: Robot, servo: SimServo, name: str) -> int:
+def register(robot: LocalRobot, servo: SimServo, name: str) -> int:
     """A servo register's true value now, asked of the simulated servo, not over the wire."""
     now_s = sim_robot(robot).sync()
     reply = servo.handle(ram_read(servo.sid, name), now_s)
@@ -167,20 +167,20 @@ def register(robot: Robot, servo: SimServo, name: str) -> int:
     return parse_reply(reply).value(name)
 
 
-def torque(robot: Robot, servo: SimServo) -> TorqueControl:
+def torque(robot: LocalRobot, servo: SimServo) -> TorqueControl:
     return TorqueControl(register(robot, servo, "torque_control"))
 
 
-def position(robot: Robot, servo: SimServo) -> int:
+def position(robot: LocalRobot, servo: SimServo) -> int:
     return register(robot, servo, "calibrated_position")
 
 
-def fastest(robot: Robot) -> float:
+def fastest(robot: LocalRobot) -> float:
     """The faster of the simulated robot's true wheel speeds, m/s."""
     return max(abs(v) for v in sim_robot(robot).wheel_speeds_mps())
 
 
-def drain(subscription: Subscription[T]) -> list[T]:
+def drain(subscription: SampleStream[T]) -> list[T]:
     out = []
     while (item := subscription.get_nowait()) is not None:
         out.append(item)
@@ -207,7 +207,7 @@ async def sleep_until(t_s: float) -> None:
     await asyncio.sleep(max(0.0, t_s - asyncio.get_running_loop().time()))
 
 
-async def next_event(states: Subscription[RobotStateSample], words: str) -> RobotStateSample:
+async def next_event(states: SampleStream[RobotStateSample], words: str) -> RobotStateSample:
     """Wait for the next robot_state event holding ``words``."""
     async with asyncio.timeout(30):
         async for sample in states:
@@ -221,7 +221,7 @@ async def next_event(states: Subscription[RobotStateSample], words: str) -> Robo
 
 def test_the_watchdog_stops_the_wheels_half_a_second_after_the_last_drive_command() -> None:
     async def main() -> tuple[float, float, RobotStateSample, list[WheelOdomSample], float]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state")
             odom = robot.subscribe("wheel_odom", maxlen=1000)
             last = await keep_commanding(lambda: robot.drive(0.3, 0.0), 1.5)
@@ -255,7 +255,7 @@ def test_the_watchdog_stops_the_wheels_half_a_second_after_the_last_drive_comman
 
 def test_with_the_watchdog_off_the_robot_keeps_driving_without_commands() -> None:
     async def main() -> tuple[float, list[RobotStateSample], list[WheelPwm], RobotStateSample]:
-        async with Robot.open("sim://", watchdog_s=0) as robot:
+        async with LocalRobot.open("sim://", watchdog_s=0) as robot:
             states = robot.subscribe("robot_state")
             wire = Wire(robot)
             last = await keep_commanding(lambda: robot.drive(0.3, 0.0), 1.0)
@@ -275,7 +275,7 @@ def test_the_watchdog_stops_open_loop_pwm_too() -> None:
     async def main() -> tuple[
         float, float, float, RobotStateSample, list[tuple[float, WheelPwm]], float
     ]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             states = robot.subscribe("robot_state")
             wire = Wire(robot)
             started = asyncio.get_running_loop().time()
@@ -308,10 +308,10 @@ def test_cancelling_the_task_that_runs_the_robot_mid_tick_still_stops_the_wheels
     wire for the first few ms, then the line carrying feedback reads, then idle)."""
 
     async def main() -> dict[str, Any]:
-        ready: asyncio.Future[tuple[Robot, Wire]] = asyncio.get_running_loop().create_future()
+        ready: asyncio.Future[tuple[LocalRobot, Wire]] = asyncio.get_running_loop().create_future()
 
         async def user() -> None:
-            async with Robot.open("sim://") as robot:
+            async with LocalRobot.open("sim://") as robot:
                 ready.set_result((robot, Wire(robot)))
                 await robot.neck.move(raw=400, playtime_s=0.2)
                 while True:
@@ -373,10 +373,12 @@ def test_an_error_in_the_user_code_stops_the_wheels_and_leaves_the_neck_as_confi
     on_exit_neck: str, neck_torque: TorqueControl, neck_raw: int
 ) -> None:
     async def main() -> tuple[float, float, TorqueControl, int, TorqueControl, int, bool, bool]:
-        opened: list[Robot] = []
+        opened: list[LocalRobot] = []
 
         async def user() -> None:
-            async with Robot.open("sim://", on_exit_neck=on_exit_neck, neck_rest_raw=500) as robot:
+            async with LocalRobot.open(
+                "sim://", on_exit_neck=on_exit_neck, neck_rest_raw=500
+            ) as robot:
                 opened.append(robot)
                 await robot.neck.move(raw=400, playtime_s=0.5)
                 await keep_commanding(lambda: robot.drive(0.5, 0.0), 1.5)
@@ -419,7 +421,7 @@ def test_an_error_in_the_user_code_stops_the_wheels_and_leaves_the_neck_as_confi
 
 def test_an_unplugged_cable_stops_the_drive_and_reconnects_without_driving_on() -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             wire = Wire(robot)
             states = robot.subscribe("robot_state")
             await keep_commanding(lambda: robot.drive(0.3, 0.0), 1.5)
@@ -479,7 +481,7 @@ def test_silent_drive_boards_stop_the_wheels_after_stale_ticks_and_clear_when_ba
     stale_ticks: int,
 ) -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://", stale_ticks=stale_ticks) as robot:
+        async with LocalRobot.open("sim://", stale_ticks=stale_ticks) as robot:
             wire = Wire(robot)
             states = robot.subscribe("robot_state")
 
@@ -557,7 +559,7 @@ def crossing_s(limit_raw: float, load: float) -> float:
 )
 def test_the_thermal_guard_frees_a_hot_servo(sid: int, target_raw: int, final_raw: int) -> None:
     async def main() -> tuple[float, list[RobotStateSample], RobotStateSample, TorqueControl, int]:
-        async with Robot.open("sim://", thermal_limit_raw=THERMAL_LIMIT_RAW) as robot:
+        async with LocalRobot.open("sim://", thermal_limit_raw=THERMAL_LIMIT_RAW) as robot:
             states = robot.subscribe("robot_state")
             await robot.servo(sid).move(raw=target_raw, playtime_s=0.5)
             await asyncio.sleep(0.6)
@@ -591,7 +593,7 @@ def test_the_thermal_guard_frees_a_hot_servo(sid: int, target_raw: int, final_ra
 
 def test_with_the_thermal_guard_off_a_hot_servo_keeps_its_torque() -> None:
     async def main() -> tuple[list[RobotStateSample], RobotStateSample, TorqueControl, int, int]:
-        async with Robot.open(
+        async with LocalRobot.open(
             "sim://", thermal_limit_raw=THERMAL_LIMIT_RAW, thermal_guard=False
         ) as robot:
             states = robot.subscribe("robot_state")
@@ -623,7 +625,7 @@ def test_with_the_thermal_guard_off_a_hot_servo_keeps_its_torque() -> None:
 
 def test_the_hold_guard_rests_then_frees_a_neck_left_holding() -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://", neck_hold_s=2) as robot:
+        async with LocalRobot.open("sim://", neck_hold_s=2) as robot:
             states = robot.subscribe("robot_state")
             neck = sim_neck(robot)
             loop = asyncio.get_running_loop()
@@ -656,7 +658,7 @@ def test_the_hold_guard_rests_then_frees_a_neck_left_holding() -> None:
 
 def test_the_hold_guard_leaves_a_neck_that_keeps_being_commanded() -> None:
     async def main() -> tuple[list[RobotStateSample], TorqueControl]:
-        async with Robot.open("sim://", neck_hold_s=2) as robot:
+        async with LocalRobot.open("sim://", neck_hold_s=2) as robot:
             states = robot.subscribe("robot_state")
             for raw in (400, 420, 400, 420, 400):
                 await robot.neck.move(raw=raw, playtime_s=0.5)
@@ -679,7 +681,7 @@ def test_the_hold_guard_counts_a_neck_found_holding_from_the_open() -> None:
         neck.handle(ram_write(3, "torque_control", TorqueControl.ON), sim.sync())
         loop = asyncio.get_running_loop()
         out: dict[str, Any] = {"opening_s": loop.time()}
-        async with Robot.open(transport, neck_hold_s=2) as robot:
+        async with LocalRobot.open(transport, neck_hold_s=2) as robot:
             states = robot.subscribe("robot_state")
             await asyncio.sleep(1.5)
             out["holding"] = (torque(robot, neck), position(robot, neck))
@@ -698,7 +700,7 @@ def test_the_hold_guard_counts_a_neck_found_holding_from_the_open() -> None:
 @pytest.mark.parametrize("offset_s", [0.008, 0.015])
 def test_estop_sends_a_stop_at_once_and_refuses_driving_until_cleared(offset_s: float) -> None:
     async def main() -> dict[str, Any]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             wire = Wire(robot)
             states = robot.subscribe("robot_state")
             await keep_commanding(lambda: robot.drive(0.5, 0.0), 1.5)
@@ -765,7 +767,7 @@ def test_no_wheel_command_goes_out_after_the_estops_stop(moment: str) -> None:
     (its early write waits behind the control slot)."""
 
     async def main() -> list[tuple[float, list[WheelPwm]]]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             wire = Wire(robot)
             loop = asyncio.get_running_loop()
             overtaken = []
@@ -798,13 +800,13 @@ def test_no_wheel_command_goes_out_after_the_estops_stop(moment: str) -> None:
 
 # -- 9. bad input is refused before the wire -----------------------------------------------
 
-Act = Callable[[Robot], object]
+Act = Callable[[LocalRobot], object]
 #: Typed Any: these are the mistakes mypy would catch, made at run time.
 A_STRING: Any = "1"
 A_FLOAT: Any = 1.5
 
 
-async def perform(act: Act, robot: Robot) -> None:
+async def perform(act: Act, robot: LocalRobot) -> None:
     """Do ``act``, awaiting it if it is a coroutine."""
     result = act(robot)
     if isinstance(result, Awaitable):
@@ -933,7 +935,7 @@ def test_bad_input_is_refused_with_the_value_and_range_and_nothing_reaches_the_w
     url: str, act: Act, error: type[Exception], words: list[str]
 ) -> None:
     async def main() -> tuple[str, list[Packet], list[Packet], float, bool]:
-        async with Robot.open(url) as robot:
+        async with LocalRobot.open(url) as robot:
             wire = Wire(robot)
             await asyncio.sleep(0.1)
             mark = wire.mark()
@@ -982,7 +984,7 @@ def test_the_same_commands_with_good_input_do_reach_the_wire(url: str, act: Act)
     """The control for the test above: its check sees each command's packet."""
 
     async def main() -> list[Packet]:
-        async with Robot.open(url) as robot:
+        async with LocalRobot.open(url) as robot:
             wire = Wire(robot)
             await asyncio.sleep(0.1)
             mark = wire.mark()
@@ -1002,7 +1004,7 @@ def test_a_robot_whose_drive_boards_never_answered_closes_cleanly(
     # `ohmni status` on a bus without drive boards must still show what does answer:
     # nothing was driven, and no count could ever confirm a stop.
     async def main() -> tuple[tuple[int, ...], BaseException | None, list[WheelPwm]]:
-        async with Robot.open("sim://?silent=0,1") as robot:
+        async with LocalRobot.open("sim://?silent=0,1") as robot:
             wire = Wire(robot)
             await asyncio.sleep(0.5)
             absent = robot.state.absent
@@ -1017,7 +1019,7 @@ def test_a_robot_whose_drive_boards_never_answered_closes_cleanly(
 
 def test_a_robot_whose_drive_boards_went_silent_still_raises_on_a_clean_exit() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(0.2)
             sim_line(robot).faults.silent = {int(DeviceId.LEFT_DRIVE), int(DeviceId.RIGHT_DRIVE)}
 

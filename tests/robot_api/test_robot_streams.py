@@ -17,7 +17,6 @@ from typing import Any, TypeVar
 
 import pytest
 
-from ohmni_tb import Robot
 from ohmni_tb.errors import InvalidArgumentError, StateError
 from ohmni_tb.protocol import Packet, read_request
 from ohmni_tb.protocol.core import read_status
@@ -25,6 +24,7 @@ from ohmni_tb.protocol.drive import read_count, wheel_command
 from ohmni_tb.protocol.worm_neck import read_feedback
 from ohmni_tb.robot import (
     STREAM_NAMES,
+    LocalRobot,
     RobotStateSample,
     ServoSample,
     WheelEncoderSample,
@@ -55,18 +55,18 @@ def virtual(main: Callable[[], Coroutine[Any, Any, T]]) -> T:
     return run_virtual(main())
 
 
-def sim_transport(robot: Robot) -> SimTransport:
+def sim_transport(robot: LocalRobot) -> SimTransport:
     transport = robot.bus.transport
     assert isinstance(transport, SimTransport)
     return transport
 
 
-def requests_to(robot: Robot, sid: int) -> int:
+def requests_to(robot: LocalRobot, sid: int) -> int:
     device = robot.bus.stats.devices.get(sid)
     return 0 if device is None else device.requests
 
 
-async def settle(robot: Robot) -> None:
+async def settle(robot: LocalRobot) -> None:
     """Command zero until odometry says the robot stands still."""
     while True:
         robot.drive(0.0, 0.0)
@@ -77,7 +77,7 @@ async def settle(robot: Robot) -> None:
             return
 
 
-async def straight(robot: Robot, distance_m: float, speed_mps: float) -> None:
+async def straight(robot: LocalRobot, distance_m: float, speed_mps: float) -> None:
     """Drive until odometry says ``distance_m`` from where it started, slowing near it."""
     start = robot.latest("wheel_odom")
     assert start is not None
@@ -92,7 +92,7 @@ async def straight(robot: Robot, distance_m: float, speed_mps: float) -> None:
     await settle(robot)
 
 
-async def turn_to(robot: Robot, heading_rad: float, rate_radps: float) -> None:
+async def turn_to(robot: LocalRobot, heading_rad: float, rate_radps: float) -> None:
     """Turn in place (counter-clockwise) until odometry's heading reaches ``heading_rad``."""
     while True:
         odom = robot.latest("wheel_odom")
@@ -110,7 +110,7 @@ async def turn_to(robot: Robot, heading_rad: float, rate_radps: float) -> None:
 
 def test_a_one_metre_square_by_odometry_matches_the_truth() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(0.2)
             start = robot.sim.pose
             for corner in range(1, 5):
@@ -143,7 +143,7 @@ def test_a_one_metre_square_by_odometry_matches_the_truth() -> None:
 # -- 2. every stream at its rate ---------------------------------------------------------------
 
 
-def _cycle_packets(robot: Robot, name: str) -> list[Packet]:
+def _cycle_packets(robot: LocalRobot, name: str) -> list[Packet]:
     """What one cycle of stream ``name`` puts on the bus, built here, not by the Robot."""
     if name == "wheel_encoder":
         return [wheel_command(0, 0), read_count(0), read_count(1)]
@@ -158,7 +158,7 @@ def _cycle_packets(robot: Robot, name: str) -> list[Packet]:
 
 def test_every_stream_runs_at_its_configured_rate() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(6.0)  # the rate window is the last 5 s
             stats = robot.stats()
 
@@ -214,7 +214,7 @@ def _wheel_rate(with_subscriber: bool) -> tuple[float, int, int, int]:
     the stream's dropped)."""
 
     async def main() -> tuple[float, int, int, int]:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             before = robot.stats().streams["wheel_encoder"].samples
             subscription = robot.subscribe("wheel_encoder", maxlen=8) if with_subscriber else None
             await asyncio.sleep(3.0)
@@ -247,7 +247,7 @@ def test_a_reading_subscriber_gets_every_sample_in_order() -> None:
             got.extend([sample async for sample in subscription])
 
         async with asyncio.TaskGroup() as tg:
-            async with Robot.open("sim://") as robot:
+            async with LocalRobot.open("sim://") as robot:
                 subscription = robot.subscribe("wheel_encoder", maxlen=8)
                 before = robot.stats().streams["wheel_encoder"].samples
                 reader = tg.create_task(read(subscription))
@@ -279,13 +279,13 @@ def test_subscriptions_end_when_the_robot_closes() -> None:
     async def main() -> None:
         finished: list[str] = []
 
-        async def read(robot: Robot, name: str) -> None:
+        async def read(robot: LocalRobot, name: str) -> None:
             async for _ in robot.subscribe(name):
                 pass
             finished.append(name)
 
         async with asyncio.TaskGroup() as tg:
-            async with Robot.open("sim://") as robot:
+            async with LocalRobot.open("sim://") as robot:
                 for name in ("wheel_encoder", "servo_neck", "robot_state", "pid_debug"):
                     tg.create_task(read(robot, name))
                 await asyncio.sleep(1.0)
@@ -299,7 +299,7 @@ def test_subscriptions_end_when_the_robot_closes() -> None:
 
 def test_a_subscription_taken_after_the_close_ends_at_once() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(0.1)
         async with asyncio.timeout(1.0):
             assert [s async for s in robot.subscribe("wheel_encoder")] == []
@@ -309,7 +309,7 @@ def test_a_subscription_taken_after_the_close_ends_at_once() -> None:
 
 def test_breaking_out_of_async_for_releases_the_subscription() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             seen = 0
             async for _ in robot.subscribe("wheel_encoder", maxlen=4):
                 assert robot.stats().streams["wheel_encoder"].subscribers == 1
@@ -327,7 +327,7 @@ def test_breaking_out_of_async_for_releases_the_subscription() -> None:
 
 def test_latest_is_none_before_the_first_sample() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             for name in STREAM_NAMES:
                 if name != "robot_state":  # published at open
                     assert robot.latest(name) is None, name
@@ -350,7 +350,7 @@ def test_latest_is_none_before_the_first_sample() -> None:
 
 def test_the_default_robot_has_a_herkulex_neck_and_every_device() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(1.5)
             state = robot.latest("robot_state")
             assert state is not None
@@ -369,7 +369,7 @@ def test_the_default_robot_has_a_herkulex_neck_and_every_device() -> None:
 
 def test_the_core_stream_follows_the_dock() -> None:
     async def main() -> None:
-        async with Robot.open("sim://?docked=1") as robot:
+        async with LocalRobot.open("sim://?docked=1") as robot:
             await asyncio.sleep(0.5)
             status = robot.latest("tbcore_status")
             assert status is not None
@@ -391,7 +391,7 @@ def test_the_core_stream_follows_the_dock() -> None:
 
 def test_a_worm_neck_and_no_external_servos() -> None:
     async def main() -> None:
-        async with Robot.open("sim://?neck=worm&ext=none") as robot:
+        async with LocalRobot.open("sim://?neck=worm&ext=none") as robot:
             await asyncio.sleep(6.0)
             state = robot.latest("robot_state")
             assert state is not None
@@ -421,7 +421,7 @@ def test_a_worm_neck_and_no_external_servos() -> None:
 
 def test_a_silent_servo_is_not_polled_and_found_again_when_it_answers() -> None:
     async def main() -> None:
-        async with Robot.open("sim://?silent=11") as robot:
+        async with LocalRobot.open("sim://?silent=11") as robot:
             state = robot.latest("robot_state")
             assert state is not None
             assert 11 in state.absent
@@ -467,7 +467,7 @@ def test_a_silent_servo_is_not_polled_and_found_again_when_it_answers() -> None:
 
 def test_the_budget_counts_a_servo_found_by_the_reprobe() -> None:
     async def main() -> None:
-        async with Robot.open("sim://?silent=11") as robot:
+        async with LocalRobot.open("sim://?silent=11") as robot:
             sim_transport(robot).line.faults.silent.clear()
             await asyncio.sleep(7.0)
             assert robot.latest("servo_ext1") is not None
@@ -482,7 +482,7 @@ def test_the_budget_counts_a_servo_found_by_the_reprobe() -> None:
 
 def test_enable_stream_stops_and_resumes_a_servo_stream() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             await asyncio.sleep(1.0)
             ext2_sid = robot.config.ext_servo_ids[1]
 
@@ -514,7 +514,7 @@ def test_enable_stream_stops_and_resumes_a_servo_stream() -> None:
 
 def test_turning_off_the_wheel_streams_stops_their_samples_not_the_control() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             full = robot.stats().bus.budget_share
             await asyncio.sleep(0.5)
             robot.enable_stream("wheel_encoder", False)
@@ -537,7 +537,7 @@ def test_turning_off_the_wheel_streams_stops_their_samples_not_the_control() -> 
 
 def test_disabling_a_stream_takes_it_out_of_the_budget() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             full = robot.stats().bus.budget_share
             per_cycle = robot.bus.cost_s(read_request(robot.config.ext_servo_ids[1], *SERVO_BLOCK))
             robot.enable_stream("servo_ext2", False)
@@ -550,7 +550,7 @@ def test_disabling_a_stream_takes_it_out_of_the_budget() -> None:
 
 def test_the_schedule_leaves_out_a_stream_turned_off() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             robot.enable_stream("servo_ext2", False)
             assert "servo_ext2" not in {row[0] for row in robot.schedule()}
             budget = sum(hz * cost for _, hz, _, cost in robot.schedule())
@@ -561,7 +561,7 @@ def test_the_schedule_leaves_out_a_stream_turned_off() -> None:
 
 def test_set_rate_halves_the_core_stream() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             full = robot.stats().bus.budget_share
             robot.set_rate("tbcore_status", 5)
             assert robot.stats().streams["tbcore_status"].requested_hz == 5.0
@@ -580,7 +580,7 @@ def test_set_rate_halves_the_core_stream() -> None:
 
 def test_bad_stream_names_and_rates_are_refused() -> None:
     async def main() -> None:
-        async with Robot.open("sim://") as robot:
+        async with LocalRobot.open("sim://") as robot:
             for call in (
                 lambda: robot.enable_stream("servo_ext3"),
                 lambda: robot.set_rate("battery", 5),
@@ -607,7 +607,7 @@ def test_bad_stream_names_and_rates_are_refused() -> None:
 
 def test_the_wheel_stream_keeps_50_hz_behind_a_16_ms_usb_latency() -> None:
     async def main() -> None:
-        async with Robot.open("sim://?usb_latency_ms=16") as robot:
+        async with LocalRobot.open("sim://?usb_latency_ms=16") as robot:
             assert sim_transport(robot).line.usb_latency_s == pytest.approx(0.016)
             await asyncio.sleep(5.5)
             stats = robot.stats()

@@ -13,7 +13,7 @@ import sys
 import traceback
 from collections.abc import AsyncIterator, Callable, Coroutine
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn, TypeVar, cast
+from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn, TypeVar
 
 import typer
 from rich.console import Console
@@ -171,26 +171,36 @@ async def open_robot(
     port: str, *, via: str | None = None, control: bool = False, **overrides: Any
 ) -> AsyncIterator[Robot]:
     """``Robot.open`` with the settings from the environment and config file — or, with
-    ``via`` (a daemon's URL from :func:`daemon_for`), the daemon's Robot.
+    ``via`` (a daemon's URL from :func:`daemon_for`), the daemon's robot.
 
     Args:
         port: The port to open (resolved: :func:`resolve_port`).
         via: Use the daemon at this URL instead of opening ``port``.
-        control: The command moves the robot: through the daemon it holds the control
-            lease while it runs (refused, naming the holder, when another client drives).
+        control: The command moves the robot: through the daemon it is refused at once,
+            naming the holder, when another client holds the control lease (its first
+            command takes the lease otherwise).
         overrides: RobotConfig settings for a Robot this opens (not the daemon's).
+
+    Raises:
+        LeaseError: ``control``, and another client of the daemon drives the robot.
     """
     if via is not None:
-        from ohmni_tb.cli.remote import open_remote  # noqa: PLC0415
+        from ohmni_tb.errors import LeaseError  # noqa: PLC0415
+        from ohmni_tb.robot import RemoteRobot  # noqa: PLC0415  # the client: when used
 
-        async with open_remote(via, control=control) as remote:
+        async with RemoteRobot.open(via) as remote:
+            holder = remote.lease_holder
+            if control and holder is not None:
+                raise LeaseError(
+                    f"another client of the daemon at {via} drives the robot ({holder}): "
+                    "this command needs the control lease",
+                    holder=holder,
+                )
             _err.print(
                 f"[dim]via the daemon at {escape(via)} (--direct: open the port)[/dim]",
                 soft_wrap=True,
             )
-            # The daemon's Robot, behind the part of the Robot's API the commands use
-            # (tests/cli/test_via_daemon.py runs each command through it).
-            yield cast("Robot", remote)
+            yield remote
         return
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # the Robot only when used
     from ohmni_tb.robot import Robot  # noqa: PLC0415

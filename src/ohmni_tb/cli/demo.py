@@ -154,7 +154,12 @@ def _servo_answer(robot: Robot, sid: int, model: str | None) -> str:
 
 
 async def _worm_answer(robot: Robot) -> str:
-    # Robot.info() tags the drive and core boards only; the worm neck is read directly.
+    # Robot.info() tags the drive and core boards only; the worm neck is read directly
+    # (on this process's bus: a daemon's robot has none here).
+    from ohmni_tb.robot import LocalRobot  # noqa: PLC0415
+
+    if not isinstance(robot, LocalRobot):
+        return "worm-gear neck (its firmware tag is read on the daemon's port)"
     try:
         reply = await robot.bus.read(DeviceId.WORM_NECK, 0xF1, 0, Memory.EEP)
     except OhmniError:

@@ -5,7 +5,8 @@ Three ways to move, one at a time:
 - ``--linear/--angular [--duration S]``: the velocity command for a time (1 s by
   default), held by re-sending ``robot.drive()`` faster than the motion watchdog.
 - ``--distance M`` or ``--turn DEG``: by odometry to the goal, slowing down near it so
-  it does not overshoot; bounded by a timeout from the speed.
+  it does not overshoot; bounded by a timeout from the speed: the Robot's own motion
+  goals, ``robot.drive_distance`` and ``robot.rotate`` (:mod:`ohmni_tb.robot.motion`).
 - ``--teleop``: the keyboard in the terminal; each key press sends one ``drive()``, and
   the watchdog stops the robot when no key repeats.
 
@@ -45,13 +46,13 @@ from ohmni_tb.cli.common import (
     resolve_port,
     run,
 )
-from ohmni_tb.errors import OhmniError, StateError, StopNotConfirmedError
+from ohmni_tb.errors import MotionError, OhmniError, StateError, StopNotConfirmedError
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot import Robot, RobotStats, WheelEncoderSample, WheelOdomSample
 
-__all__ = ["GoalNotReachedError", "drive"]
+__all__ = ["drive"]
 
 T = TypeVar("T")
 
@@ -64,26 +65,16 @@ MAX_DISTANCE_M = 100.0
 #: The largest --turn either way, degrees (ten turns).
 MAX_TURN_DEG = 3600.0
 #: Speeds of --distance and --turn (and of a --teleop key) when --linear/--angular are
-#: not given; the Robot's limits cap them.
+#: not given; the Robot's limits cap them. The goals' own (ohmni_tb.robot.motion's),
+#: restated so that the arguments are checked before the Robot is imported.
 DEFAULT_LINEAR_MPS = 0.3
 DEFAULT_ANGULAR_RADPS = 1.0
-#: The slowest speed a goal drive creeps at near its goal (and the least it accepts).
+#: The slowest speed a goal creeps at near its goal, and the least it accepts (as above).
 MIN_GOAL_LINEAR_MPS = 0.03
 MIN_GOAL_ANGULAR_RADPS = 0.2
 #: drive() is re-sent at least this often while a command is held (and at least three
 #: times per watchdog period).
 COMMAND_PERIOD_S = 0.1
-#: A goal drive plans its slow-down with this share of the braking limit: the wheel
-#: PIDs trail the ramp, so the plan leaves them room.
-_PLAN_DECEL_SHARE = 0.5
-#: The wheels trail the command (the PIDs, the 0.1 s speed estimate): a goal drive
-#: plans its slow-down from where they will be this much later, and stops when they would
-#: reach the goal this much later. Tuned on the simulator: goals land within ~1 mm, 0.2°.
-_PROFILE_LEAD_S = 0.02
-_STOP_LEAD_S = 0.08
-#: Goals this close count as reached (the stop's own run-out adds about as much).
-_GOAL_TOLERANCE_M = 0.001
-_GOAL_TOLERANCE_RAD = math.radians(0.1)
 #: Time allowed to confirm the stop by the wheel counts, the ramp down included.
 STOP_CONFIRM_TIMEOUT_S = 2.0
 #: Time allowed for the first wheel counts after the Robot opens.
@@ -97,10 +88,6 @@ _KEY_HOLD_S = 0.5
 
 _err = Console(stderr=True)
 _LOGGER = "ohmni_tb"
-
-
-class GoalNotReachedError(OhmniError):
-    """A ``--distance`` or ``--turn`` drive ran out of time before its goal."""
 
 
 # -- arguments ------------------------------------------------------------------------------
@@ -334,10 +321,10 @@ def drive(
     --linear/--angular are held for --duration (re-sent faster than the motion watchdog),
     then the robot stops and the stop is confirmed by the wheel counts. --distance and
     --turn drive by odometry, slow down near the goal and fail (exit 1) if it is not
-    reached in time. --teleop drives from the keyboard: each key press drives for the
-    watchdog time, so releasing the key stops the robot. Speeds past the Robot's limits
-    are refused. On a real robot it asks first (--yes skips that); on sim:// it does not,
-    nor through a daemon serving sim://.
+    reached in time or a wheel does not turn. --teleop drives from the keyboard: each key
+    press drives for the watchdog time, so releasing the key stops the robot. Speeds past
+    the Robot's limits are refused. On a real robot it asks first (--yes skips that); on
+    sim:// it does not, nor through a daemon serving sim://.
 
     Examples:
 
@@ -663,39 +650,40 @@ async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     }
 
 
-#: A goal drive stops when no wheel counts came for this long.
-_FEEDBACK_GAP_S = 0.5
+def _goal_timeout(goal: float, speed: float, accel: float, decel: float) -> float:
+    """Time a goal drive may take: the Robot's default for it."""
+    from ohmni_tb.robot.motion import goal_timeout_s  # noqa: PLC0415  # the Robot is open
 
-
-def _goal_timeout(goal: float, speed: float, accel: float, plan_decel: float) -> float:
-    """Time a goal drive may take: twice the plan's (cruise, ramp up, slow down), + 2 s."""
-    expected = abs(goal) / speed + speed / accel + 2 * speed / plan_decel
-    return 2 * expected + 2.0
+    return goal_timeout_s(goal, speed, accel, decel)
 
 
 async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
-    """Drive to ``plan.goal`` by odometry, slowing down on the braking curve near it.
+    """Drive to ``plan.goal`` with the Robot's motion goal (``drive_distance`` or
+    ``rotate``), then confirm the stop by the wheel counts.
 
     Raises:
-        GoalNotReachedError: Not there within the timeout (the robot is stopped first).
+        MotionError: Not there: out of time, a wheel stalled, the counts stopped (the
+            robot is stopped, and the stop confirmed, first).
     """
     config = robot.config
     loop = asyncio.get_running_loop()
     linear = plan.mode == "distance"
     sign = 1.0 if plan.goal > 0 else -1.0
-    target = abs(plan.goal) if linear else math.radians(abs(plan.goal))
     if linear:
-        top, floor = plan.linear_mps, MIN_GOAL_LINEAR_MPS
-        accel, decel = config.linear_accel_mps2, config.linear_decel_mps2
-        tolerance = _GOAL_TOLERANCE_M
+        top = plan.linear_mps
+        timeout_s = _goal_timeout(
+            abs(plan.goal), top, config.linear_accel_mps2, config.linear_decel_mps2
+        )
         goal_text = f"{plan.goal:+.3f} m at up to {top:.3g} m/s"
     else:
-        top, floor = plan.angular_radps, MIN_GOAL_ANGULAR_RADPS
-        accel, decel = config.angular_accel_radps2, config.angular_decel_radps2
-        tolerance = _GOAL_TOLERANCE_RAD
+        top = plan.angular_radps
+        timeout_s = _goal_timeout(
+            math.radians(abs(plan.goal)),
+            top,
+            config.angular_accel_radps2,
+            config.angular_decel_radps2,
+        )
         goal_text = f"{plan.goal:+.1f}° at up to {top:.3g} rad/s"
-    plan_decel = decel * _PLAN_DECEL_SHARE
-    timeout_s = _goal_timeout(target, top, accel, plan_decel)
     if not quiet:
         console.print(
             f"drive: {'straight' if linear else 'turn on the spot'} {goal_text} by odometry, "
@@ -705,66 +693,22 @@ async def _to_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
         )
     start = _Snapshot.take(robot)
     first = loop.time()
-    done = 0.0
-    reached = False
-    starved = False
+    failure: MotionError | None = None
     try:
-        async with asyncio.timeout(timeout_s), robot.subscribe("wheel_encoder", maxlen=1) as sub:
-            while True:
-                try:
-                    # The command is only as good as the counts it steers by: with none
-                    # for a while (a cable, a silent board) stop, whatever the watchdog
-                    # and stale-feedback settings say. (asyncio.timeout, not wait_for,
-                    # which on 3.11 can swallow a Ctrl-C arriving with a sample.)
-                    async with asyncio.timeout(_FEEDBACK_GAP_S):
-                        enc = await anext(sub)
-                except TimeoutError:
-                    starved = True
-                    break
-                except StopAsyncIteration:
-                    break
-                odom = robot.latest("wheel_odom")
-                if odom is None:  # published with every wheel_encoder sample
-                    continue
-                if linear:
-                    done = sign * ((enc.left_m + enc.right_m) / 2 - start.travel_m)
-                    speed = sign * (enc.left_mps + enc.right_mps) / 2
-                else:
-                    done = sign * (odom.heading_rad - start.heading_rad)
-                    speed = sign * odom.angular_radps
-                # The wheels trail the command: they run on a little at the speed they have.
-                ahead = max(speed, 0.0)
-                if target - done - ahead * _STOP_LEAD_S <= tolerance:
-                    reached = True
-                    break
-                remaining = max(target - done - ahead * _PROFILE_LEAD_S, 0.0)
-                command = sign * max(floor, min(top, math.sqrt(2 * plan_decel * remaining)))
-                if linear:
-                    robot.drive(command, 0.0)
-                else:
-                    robot.drive(0.0, command)
-    except TimeoutError:
-        pass
+        if linear:
+            await robot.drive_distance(plan.goal, speed_mps=top, timeout_s=timeout_s)
+        else:
+            await robot.rotate(math.radians(plan.goal), speed_radps=top, timeout_s=timeout_s)
+    except MotionError as exc:
+        failure = exc
     finally:
+        # Whatever happened above, Ctrl-C included: the target is zero.
         robot.stop()
     stop = await _stopped(robot)
     end = _Snapshot.take(robot)
     measured = _measured(start, end, first)
-    if starved:
-        raise GoalNotReachedError(
-            f"no wheel counts for {_FEEDBACK_GAP_S:g} s on the way to the goal: the robot "
-            "is stopped (is a drive board silent? `ohmni status`)"
-        )
-    if not reached:
-        went = (
-            f"{measured['distance_m']:+.3f} m of {plan.goal:+.3f} m"
-            if linear
-            else f"{measured['heading_change_deg']:+.1f}° of {plan.goal:+.1f}°"
-        )
-        raise GoalNotReachedError(
-            f"the goal was not reached within {timeout_s:.1f} s: went {went} by odometry; "
-            "the robot is stopped"
-        )
+    if failure is not None:
+        raise failure
     if linear:
         goal: dict[str, float] = {"distance_m": plan.goal}
         error = {"error_m": round(measured["distance_m"] - plan.goal, 4)}

@@ -9,12 +9,16 @@ the config). The named positions, per kind (from the config's ranges):
   and 75° the other; the longer side is taken as down, as the rest position leans there.
 * Worm gear (sid 4): ``up`` = ``worm_min_raw`` (−127000), ``down`` = ``worm_max_raw``
   (120000), ``center`` = their middle (−3500); 0 is the documented neutral (``--raw 0``).
+
+A move waits for the neck to read back at its target with the handle's own
+``move(..., wait=True)`` (:mod:`ohmni_tb.robot.devices`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import math
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar, cast
 
@@ -44,7 +48,6 @@ if TYPE_CHECKING:
         Robot,
         ServoHandle,
         ServoSample,
-        Subscription,
         WormNeckHandle,
         WormNeckSample,
     )
@@ -59,14 +62,8 @@ ACTIONS = (*NAMED, "rest", "free")
 #: The longest playtime the neck handle takes, seconds (254 ticks of 11.2 ms).
 MAX_PLAYTIME_S = 2.84
 DEFAULT_PLAYTIME_S = 1.0
-#: How close the read-back must come to the target, raw counts: ~1.6° on the HerkuleX
-#: (its own in-position margin is 3), 0.4 % of the travel on the worm gear.
-HERKULEX_TOLERANCE_RAW = 5
-WORM_TOLERANCE_RAW = 1000
-#: How long after the playtime the HerkuleX neck may take to read back at its target.
-HERKULEX_SETTLE_S = 1.5
-#: How long the worm gear may take to get there (the simulated one crosses its whole
-#: travel in ~3 s; the real one's speed is not public).
+#: How long the worm gear may take to get there (the handle's default, WORM_TIMEOUT_S of
+#: ohmni_tb.robot.devices).
 WORM_TIMEOUT_S = 15.0
 #: How long to wait for a feedback sample.
 SAMPLE_TIMEOUT_S = 1.0
@@ -345,47 +342,48 @@ async def _herkulex(robot: Robot, handle: ServoHandle, ask: _Ask) -> dict[str, A
     loop = asyncio.get_running_loop()
     out = _base(robot, handle.sid, ask)
     offset = handle.zero_offset_raw
-    async with robot.subscribe("servo_neck", maxlen=8) as samples:
-        if robot.config.servo_hz <= 0:
-            raise NeckError("the neck reads back from the servo_neck stream: servo_hz is 0")
-        target: int | None = None
-        if ask.action in NAMED:
-            target = _named(robot)[ask.action]
-        elif ask.action == "raw":
-            target = ask.raw
-        elif ask.action == "deg":
-            assert ask.deg is not None
-            target = _deg_to_raw_checked(ask.deg, robot.config)
+    if robot.config.servo_hz <= 0:
+        raise NeckError("the neck reads back from the servo_neck stream: servo_hz is 0")
+    target: int | None = None
+    if ask.action in NAMED:
+        target = _named(robot)[ask.action]
+    elif ask.action == "raw":
+        target = ask.raw
+    elif ask.action == "deg":
+        assert ask.deg is not None
+        target = _deg_to_raw_checked(ask.deg, robot.config)
+    if target is not None:
+        low, high = handle.min_raw, handle.max_raw
+        if not low <= target <= high:
+            raise NeckError(
+                f"{_label(ask, target)} is out of range for the HerkuleX neck (sid "
+                f"{handle.sid}): allowed {low}..{high}; nothing was sent to the neck"
+            )
+        playtime = DEFAULT_PLAYTIME_S if ask.playtime_s is None else ask.playtime_s
+        out.update(
+            target_raw=target,
+            target_deg=round(_degrees(target, offset), 2),
+            playtime_s=round(playtime_sent_s(playtime), 4),
+        )
         sent = loop.time()
-        if target is not None:
-            low, high = handle.min_raw, handle.max_raw
-            if not low <= target <= high:
-                raise NeckError(
-                    f"{_label(ask, target)} is out of range for the HerkuleX neck (sid "
-                    f"{handle.sid}): allowed {low}..{high}; nothing was sent to the neck"
+        # Back within 5 counts and done moving, by the playtime + 1.5 s.
+        arrived = await handle.move(target, playtime_s=playtime, wait=True)
+        assert arrived is not None  # wait=True
+        sample = arrived
+        out["elapsed_s"] = round(max(sample.stamp_s - sent, 0.0), 3)
+    else:
+        async with robot.subscribe("servo_neck", maxlen=8) as samples:
+            sent = loop.time()
+            if ask.action == "rest":
+                out.update(
+                    target_raw=handle.rest_raw,
+                    target_deg=round(_degrees(handle.rest_raw, offset), 2),
                 )
-            playtime = DEFAULT_PLAYTIME_S if ask.playtime_s is None else ask.playtime_s
-            out.update(
-                target_raw=target,
-                target_deg=round(_degrees(target, offset), 2),
-                playtime_s=round(playtime_sent_s(playtime), 4),
-            )
-            await handle.move(target, playtime_s=playtime)
-            sent = loop.time()
-            sample = await _herkulex_arrival(samples, sent, target, playtime)
-            out["elapsed_s"] = round(max(sample.stamp_s - sent, 0.0), 3)
-        elif ask.action == "rest":
-            out.update(
-                target_raw=handle.rest_raw, target_deg=round(_degrees(handle.rest_raw, offset), 2)
-            )
-            await handle.rest()  # over 1 s, then torque free
-            sent = loop.time()
-            sample = await _next(samples, sent, "servo_neck")
-        elif ask.action == "free":
-            await handle.free()
-            sent = loop.time()
-            sample = await _next(samples, sent, "servo_neck")
-        else:
+                await handle.rest()  # over 1 s, then torque free
+                sent = loop.time()
+            elif ask.action == "free":
+                await handle.free()
+                sent = loop.time()
             sample = await _next(samples, sent, "servo_neck")
     out.update(
         position_raw=sample.position_raw,
@@ -408,83 +406,44 @@ def _deg_to_raw_checked(deg: float, config: RobotConfig) -> int:
         raise NeckError(str(exc)) from None
 
 
-async def _herkulex_arrival(
-    samples: Subscription[ServoSample], sent: float, target: int, playtime_s: float
-) -> ServoSample:
-    """The first sample within tolerance of ``target`` and done moving (after the move
-    was sent); at the deadline, the last one if it is within tolerance.
-
-    Raises:
-        NeckError: Not there by the playtime + :data:`HERKULEX_SETTLE_S`.
-    """
-    loop = asyncio.get_running_loop()
-    limit_s = playtime_s + HERKULEX_SETTLE_S
-    deadline = sent + limit_s
-    last: ServoSample | None = None
-    while True:
-        sample = await _next(samples, sent, "servo_neck", deadline=deadline, default=last)
-        timed_out = sample is last or loop.time() >= deadline
-        last = sample
-        there = abs(sample.position_raw - target) <= HERKULEX_TOLERANCE_RAW
-        # The servo's MOVING bit stays set until its trajectory ends, the playtime.
-        if there and (not sample.moving or timed_out):
-            return sample
-        if timed_out:
-            break
-    assert last is not None
-    raise NeckError(
-        f"the HerkuleX neck did not reach {target} within {limit_s:g} s: "
-        f"{_read_back(last.stamp_s)} {last.position_raw} raw, torque "
-        f"{last.torque.name.lower()}"
-        + (f", errors {last.status_error!r}" if last.status_error else "")
-    )
-
-
-def _read_back(stamp_s: float) -> str:
-    """How a failure names the last sample: current, or stale (the neck went silent)."""
-    age = asyncio.get_running_loop().time() - stamp_s
-    if age <= SAMPLE_TIMEOUT_S:
-        return "it reads back"
-    return f"it stopped answering {age:.1f} s ago (no sample since), when it read back"
-
-
 async def _worm(robot: Robot, handle: WormNeckHandle, ask: _Ask) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     out = _base(robot, handle.sid, ask)
     notes: list[str] = out["notes"]
-    async with robot.subscribe("new_neck", maxlen=8) as samples:
-        if robot.config.new_neck_hz <= 0:
-            raise NeckError("the neck reads back from the new_neck stream: new_neck_hz is 0")
-        if ask.action == "deg":
+    if robot.config.new_neck_hz <= 0:
+        raise NeckError("the neck reads back from the new_neck stream: new_neck_hz is 0")
+    if ask.action == "deg":
+        raise NeckError(
+            "--deg is for the HerkuleX neck, and the worm-gear neck answered: use --raw "
+            "or up/down/center; nothing was sent to the neck"
+        )
+    target: int | None = None
+    if ask.action in NAMED:
+        target = _named(robot)[ask.action]
+    elif ask.action == "raw":
+        target = ask.raw
+    elif ask.action == "rest":
+        notes.append("the worm gear holds its position without power: nothing to rest")
+    elif ask.action == "free":
+        notes.append("the worm gear has no torque to release: nothing to free")
+    if target is not None:
+        if not handle.min_raw <= target <= handle.max_raw:
             raise NeckError(
-                "--deg is for the HerkuleX neck, and the worm-gear neck answered: use --raw "
-                "or up/down/center; nothing was sent to the neck"
+                f"{_label(ask, target)} is out of range for the worm-gear neck (sid 4): "
+                f"allowed {handle.min_raw}..{handle.max_raw}; nothing was sent to the neck"
             )
-        target: int | None = None
-        if ask.action in NAMED:
-            target = _named(robot)[ask.action]
-        elif ask.action == "raw":
-            target = ask.raw
-        elif ask.action == "rest":
-            notes.append("the worm gear holds its position without power: nothing to rest")
-        elif ask.action == "free":
-            notes.append("the worm gear has no torque to release: nothing to free")
+        if ask.playtime_s is not None:
+            notes.append("--playtime ignored: the worm gear moves at its own speed")
+        out["target_raw"] = target
         sent = loop.time()
-        if target is not None:
-            if not handle.min_raw <= target <= handle.max_raw:
-                raise NeckError(
-                    f"{_label(ask, target)} is out of range for the worm-gear neck (sid 4): "
-                    f"allowed {handle.min_raw}..{handle.max_raw}; nothing was sent to the neck"
-                )
-            if ask.playtime_s is not None:
-                notes.append("--playtime ignored: the worm gear moves at its own speed")
-            out["target_raw"] = target
-            await handle.move(target)
-            sent = loop.time()
-            sample = await _worm_arrival(samples, sent, target)
-            out["elapsed_s"] = round(max(sample.stamp_s - sent, 0.0), 3)
-        else:
-            sample = await _next(samples, sent, "new_neck")
+        # Back within 1000 counts and at rest; a stall is an error (PositionError).
+        arrived = await handle.move(target, wait=True, timeout_s=WORM_TIMEOUT_S)
+        assert arrived is not None  # wait=True
+        sample = arrived
+        out["elapsed_s"] = round(max(sample.stamp_s - sent, 0.0), 3)
+    else:
+        async with robot.subscribe("new_neck", maxlen=8) as samples:
+            sample = await _next(samples, loop.time(), "new_neck")
     if sample.stalled:
         raise NeckError(
             f"the worm-gear neck stalled at {sample.position_raw}: only a power cycle clears it"
@@ -493,35 +452,8 @@ async def _worm(robot: Robot, handle: WormNeckHandle, ask: _Ask) -> dict[str, An
     return out
 
 
-async def _worm_arrival(
-    samples: Subscription[WormNeckSample], sent: float, target: int
-) -> WormNeckSample:
-    """The first sample at rest within tolerance of ``target``.
-
-    Raises:
-        NeckError: Not there within :data:`WORM_TIMEOUT_S`, or stalled.
-    """
-    deadline = sent + WORM_TIMEOUT_S
-    last: WormNeckSample | None = None
-    while True:
-        sample = await _next(samples, sent, "new_neck", deadline=deadline, default=last)
-        if sample is last:
-            break
-        last = sample
-        if sample.stalled:
-            return sample  # reported by the caller
-        if not sample.moving and abs(sample.position_raw - target) <= WORM_TOLERANCE_RAW:
-            return sample
-    assert last is not None
-    raise NeckError(
-        f"the worm-gear neck did not reach {target} within {WORM_TIMEOUT_S:g} s: "
-        f"{_read_back(last.stamp_s)} {last.position_raw}"
-        + (" (still moving)" if last.moving else "")
-    )
-
-
 async def _next(
-    samples: Subscription[T],
+    samples: AsyncIterator[T],
     after_s: float,
     stream: str,
     *,

@@ -71,13 +71,21 @@ async def device_info(robot: Robot) -> dict[str, Any]:
         ``None``), ``neck_kind``, ``servos`` (``sid``, ``role``, ``model``), ``present``,
         ``absent``.
     """
-    from ohmni_tb.errors import OhmniError  # noqa: PLC0415
+    from ohmni_tb.errors import OhmniError, StateError  # noqa: PLC0415
     from ohmni_tb.protocol import Memory  # noqa: PLC0415
     from ohmni_tb.protocol.devices import DeviceId  # noqa: PLC0415
+    from ohmni_tb.robot import Link, LocalRobot  # noqa: PLC0415
 
-    found = await robot.info()
+    try:
+        found = await robot.info()
+    except StateError:
+        if robot.state.link is not Link.RELEASED:
+            raise
+        # The port is handed to another program (ohmni serve --handoff): no device can be
+        # asked; what the Robot found when it had the port is in its state.
+        found = _info_from_state(robot)
     firmware: dict[str, str | None] = {**found["firmware"], "worm_neck": None}
-    if robot.neck_kind == "worm" and hasattr(robot, "bus"):  # not through the daemon
+    if robot.neck_kind == "worm" and isinstance(robot, LocalRobot):  # the daemon's: no bus
         # Robot.info() tags the drive and core boards; the worm neck's board has one too.
         try:
             reply = await robot.bus.read(DeviceId.WORM_NECK, _TAG_ADDR, 0, Memory.EEP)
@@ -95,6 +103,22 @@ async def device_info(robot: Robot) -> dict[str, Any]:
         ],
         "present": list(found["present"]),
         "absent": list(found["absent"]),
+    }
+
+
+def _info_from_state(robot: Robot) -> dict[str, Any]:
+    """``Robot.info()``'s shape from the Robot's state, without asking the devices: the
+    firmware tags and servo models unknown (``None``)."""
+    state = robot.state
+    servos = [sid for sid in robot.config.ext_servo_ids if sid in state.present]
+    if state.neck == "herkulex":
+        servos.insert(0, robot.config.neck_id)
+    return {
+        "firmware": {"left_drive": None, "right_drive": None, "core": None},
+        "servos": dict.fromkeys(servos),
+        "neck": state.neck,
+        "present": list(state.present),
+        "absent": list(state.absent),
     }
 
 

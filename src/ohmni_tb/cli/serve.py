@@ -155,7 +155,7 @@ def serve(
 
     Opens the port like every command, then prints the address (ws://HOST:PORT) alone on
     the first line of stdout. Clients subscribe to the Robot's streams, call its services
-    and, holding the control lease, command it (ohmni_tb.client.RobotClient;
+    and, holding the control lease, command it (Robot.open("ws://HOST:PORT") in Python;
     docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits
     with 0. The robot runs in a worker process: when it dies, this one stops the wheels
     and starts it again (docs/daemon.md).
@@ -425,8 +425,7 @@ def _token(host: str, token_file: Path | None, *, say: bool = True) -> str | Non
         raise typer.BadParameter(str(exc), param_hint="--token-file") from None
     if say:
         typer.echo(
-            f"clients need the token in {path} (RobotClient.connect(token=...) or "
-            "$OHMNI_DAEMON_TOKEN)",
+            f"clients need the token in {path} (Robot.open(url, token=...) or $OHMNI_DAEMON_TOKEN)",
             err=True,
         )
     return token

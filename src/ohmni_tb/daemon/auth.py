@@ -21,6 +21,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from ohmni_tb.config import user_config_dir
 from ohmni_tb.errors import ConfigError
+from ohmni_tb.robot.wire import TOKEN_ENV  # a client's, where it takes the token from
 
 __all__ = [
     "MIN_TOKEN_CHARS",
@@ -36,8 +37,6 @@ __all__ = [
 
 #: The token file's name in the user's config directory.
 TOKEN_FILE_NAME: Final = "daemon-token"
-#: The environment variable a client reads its token from when given none.
-TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: Bytes of randomness in a new token (256 bits), shown URL-safe base64 (43 characters).
 _TOKEN_BYTES = 32
 #: A token shorter than this is refused (the daemon, Foxglove control): anyone could

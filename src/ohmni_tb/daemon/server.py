@@ -39,32 +39,32 @@ import os
 import socket
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb._checks import integer
 from ohmni_tb._version import __version__
-from ohmni_tb.control.pid import PidGains
 from ohmni_tb.daemon.auth import MIN_TOKEN_CHARS, check_origin, check_token, presented_token
-from ohmni_tb.daemon.protocol import (
+from ohmni_tb.errors import (
+    ConfigError,
+    InvalidArgumentError,
+    MotionError,
+    OhmniError,
+    StateError,
+)
+from ohmni_tb.robot.wire import (
     MAX_QUEUE,
     METHOD_SPECS,
     PROTOCOL_VERSION,
     AcquireArgs,
     Call,
-    DriveArgs,
-    DriveWheelsArgs,
     ErrorCode,
     Hello,
-    LatestArgs,
     LeaseMessage,
-    LightArgs,
     Limits,
     Motion,
     MoveArgs,
-    PidArgs,
-    ReleasePortArgs,
     RequestError,
     RestArgs,
     Result,
@@ -73,18 +73,18 @@ from ohmni_tb.daemon.protocol import (
     Unsubscribe,
     call_args,
     encode,
+    goal_json,
     parse_client_message,
+    result_json,
     sample_json,
     stats_json,
 )
-from ohmni_tb.errors import ConfigError, InvalidArgumentError, OhmniError, StateError
-from ohmni_tb.robot.devices import ServoHandle
 
 if TYPE_CHECKING:
     from websockets.asyncio.server import Server, ServerConnection
     from websockets.http11 import Request, Response
 
-    from ohmni_tb.robot import Robot, RobotStats, Subscription
+    from ohmni_tb.robot import Robot, RobotStats, SampleStream
 
 __all__ = [
     "BURST_MESSAGES",
@@ -600,30 +600,35 @@ class RobotServer:
             _, text = self._shared_stats()
             client.reply_frame(f'{{"op":"result","id":{json.dumps(call.id)},"data":{text}}}')
             return
-        serve = self._SYNC.get(call.method)
-        if serve is not None:
-            try:
-                data = serve(self, client, args)
-            except OhmniError as exc:
-                raise _robot_refusal(call, exc) from exc
-            except RequestError as exc:
-                exc.id = call.id
-                raise
-            if call.method in _CHANGES_STATS:
-                self._stats = None  # the next stats shows the change, as on the Robot
-            client.reply(Result(id=call.id, data=data))
+        if spec.awaited and spec.call is not None:
+            task = asyncio.get_running_loop().create_task(
+                self._call_later(client, call, spec.call, args),
+                name=f"ohmni-daemon-call {call.method}",
+            )
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
             return
-        task = asyncio.get_running_loop().create_task(
-            self._call_later(client, call, args), name=f"ohmni-daemon-call {call.method}"
-        )
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        try:
+            if spec.call is None:
+                data = self._OWN[call.method](self, client, args)
+            else:
+                data = result_json(call.method, self._bound(spec.call, args)(**args.call_kwargs()))
+        except OhmniError as exc:
+            raise _robot_refusal(call, exc) from exc
+        except RequestError as exc:
+            exc.id = call.id
+            raise
+        if call.method in _CHANGES_STATS:
+            self._stats = None  # the next stats shows the change, as on the Robot
+        client.reply(Result(id=call.id, data=data))
 
-    async def _call_later(self, client: _Client, call: Call, args: Any) -> None:
-        serve = self._ASYNC[call.method]
+    async def _call_later(self, client: _Client, call: Call, name: str, args: Any) -> None:
         try:
             try:
-                data = await serve(self, args)
+                data = result_json(call.method, await self._bound(name, args)(**args.call_kwargs()))
+            except MotionError as exc:
+                # A goal that ended short of its goal: what it did, and why, are its result.
+                data = goal_json(exc)
             except OhmniError as exc:
                 raise _robot_refusal(call, exc) from exc
         except RequestError as exc:
@@ -633,7 +638,22 @@ class RobotServer:
             self._stats = None
         client.reply(Result(id=call.id, data=data))
 
-    # The services, each one line on the Robot.
+    def _bound(self, name: str, args: Any) -> Callable[..., Any]:
+        """The Robot's method ``name`` (:attr:`MethodSpec.call`), or the neck's or servo's
+        for a servo command."""
+        robot = self._robot
+        owner: object = robot
+        if isinstance(args, MoveArgs | TorqueArgs | RestArgs):
+            if args.target != "neck":
+                owner = robot.servo(int(args.target))
+            elif name == "torque" and robot.neck_kind == "worm":
+                raise StateError("the worm-gear neck has no torque modes: it holds without power")
+            else:
+                owner = robot.neck
+        method: Callable[..., Any] = getattr(owner, name)
+        return method
+
+    # The server's own services: the lease and the settings.
 
     def _acquire(self, client: _Client, args: AcquireArgs) -> Any:
         holder = self._holder
@@ -667,34 +687,7 @@ class RobotServer:
         for other in self._clients:
             other.reply(LeaseMessage(holder=self.lease_holder, you=other is client, reason=reason))
 
-    def _latest(self, client: _Client, args: LatestArgs) -> Any:
-        sample = self._robot.latest(args.topic)
-        return None if sample is None else sample_json(sample)
-
-    def _drive(self, client: _Client, args: DriveArgs) -> Any:
-        limited = self._robot.drive(args.linear_mps, args.angular_radps)
-        return {
-            "requested": [limited.requested.linear_mps, limited.requested.angular_radps],
-            "twist": [limited.twist.linear_mps, limited.twist.angular_radps],
-            "scale": limited.scale,
-        }
-
-    def _drive_wheels(self, client: _Client, args: DriveWheelsArgs) -> Any:
-        wheels = self._robot.drive_wheels(args.left_mps, args.right_mps)
-        return {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps}
-
-    def _set_pid(self, client: _Client, args: PidArgs) -> Any:
-        self._robot.set_pid(PidGains(**args.model_dump()))
-        return None
-
-    def _get_pid(self, client: _Client, args: object) -> Any:
-        gains = self._robot.get_pid()
-        return {name: getattr(gains, name) for name in ("kp", "ki", "kd", "kff", "ff_offset")}
-
-    _SYNC: Final[dict[str, _SyncCall]] = {
-        "schedule": lambda self, client, args: [list(row) for row in self._robot.schedule()],
-        "latest": _latest,
-        "get_pid": _get_pid,
+    _OWN: Final[dict[str, _OwnCall]] = {
         "config": lambda self, client, args: self._robot.config.model_dump(mode="json"),
         "lease": lambda self, client, args: {
             "holder": self.lease_holder,
@@ -702,69 +695,6 @@ class RobotServer:
         },
         "acquire": _acquire,
         "release": _release,
-        "stop": lambda self, client, args: self._robot.stop(),
-        "drive": _drive,
-        "drive_wheels": _drive_wheels,
-        "drive_pwm": lambda self, client, args: self._robot.drive_pwm(args.left, args.right),
-        "clear_estop": lambda self, client, args: self._robot.clear_estop(),
-        "enable_controllers": lambda self, client, args: self._robot.enable_controllers(
-            args.enabled
-        ),
-        "set_pid": _set_pid,
-        "reset_odometry": lambda self, client, args: self._robot.reset_odometry(
-            args.x_m, args.y_m, args.yaw_rad
-        ),
-        "enable_stream": lambda self, client, args: self._robot.enable_stream(
-            args.topic, args.enabled
-        ),
-        "set_rate": lambda self, client, args: self._robot.set_rate(args.topic, args.hz),
-    }
-
-    async def _info(self, args: object) -> Any:
-        return await self._robot.info()
-
-    async def _estop(self, args: object) -> Any:
-        await self._robot.estop()
-
-    async def _light_ring(self, args: LightArgs) -> Any:
-        await self._robot.light_ring(args.hue, args.saturation, args.value)
-
-    def _handle_of(self, target: str | int) -> Any:
-        return self._robot.neck if target == "neck" else self._robot.servo(int(target))
-
-    async def _move(self, args: MoveArgs) -> Any:
-        handle = self._handle_of(args.target)
-        options = {
-            name: value
-            for name, value in (("rad", args.rad), ("playtime_s", args.playtime_s))
-            if value is not None
-        }
-        await handle.move(args.raw, **options)
-
-    async def _torque(self, args: TorqueArgs) -> Any:
-        handle = self._handle_of(args.target)
-        if not isinstance(handle, ServoHandle):
-            raise StateError("the worm-gear neck has no torque modes: it holds without power")
-        await handle.torque(args.mode)
-
-    async def _rest(self, args: RestArgs) -> Any:
-        await self._handle_of(args.target).rest(free=args.free)
-
-    async def _release_port(self, args: ReleasePortArgs) -> Any:
-        await self._robot.release_port(args.duration_s)
-
-    async def _reclaim_port(self, args: object) -> Any:
-        await self._robot.reclaim_port()
-
-    _ASYNC: Final[dict[str, _AsyncCall]] = {
-        "release_port": _release_port,
-        "reclaim_port": _reclaim_port,
-        "info": _info,
-        "estop": _estop,
-        "light_ring": _light_ring,
-        "move": _move,
-        "torque": _torque,
-        "rest": _rest,
     }
 
     def _subscribe(self, client: _Client, message: Subscribe) -> dict[str, Any]:
@@ -813,10 +743,8 @@ class RobotServer:
 #: The commands whose effect ``stats`` shows (a rate, a stream on or off, the link): the
 #: shared figures are computed again after them.
 _CHANGES_STATS: Final = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
-#: A service served at once: (server, client, args) → result data.
-_SyncCall = Callable[["RobotServer", "_Client", Any], Any]
-#: A service that awaits the Robot: (server, args) → result data.
-_AsyncCall = Callable[["RobotServer", Any], Awaitable[Any]]
+#: One of the server's own services: (server, client, args) → result data.
+_OwnCall = Callable[["RobotServer", "_Client", Any], Any]
 
 
 #: The longest frame that may be a stop call and so skips the readers' budget.
@@ -840,7 +768,7 @@ def _robot_refusal(call: Call, exc: OhmniError) -> RequestError:
         code = "robot_state"
     else:
         code = "robot_error"
-    return RequestError(code, f"{call.method}: {exc}", call.id)
+    return RequestError(code, f"{call.method}: {exc}", call.id, raised=exc)
 
 
 def _limit(value: float) -> float | None:
@@ -855,7 +783,7 @@ _PUMP_QUEUE = 256
 class _Pump:
     """One topic: the Robot's subscription, fanned out to every client's queue."""
 
-    def __init__(self, topic: str, subscription: Subscription[Any]) -> None:
+    def __init__(self, topic: str, subscription: SampleStream[Any]) -> None:
         self.topic = topic
         self.subscription = subscription
         self.queues: set[_Queue] = set()

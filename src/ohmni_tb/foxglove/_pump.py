@@ -11,10 +11,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import TYPE_CHECKING, Any
 
 import foxglove
 
@@ -27,35 +26,16 @@ from ohmni_tb.foxglove.channels import (
     encoder_for,
 )
 
-__all__ = ["ChannelStats", "Pump", "StreamSource", "StreamSubscription"]
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
+
+__all__ = ["ChannelStats", "Pump"]
 
 _log = logging.getLogger("ohmni_tb.foxglove")
 
 #: Samples a stream's subscription holds (5 s of the 50 Hz streams): it only fills when
 #: the event loop itself falls that far behind.
 DEFAULT_QUEUE = 256
-
-
-class StreamSubscription(Protocol):
-    """What a pump needs of a subscription (the Robot's, or a daemon client's)."""
-
-    dropped: int
-
-    async def __aenter__(self) -> Self: ...
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None: ...
-    def __aiter__(self) -> AsyncIterator[Any]: ...
-
-
-class StreamSource(Protocol):
-    """What a pump needs of a Robot: :meth:`~ohmni_tb.Robot.subscribe` (a
-    :class:`~ohmni_tb.client.RobotClient` has it too)."""
-
-    def subscribe(self, name: str, *, maxlen: int = ...) -> Any: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,7 +60,7 @@ class Pump:
     """Publishes a Robot's streams on :data:`CHANNELS` in ``context`` while it runs.
 
     Args:
-        source: An open Robot (or daemon client).
+        source: An open Robot, on a port or a daemon's.
         context: The SDK context the channels are made in; its sinks get the messages.
         specs: The channels (all of them by default).
         admit: Asked before each sample is encoded; ``False`` drops it (counted). A
@@ -91,7 +71,7 @@ class Pump:
 
     def __init__(
         self,
-        source: StreamSource,
+        source: Robot,
         context: foxglove.Context,
         *,
         specs: Sequence[ChannelSpec] = CHANNELS,

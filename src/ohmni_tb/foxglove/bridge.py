@@ -29,7 +29,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Coroutine
-from typing import Any, Final, TypeVar
+from typing import TYPE_CHECKING, Any, Final, TypeVar
 
 import foxglove
 from foxglove.websocket import (
@@ -49,7 +49,7 @@ from foxglove.websocket import (
 
 from ohmni_tb._checks import integer
 from ohmni_tb.errors import ConfigError, OhmniError, TransportError
-from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
+from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump
 from ohmni_tb.foxglove.access import (
     LOCKED_MESSAGE,
     LOCKED_STATUS_ID,
@@ -59,6 +59,9 @@ from ohmni_tb.foxglove.access import (
     ControlGate,
 )
 from ohmni_tb.foxglove.control import SERVICE_SCHEMAS, RobotControl
+
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
 
 __all__ = [
     "DEFAULT_BACKLOG",
@@ -370,7 +373,7 @@ class FoxgloveBridge(_Served):
 
     def __init__(
         self,
-        robot: StreamSource,
+        robot: Robot,
         *,
         host: str = DEFAULT_HOST,
         port: int = DEFAULT_PORT,

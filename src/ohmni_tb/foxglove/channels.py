@@ -2,7 +2,7 @@
 
 Every stream has a JSON channel named like tb_control's topic (``/tb_control/<stream>``)
 whose message is the stream's sample exactly as the daemon sends it
-(:func:`ohmni_tb.daemon.protocol.sample_json`: enums by value, tuples as lists), so a
+(:func:`ohmni_tb.robot.wire.sample_json`: enums by value, tuples as lists), so a
 recording holds every field and the samples can be rebuilt from it. The odometry also
 goes out in Foxglove's well-known schemas, protobuf-encoded, for the 3D panel: the
 transform ``odom`` → ``base_link`` on ``/tf`` and the pose on ``/tb_control/wheel_odom``

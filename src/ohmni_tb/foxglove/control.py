@@ -29,15 +29,16 @@ the wire.
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import json
 from collections.abc import Awaitable, Callable
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb._checks import number
-from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, StateError
 from ohmni_tb.robot.samples import STREAMS
+
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
 
 __all__ = [
     "LIMIT_PARAMETERS",
@@ -85,17 +86,13 @@ SERVICE_SCHEMAS: Final[dict[str, tuple[dict[str, Any], dict[str, Any]]]] = {
 }
 
 
-async def _value(result: Any) -> Any:
-    """A Robot answers at once, a daemon's RobotClient with a coroutine: either."""
-    return await result if inspect.isawaitable(result) else result
-
-
 class RobotControl:
     """The parameters and services of ``robot`` (module docstring).
 
     Args:
-        robot: An open :class:`~ohmni_tb.Robot`, or a daemon's
-            :class:`~ohmni_tb.client.RobotClient`.
+        robot: An open :class:`~ohmni_tb.Robot`, on a port or a daemon's (``ohmni
+            serve`` gives the Foxglove clients a :class:`~ohmni_tb.client.RobotClient`,
+            whose changes go through the daemon's control lease).
         writable: Whether parameters may be set and services called.
         before_change: Awaited before each change (``ohmni serve`` takes the daemon's
             control lease there, and raises when another client holds it).
@@ -103,7 +100,7 @@ class RobotControl:
 
     def __init__(
         self,
-        robot: Any,
+        robot: Robot,
         *,
         writable: bool = False,
         before_change: Callable[[], Awaitable[None]] | None = None,
@@ -121,9 +118,9 @@ class RobotControl:
         """Every parameter's value now, by full name (a stream the robot does not poll is
         left out)."""
         robot = self._robot
-        gains: PidGains = await _value(robot.get_pid())
-        stats = await _value(robot.stats())
-        config = await _value(robot.config()) if callable(robot.config) else robot.config
+        gains = robot.get_pid()
+        stats = robot.stats()
+        config = robot.config
         values: dict[str, float] = {}
         for name, field in PID_PARAMETERS.items():
             values[PARAMETER_PREFIX + name] = float(getattr(gains, field))
@@ -159,7 +156,7 @@ class RobotControl:
                 raise InvalidArgumentError(f"no parameter {full!r}")
         await self._change()
         if gains:
-            current: PidGains = await _value(self._robot.get_pid())
+            current = self._robot.get_pid()
             self._robot.set_pid(dataclasses.replace(current, **gains))
             await self._confirm()
         for stream, hz in rates.items():
@@ -211,12 +208,10 @@ class RobotControl:
             await self._before_change()
 
     async def _confirm(self) -> None:
-        """Wait for the daemon's answer to the commands sent (a RobotClient's are not
-        awaited): its refusal is this change's, told now, and not left to fail the next
-        command (a Teleop Twist). A Robot refuses as it is called."""
-        confirm = getattr(self._robot, "confirm", None)
-        if confirm is not None:
-            await confirm()
+        """Wait for the daemon's answer to the commands sent (a remote robot's plain
+        commands are not awaited): its refusal is this change's, told now, and not left
+        to fail the next command (a Teleop Twist). A local robot refuses as it is called."""
+        await self._robot.confirm()
 
     def _check_writable(self) -> None:
         if not self.writable:

@@ -40,7 +40,7 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
 import foxglove
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
@@ -49,8 +49,11 @@ from ohmni_tb._checks import bounded, integer, positive
 from ohmni_tb._version import __version__
 from ohmni_tb.bus import Bus
 from ohmni_tb.errors import InvalidArgumentError, OhmniError
-from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump, StreamSource
+from ohmni_tb.foxglove._pump import DEFAULT_QUEUE, ChannelStats, Pump
 from ohmni_tb.foxglove.channels import WallClock
+
+if TYPE_CHECKING:
+    from ohmni_tb.robot import Robot
 
 __all__ = [
     "DEFAULT_FLUSH_INTERVAL_S",
@@ -123,7 +126,7 @@ class McapRecorder:
 
     def __init__(
         self,
-        robot: StreamSource,
+        robot: Robot,
         path: str | os.PathLike[str],
         *,
         overwrite: bool = False,
@@ -132,12 +135,16 @@ class McapRecorder:
         queue: int = DEFAULT_QUEUE,
         raw: bool = False,
     ) -> None:
-        bus = getattr(robot, "bus", None) if raw else None
-        if raw and not isinstance(bus, Bus):
-            raise InvalidArgumentError(
-                "raw bus bytes need the Robot that owns the port, not a daemon's client "
-                "(ohmni record --raw --direct, after ohmni serve --handoff)"
-            )
+        from ohmni_tb.robot import LocalRobot  # noqa: PLC0415  # the Robot's package: when used
+
+        bus: Bus | None = None
+        if raw:
+            if not isinstance(robot, LocalRobot):
+                raise InvalidArgumentError(
+                    "raw bus bytes need the Robot that owns the port, not a daemon's "
+                    "(ohmni record --raw --direct, after ohmni serve --handoff)"
+                )
+            bus = robot.bus
         self._bus = bus
         self._raw: dict[bool, _RawChannel] = {}
         self._untap: Callable[[], None] | None = None

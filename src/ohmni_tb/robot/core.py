@@ -32,7 +32,7 @@ import logging
 import math
 from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar, overload
+from typing import Any, Literal, TypeVar
 
 from ohmni_tb._checks import bounded, check_seconds, number
 from ohmni_tb.bus import Bus, ReplyPacket, Slot
@@ -51,6 +51,7 @@ from ohmni_tb.control.pid import PidController, PidGains, PidStep
 from ohmni_tb.errors import (
     BusClosedError,
     BusTimeoutError,
+    ConfigError,
     InvalidArgumentError,
     MalformedReplyError,
     OhmniError,
@@ -69,7 +70,9 @@ from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import PWM_LIMIT, parse_count, read_count, wheel_command
 from ohmni_tb.protocol.messages import STATUS_DETAILS, STATUS_ERRORS, StatusError
 from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
+from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
+from ohmni_tb.robot.motion import MotionGoals, MotionResult
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
     STREAMS,
@@ -84,11 +87,11 @@ from ohmni_tb.robot.samples import (
 )
 from ohmni_tb.robot.schedule import CycleResult, Periodic
 from ohmni_tb.robot.stats import BusFigures, RobotStats
-from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE, Subscription, Topic
+from ohmni_tb.robot.streams import Subscription, Topic
 from ohmni_tb.safety import stop_wheels
 from ohmni_tb.transport import SerialTransport, Transport, open_transport
 
-__all__ = ["BusFigures", "Robot", "RobotStats"]
+__all__ = ["BusFigures", "LocalRobot", "RobotStats"]
 
 _log = logging.getLogger(__name__)
 #: What a polled stream's parser makes of a read reply.
@@ -180,8 +183,9 @@ class _State:
     faults: set[str] = field(default_factory=set)
 
 
-class Robot:
-    """One Ohmni robot on its bus (module docstring). Create it with :meth:`open`."""
+class LocalRobot(Robot):
+    """One Ohmni robot on its bus, run by this process (module docstring); the API is
+    :class:`~ohmni_tb.robot.api.Robot`'s. Create it with :meth:`open`."""
 
     def __init__(self, bus: Bus, config: RobotConfig, *, sim: Any = None) -> None:
         self._bus = bus
@@ -263,8 +267,15 @@ class Robot:
         self._reclaim: asyncio.Future[None] | None = None
         self._releasing: asyncio.Task[Any] | None = None  # the task releasing the port
         self._port_lock = asyncio.Lock()
+        # Motion goals: every other motion command preempts the one under way.
+        self._motion = MotionGoals(self, check=self._check_can_drive)
 
     # -- opening and closing -----------------------------------------------------------
+
+    @classmethod
+    def _opens(cls, port: str | Transport | None) -> bool:
+        """Every port but a daemon's URL."""
+        return not (isinstance(port, str) and port.lower().startswith(("ws://", "wss://")))
 
     @classmethod
     @contextlib.asynccontextmanager
@@ -272,29 +283,21 @@ class Robot:
         cls,
         port: str | Transport | None = None,
         *,
+        token: str | None = None,
         config: RobotConfig | None = None,
         **overrides: Any,
-    ) -> AsyncIterator[Robot]:
-        """Open the robot on ``port`` (a URL: ``sim://``, ``/dev/ttyUSB0`` …) and run it.
-
-        An async context manager. Leaving it stops the wheels (confirmed by their counts,
-        within ``stop_timeout_s``) and rests or frees the neck (``on_exit_neck``), even on
-        an error or a cancellation; then the port closes. When the block ended cleanly
-        but the counts did not confirm the stop, leaving it raises
-        :class:`~ohmni_tb.errors.StopNotConfirmedError` (the robot may be moving); after
-        an error, that error goes on and :attr:`exit_error` holds the stop's.
-
-        Args:
-            port: The port's URL (default ``config.port``), or an open
-                :class:`~ohmni_tb.transport.Transport` (reopened after a loss only when
-                it is a simulated line).
-            config: The settings (default: :class:`RobotConfig` from the environment).
-            overrides: Settings that replace the config's, by field name.
-
-        Raises:
-            ConfigError: A setting is invalid; the message names it.
-            TransportError: The port cannot be opened.
-        """
+    ) -> AsyncIterator[LocalRobot]:
+        """:meth:`Robot.open <ohmni_tb.robot.api.Robot.open>` on a port this process opens;
+        after an error in the block, that error goes on and :attr:`exit_error` holds the
+        stop's. A :class:`~ohmni_tb.transport.Transport` given is reopened after a loss
+        only when it is a simulated line."""
+        if not cls._opens(port):
+            raise ConfigError(
+                f"{port!r} is a daemon's URL: open it with Robot.open({port!r}) "
+                "(LocalRobot opens a serial port or sim://)"
+            )
+        if token is not None:
+            raise ConfigError("a token is for a daemon's URL (ws://, wss://), not for a port")
         if config is None:
             config = RobotConfig(**overrides)
         elif overrides:
@@ -311,7 +314,7 @@ class Robot:
         _warn_if_coarse_timers(transport)
         bus = Bus(transport, timeout_s=config.bus_timeout_s(), reopen=reopen)
         bus.start()
-        robot: Robot | None = None
+        robot: LocalRobot | None = None
         try:
             robot = cls(bus, config, sim=sim)
             await robot._start()
@@ -365,6 +368,7 @@ class Robot:
             return
         self._closed = True
         self._closing = asyncio.current_task()
+        self._motion.close()
         for periodic in self._periodic.values():
             periodic.stop()
         for timer in (
@@ -487,6 +491,7 @@ class Robot:
                 min_raw=config.worm_min_raw,
                 max_raw=config.worm_max_raw,
                 check=self._check_port,
+                feedback=lambda maxlen: self._feedback_subscription("new_neck", maxlen),
             )
         for ext_id, stream in zip(config.ext_servo_ids, EXT_STREAMS, strict=False):
             self._expected.add(ext_id)
@@ -508,12 +513,27 @@ class Robot:
             zero_offset_raw=config.neck_zero_offset_raw if neck else 0,
             on_command=self._servo_commanded,
             check=self._check_port,
+            feedback=lambda maxlen: self._feedback_subscription(stream, maxlen),
         )
         # The hold time counts from when this Robot found the servo: a neck some earlier
         # process left holding is rested neck_hold_s from now, not at the first sample
         # (which would move it the moment any Robot opens, a read-only one included).
         self._servos[sid] = _ServoWatch(handle, stream, last_command_s=self._loop.time())
         return handle
+
+    def _feedback_subscription(self, stream: str, maxlen: int) -> Subscription[Any]:
+        """A device's feedback stream, for a move that waits for its read-back.
+
+        Raises:
+            StateError: The stream is off (its rate setting is 0, or enable_stream).
+        """
+        topic = self._topic(stream)
+        if not topic.enabled:
+            raise StateError(
+                f"a move waits on the {stream} stream, which is off: "
+                f"robot.enable_stream({stream!r}) first (or wait=False); nothing was sent"
+            )
+        return topic.subscribe(maxlen)
 
     def _servo_commanded(self, sid: int) -> None:
         watch = self._servos.get(sid)
@@ -560,6 +580,7 @@ class Robot:
                     min_raw=config.worm_min_raw,
                     max_raw=config.worm_max_raw,
                     check=self._check_port,
+                    feedback=lambda maxlen: self._feedback_subscription("new_neck", maxlen),
                 )
                 self._add_worm_stream()
                 self._expected.discard(config.neck_id)
@@ -669,11 +690,7 @@ class Robot:
         return sum(hz * line_time_s for _, hz, _, line_time_s in self.schedule())
 
     def schedule(self) -> list[tuple[str, float, float, float]]:
-        """The schedule: per stream its rate (Hz), phase (s) and line time per cycle (s).
-
-        The control slot is always in it (it runs whether its samples are wanted or not);
-        a feedback stream only while it is enabled.
-        """
+        """The schedule (:meth:`Robot.schedule <ohmni_tb.robot.api.Robot.schedule>`)."""
         rows = []
         for name, periodic in self._periodic.items():
             if name != "wheel_encoder" and not self._topics[name].enabled:
@@ -1154,43 +1171,7 @@ class Robot:
     # -- port hand-off (public) ----------------------------------------------------------
 
     async def release_port(self, duration_s: float | None = None) -> None:
-        """Hand the serial port to another program (tb-node, a flashing tool) for a while.
-
-        The wheels are stopped first, as leaving ``async with`` stops them: the stop
-        jumps the queue and is repeated until the wheel counts confirm it (within
-        ``stop_timeout_s``). The HerkuleX neck is then rested or freed as on exit
-        (``on_exit_neck``, default ``free``): while the port is released nobody watches
-        its temperature, and a neck left holding torque overheats; ``keep`` leaves it
-        holding. The worm-gear neck holds without power and is left as it is. Then the
-        streams stop and the port closes (its file descriptor and exclusive lock are
-        free); ``robot_state`` says ``released`` with an event, and ``link`` is
-        :attr:`Link.RELEASED` in :attr:`state` and every later sample.
-
-        While released, :meth:`drive`, :meth:`drive_wheels`, :meth:`drive_pwm`, the neck
-        and servo commands, :meth:`light_ring` and :meth:`info` raise
-        :class:`~ohmni_tb.errors.StateError` and send nothing; :meth:`latest`,
-        :meth:`subscribe` and :meth:`stats` keep working (the streams just pause), and
-        the link watcher does not take the release for a lost link. Closing the Robot
-        while released sends nothing and returns at once.
-
-        Releasing again while released replaces the timer (``duration_s`` counts from
-        the new call; ``None`` cancels it) and stops a reclaim that waits for the port.
-        It runs to its end even if the caller is cancelled (then the cancellation goes on).
-
-        Args:
-            duration_s: Take the port back by itself after this many seconds,
-                0.1..3600 (:meth:`reclaim_port` is called for you); ``None``: keep it
-                released until :meth:`reclaim_port`.
-
-        Raises:
-            OutOfRangeError: ``duration_s`` is not a number of seconds in 0.1..3600;
-                nothing changed.
-            StateError: The Robot is closed, or it cannot reopen its port (it was opened
-                on an injected transport that is not simulated); nothing changed.
-            StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
-                may be moving. The port was released all the same, as closing would
-                have closed it (the other program may be what is needed to stop it).
-        """
+        """Hand the port to another program (the contract: ohmni_tb.robot.api.Robot)."""
         if duration_s is not None:
             check_seconds("duration_s", duration_s, RELEASE_MIN_S, RELEASE_MAX_S)
             duration_s = float(duration_s)
@@ -1202,30 +1183,13 @@ class Robot:
             )
         async with self._port_lock:
             self._check_open()
+            self._motion.preempt("release_port")
             error = await self._shielded(self._release(duration_s), "release port")
         if error is not None:
             raise error
 
     async def reclaim_port(self) -> None:
-        """Take the serial port back after :meth:`release_port`. A no-op when not released.
-
-        The port is reopened, a zero wheel command goes out first, the streams restart
-        on a fresh phase, ``link`` is :attr:`Link.CONNECTED` again and ``robot_state``
-        says ``port reclaimed``; then it returns. Absent devices are asked again.
-
-        If the port cannot be opened now (the other program still holds it), it does
-        not raise: ``robot_state`` says the Robot is waiting for the port, the link
-        stays :attr:`Link.RELEASED`, and this returns after that first attempt while the
-        Robot keeps trying in the background with a doubling backoff (up to
-        ``reconnect_max_backoff_s``), as after a lost link; ``port reclaimed`` follows
-        once it opens. Check :attr:`state` (``link``) or watch ``robot_state`` to know;
-        drive commands raise :class:`~ohmni_tb.errors.StateError` until then. A
-        :meth:`release_port` meanwhile stops the waiting. Cancelling the call does not
-        cancel the reclaim.
-
-        Raises:
-            StateError: The Robot is closed (or closed while this waited).
-        """
+        """Take the port back (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         async with self._port_lock:
             self._check_open()
@@ -1414,87 +1378,14 @@ class Robot:
             )
         return topic
 
-    @overload
-    def latest(self, name: Literal["wheel_encoder"]) -> WheelEncoderSample | None: ...
-    @overload
-    def latest(self, name: Literal["wheel_odom"]) -> WheelOdomSample | None: ...
-    @overload
-    def latest(self, name: Literal["tbcore_status"]) -> TbcoreStatusSample | None: ...
-    @overload
-    def latest(
-        self, name: Literal["servo_neck", "servo_ext1", "servo_ext2"]
-    ) -> ServoSample | None: ...
-    @overload
-    def latest(self, name: Literal["new_neck"]) -> WormNeckSample | None: ...
-    @overload
-    def latest(self, name: Literal["robot_state"]) -> RobotStateSample | None: ...
-    @overload
-    def latest(self, name: Literal["pid_debug"]) -> PidDebugSample | None: ...
-    @overload
-    def latest(self, name: str) -> Any: ...
-    def latest(self, name: str) -> Any:
-        """The newest sample of stream ``name``, or ``None`` before the first.
-
-        Raises:
-            InvalidArgumentError: No such stream; the message lists them.
-        """
+    def _latest(self, name: str) -> Any:
         return self._topic(name).latest
 
-    @overload
-    def subscribe(
-        self, name: Literal["wheel_encoder"], *, maxlen: int = ...
-    ) -> Subscription[WheelEncoderSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["wheel_odom"], *, maxlen: int = ...
-    ) -> Subscription[WheelOdomSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["tbcore_status"], *, maxlen: int = ...
-    ) -> Subscription[TbcoreStatusSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["servo_neck", "servo_ext1", "servo_ext2"], *, maxlen: int = ...
-    ) -> Subscription[ServoSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["new_neck"], *, maxlen: int = ...
-    ) -> Subscription[WormNeckSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["robot_state"], *, maxlen: int = ...
-    ) -> Subscription[RobotStateSample]: ...
-    @overload
-    def subscribe(
-        self, name: Literal["pid_debug"], *, maxlen: int = ...
-    ) -> Subscription[PidDebugSample]: ...
-    @overload
-    def subscribe(self, name: str, *, maxlen: int = ...) -> Subscription[Any]: ...
-    def subscribe(self, name: str, *, maxlen: int = DEFAULT_QUEUE_SIZE) -> Subscription[Any]:
-        """An async iterator over stream ``name``'s samples from now on.
-
-        It keeps at most ``maxlen`` samples; a reader that falls behind loses the oldest
-        (counted in the subscription's ``dropped`` and the stream's stats), and the
-        schedule never waits for it. Iteration ends when the Robot closes (at once for
-        a subscription taken after).
-
-        Raises:
-            InvalidArgumentError: No such stream.
-            OutOfRangeError: ``maxlen`` is not 1..100000.
-        """
+    def _subscribe(self, name: str, maxlen: int) -> SampleStream[Any]:
         return self._topic(name).subscribe(maxlen)
 
     def enable_stream(self, name: str, enabled: bool = True) -> None:
-        """Turn a stream on or off at run time (tb_control's ``enable_sensor_stream``).
-
-        Turning off ``wheel_encoder`` stops only its samples: the control slot keeps
-        running while the wheels are driven. Off streams stop their bus reads.
-
-        Raises:
-            InvalidArgumentError: No such stream.
-            StateError: The stream's device is absent (it cannot be turned on).
-            RobotClosedError: The Robot is closed.
-        """
+        """A stream on or off (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         topic = self._topic(name)
         if not isinstance(enabled, bool):
@@ -1515,18 +1406,7 @@ class Robot:
             periodic.stop()
 
     def set_rate(self, name: str, hz: float) -> None:
-        """Change a polled stream's rate (the control tick's too, ``wheel_encoder``).
-
-        The control tick (``wheel_encoder``, which ``wheel_odom`` and ``pid_debug``
-        follow) takes 10..100 Hz (:data:`~ohmni_tb.control.defaults.CONTROL_HZ_RANGE`, as
-        ``wheel_hz``); a feedback stream 0.1 Hz up to the top of its setting's range
-        (:attr:`StreamSpec.rate_range_hz <ohmni_tb.robot.samples.StreamSpec>`).
-
-        Raises:
-            InvalidArgumentError: No such stream, or it is not polled.
-            OutOfRangeError: ``hz`` is outside the stream's range; nothing changes.
-            RobotClosedError: The Robot is closed.
-        """
+        """A polled stream's rate (:meth:`Robot.set_rate <ohmni_tb.robot.api.Robot.set_rate>`)."""
         self._check_open()
         self._topic(name)
         spec = STREAMS[name]
@@ -1598,18 +1478,7 @@ class Robot:
             self._publish_state("watchdog re-armed by a drive command")
 
     def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
-        """Set the body velocity target (m/s forward, rad/s counter-clockwise).
-
-        Not a coroutine: the control tick drives toward the target, within the speed
-        limits (scaled keeping the curvature; the return value says by how much) and the
-        acceleration limits. The watchdog stops the wheels ``watchdog_s`` after the last
-        call: repeat it (at 5..20 Hz) to keep moving.
-
-        Raises:
-            InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, the port is released
-                (:meth:`release_port`), or the robot is closed.
-        """
+        """The body velocity target (:meth:`Robot.drive <ohmni_tb.robot.api.Robot.drive>`)."""
         twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
         self._check_can_drive()
         limited = limit_twist(twist, self._limits, self._drive)
@@ -1621,6 +1490,7 @@ class Robot:
                 angular_radps,
                 limited.scale,
             )
+        self._motion.preempt("drive")
         changed = self._mode != "twist" or self._target != limited.twist
         self._mode = "twist"
         self._target = limited.twist
@@ -1628,21 +1498,13 @@ class Robot:
         return limited
 
     def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
-        """Set each wheel's rim speed target (m/s, forward positive), no ramp.
-
-        Both are scaled by one factor into ``max_wheel_mps``; the return value is what
-        is driven.
-
-        Raises:
-            InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, the port is released
-                (:meth:`release_port`), or the robot is closed.
-        """
+        """Each wheel's speed target (the contract: ohmni_tb.robot.api.Robot)."""
         asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
         self._check_can_drive()
         wheels = saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
         if wheels != asked:
             self._clamped += 1
+        self._motion.preempt("drive_wheels")
         changed = self._mode != "wheels" or self._target_wheels != wheels
         self._mode = "wheels"
         self._target_wheels = wheels
@@ -1650,23 +1512,14 @@ class Robot:
         return wheels
 
     def drive_pwm(self, left: int, right: int) -> None:
-        """Drive the wheels open loop with raw PWM −1000..1000 (the controllers step aside).
-
-        Forward positive for both wheels (the right board's mirror is handled in the
-        packet). The watchdog still applies.
-
-        Raises:
-            InvalidArgumentError: Not ints.
-            OutOfRangeError: Outside −1000..1000; nothing changes.
-            StateError: An emergency stop is latched, the port is released
-                (:meth:`release_port`), or the robot is closed.
-        """
+        """Open-loop PWM (:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>`)."""
         for name, value in (("left", left), ("right", right)):
             if isinstance(value, bool) or not isinstance(value, int):
                 raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
             if not -PWM_LIMIT <= value <= PWM_LIMIT:
                 raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
         self._check_can_drive()
+        self._motion.preempt("drive_pwm")
         changed = self._mode != "pwm" or self._target_pwm != (left, right)
         self._mode = "pwm"
         self._target_pwm = (left, right)
@@ -1716,29 +1569,18 @@ class Robot:
         slot.future.add_done_callback(done)
 
     def stop(self) -> None:
-        """Target zero: the wheels ramp down at the deceleration limits.
-
-        The first braking command goes on the wire at once (in the next free slot), not
-        at the next control tick.
-
-        Raises:
-            RobotClosedError: The Robot is closed (closing stopped the wheels).
-        """
+        """Target zero, the first braking command at once."""
         self._check_open()
+        self._motion.preempt("stop")
         self._stop_targets()
         self._last_command_s = self._loop.time()
         if self._state.link is Link.CONNECTED:
             self._write_early(force=True)
 
     async def estop(self) -> None:
-        """Emergency stop: zero PWM ahead of everything queued, latched until cleared.
-
-        Drive commands are refused until :meth:`clear_estop`.
-
-        Raises:
-            RobotClosedError: The Robot is closed (closing stopped the wheels).
-        """
+        """Zero PWM ahead of everything, latched (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
+        self._motion.preempt("estop")
         self._state.estopped = True
         self._stop_targets()
         self._limiter.reset()
@@ -1756,26 +1598,19 @@ class Robot:
             await self._bus.send_now(wheel_command(0, 0))
 
     def clear_estop(self) -> None:
-        """Release a latched emergency stop (the robot stays still until commanded).
-
-        Raises:
-            RobotClosedError: The Robot is closed.
-        """
+        """Release a latched emergency stop (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         if self._state.estopped:
             self._state.estopped = False
             self._publish_state("emergency stop cleared")
 
     def enable_controllers(self, enabled: bool = True) -> None:
-        """Run the wheel PIDs (default), or not: then only :meth:`drive_pwm` moves.
-
-        Raises:
-            InvalidArgumentError: ``enabled`` is not a bool.
-            RobotClosedError: The Robot is closed.
-        """
+        """The wheel PIDs on or off (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         if not isinstance(enabled, bool):
             raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+        if not enabled:
+            self._motion.preempt("enable_controllers")
         self._controllers = enabled
         self._reset_pids()
 
@@ -1784,17 +1619,7 @@ class Robot:
         return self._wheels[0].pid.gains
 
     def set_pid(self, gains: PidGains) -> None:
-        """Change the wheel PIDs' gains, bumplessly (the output does not jump).
-
-        Each gain has one allowed range, the same as the ``pid_*`` settings'
-        (:data:`~ohmni_tb.control.defaults.WHEEL_GAIN_RANGES`). Whatever the gains, a
-        wheel measured faster than ``max_wheel_mps`` gets no drive power.
-
-        Raises:
-            InvalidArgumentError: Not a :class:`PidGains`.
-            OutOfRangeError: A gain is outside its range; nothing changes.
-            RobotClosedError: The Robot is closed.
-        """
+        """New wheel PID gains, bumplessly (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         if not isinstance(gains, PidGains):
             raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
@@ -1806,13 +1631,7 @@ class Robot:
             wheel.pid.set_gains(gains)
 
     def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
-        """Set the odometry pose (tb_control's ``reset_odom``).
-
-        Raises:
-            InvalidArgumentError: A value is not a finite number.
-            OutOfRangeError: A value is beyond ±1e6 (m or rad: :data:`MAX_POSE_M`).
-            RobotClosedError: The Robot is closed.
-        """
+        """Set the odometry pose (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_open()
         pose = []
         for name, value, unit in (
@@ -1821,7 +1640,109 @@ class Robot:
             ("yaw_rad", yaw_rad, "rad"),
         ):
             pose.append(bounded(name, number(name, value), -MAX_POSE_M, MAX_POSE_M, unit))
+        # A goal steering by the odometry cannot go on in a new frame.
+        self._motion.preempt("reset_odometry", stop=True)
         self._odometry.reset(*pose)
+
+    # -- motion goals (public): ohmni_tb.robot.motion ---------------------------------------
+
+    async def drive_distance(
+        self,
+        distance_m: float,
+        *,
+        speed_mps: float | None = None,
+        timeout_s: float | None = None,
+    ) -> MotionResult:
+        """Drive straight ``distance_m`` by odometry and stop there, at rest.
+
+        Cruises at ``speed_mps``, slows on a braking curve near the goal and ends within
+        about 1 mm of it by odometry (the wheel counts), then waits until the counts show
+        the robot at rest. Another motion command meanwhile (``drive``, ``stop``,
+        ``estop``, another goal…) ends it and stands; cancelling the awaiting task sets
+        the target to zero (the wheels ramp down) and the cancellation goes on.
+
+        Args:
+            distance_m: How far, m, −100..100 (negative: backward).
+            speed_mps: The cruising speed, m/s, from 0.03 up to ``max_linear_mps`` (and
+                ``max_wheel_mps``); default 0.3 within them.
+            timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s.
+
+        Returns:
+            What it did: distance and heading change by odometry, the pose, what is
+            left, the time taken, and ``reason="arrived"``.
+
+        Raises:
+            InvalidArgumentError: A value is not a finite number; nothing sent.
+            OutOfRangeError: A value is outside its range (named with it); nothing sent.
+            StateError: An emergency stop is latched, the port is released, the robot
+                is closed, or the wheel_encoder or wheel_odom stream is off.
+            MotionPreemptedError: Another motion command took over (``.by``).
+            WheelStallError: A wheel commanded to turn did not (0.5 s); stopped.
+            MotionTimeoutError: Not there in time; stopped.
+            MotionAbortedError: The watchdog tripped, the link was lost, no wheel counts
+                came for 0.5 s, or the Robot closed.
+            StopNotConfirmedError: The counts did not show the robot at rest after the
+                stop: it may be moving.
+        """
+        return await self._motion.drive_distance(
+            distance_m, speed_mps=speed_mps, timeout_s=timeout_s
+        )
+
+    async def rotate(
+        self,
+        angle_rad: float,
+        *,
+        speed_radps: float | None = None,
+        timeout_s: float | None = None,
+    ) -> MotionResult:
+        """Turn on the spot ``angle_rad`` by odometry (positive: counter-clockwise, as
+        ``wheel_odom``'s heading) and stop there, at rest: within about 0.1° by odometry.
+
+        As :meth:`drive_distance` (preemption, cancellation, the errors).
+
+        Args:
+            angle_rad: How far, rad, −20π..20π (ten turns either way).
+            speed_radps: The turning rate, rad/s, from 0.2 up to ``max_angular_radps``
+                (and what ``max_wheel_mps`` allows); default 1.0 within them.
+            timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s.
+
+        Returns:
+            What it did (:class:`~ohmni_tb.errors.MotionResult`).
+        """
+        return await self._motion.rotate(angle_rad, speed_radps=speed_radps, timeout_s=timeout_s)
+
+    async def go_to(
+        self,
+        x_m: float,
+        y_m: float,
+        yaw_rad: float | None = None,
+        *,
+        speed_mps: float | None = None,
+        timeout_s: float | None = None,
+    ) -> MotionResult:
+        """Go to the point (``x_m``, ``y_m``) of the odometry frame (``wheel_odom``), then
+        turn to ``yaw_rad`` if given; stop there, at rest.
+
+        It turns on the spot to face the point, drives there steering toward it and
+        slowing on the braking curve, and faces and drives again while the point is more
+        than 1 cm away; then turns to ``yaw_rad`` (within about 0.1°). As
+        :meth:`drive_distance` otherwise (preemption, cancellation, the errors).
+
+        Args:
+            x_m: The point, m (±1e6; at most 100 m from where the robot is).
+            y_m: The point, m.
+            yaw_rad: The heading to end with, rad, or ``None`` to keep the one it
+                arrives with.
+            speed_mps: The cruising speed, m/s, as :meth:`drive_distance`'s; the turns
+                go at 1.0 rad/s within the limits.
+            timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s
+                for each part.
+
+        Returns:
+            What it did (:class:`~ohmni_tb.errors.MotionResult`); ``remaining_m`` is the
+            distance left to the point.
+        """
+        return await self._motion.go_to(x_m, y_m, yaw_rad, speed_mps=speed_mps, timeout_s=timeout_s)
 
     # -- devices (public) --------------------------------------------------------------------
 
@@ -1832,11 +1753,7 @@ class Robot:
 
     @property
     def neck(self) -> ServoHandle | WormNeckHandle:
-        """The neck: a HerkuleX servo handle or the worm-gear neck's.
-
-        Raises:
-            StateError: No neck answered at open.
-        """
+        """The neck's handle (:attr:`Robot.neck <ohmni_tb.robot.api.Robot.neck>`)."""
         if self._neck is None:
             raise StateError(
                 f"no neck answered (looked for {self.config.neck}: HerkuleX at "
@@ -1845,11 +1762,7 @@ class Robot:
         return self._neck
 
     def servo(self, sid: int) -> ServoHandle:
-        """The HerkuleX servo ``sid`` (the neck or an external one found at open).
-
-        Raises:
-            StateError: No such servo answered.
-        """
+        """A HerkuleX servo's handle (:meth:`Robot.servo <ohmni_tb.robot.api.Robot.servo>`)."""
         watch = self._servos.get(sid)
         if watch is None:
             found = ", ".join(map(str, sorted(self._servos))) or "none"
@@ -1857,22 +1770,13 @@ class Robot:
         return watch.handle
 
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
-        """Set the light ring's colour (0..255 each).
-
-        Raises:
-            OutOfRangeError: A component is outside 0..255; nothing sent.
-            StateError: The port is released (:meth:`release_port`); nothing sent.
-        """
+        """The light ring's colour (the contract: ohmni_tb.robot.api.Robot)."""
         packet = set_light_ring(hue, saturation, value)
         self._check_port()
         await self._bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
 
     async def info(self) -> dict[str, Any]:
-        """Firmware tags, servo models and the neck kind.
-
-        Raises:
-            StateError: The port is released (:meth:`release_port`).
-        """
+        """Firmware tags, servo models, the neck kind (the contract: ohmni_tb.robot.api.Robot)."""
         self._check_port()
         tags: dict[str, str | None] = {}
         for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE):

@@ -4,6 +4,11 @@ Commands go through the Robot's bus at :data:`COMMAND_PRIORITY`, the feedback re
 priority: below the control slot, so the control tick never waits for a move, and in
 order of arrival with the feedback reads, so a move waits at most for the reads already
 due (a few ms) and a stream of commands cannot starve the feedback.
+
+``move(..., wait=True)`` returns once the device's feedback stream reads back at the
+target: a HerkuleX servo within :data:`HERKULEX_TOLERANCE_RAW` and done moving (by
+``playtime_s`` + :data:`HERKULEX_SETTLE_S`), the worm-gear neck within
+:data:`WORM_TOLERANCE_RAW` and at rest (by :data:`WORM_TIMEOUT_S`).
 """
 
 from __future__ import annotations
@@ -11,21 +16,60 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING, TypeVar
 
+from ohmni_tb._checks import check_seconds
 from ohmni_tb.bus import Bus
-from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.errors import (
+    InvalidArgumentError,
+    OutOfRangeError,
+    PositionError,
+    PositionTimeoutError,
+)
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.herkulex.servo import Servo
 from ohmni_tb.herkulex.units import check_zero_offset_raw
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
 
-__all__ = ["COMMAND_PRIORITY", "ServoHandle", "WormNeckHandle"]
+if TYPE_CHECKING:
+    from ohmni_tb.robot.samples import ServoSample, WormNeckSample
+    from ohmni_tb.robot.streams import Subscription
+
+__all__ = [
+    "COMMAND_PRIORITY",
+    "HERKULEX_SETTLE_S",
+    "HERKULEX_TOLERANCE_RAW",
+    "MAX_WAIT_S",
+    "WORM_TIMEOUT_S",
+    "WORM_TOLERANCE_RAW",
+    "ServoHandle",
+    "WormNeckHandle",
+    "servo_arrival",
+    "worm_arrival",
+]
 
 #: Bus priority of commands: the feedback reads' (the control slot is 10).
 COMMAND_PRIORITY = 5
 #: The playtime of a rest move, seconds.
 REST_PLAYTIME_S = 1.0
+#: How close the read-back must come to the target, raw counts: ~1.6° on a HerkuleX
+#: servo (its own in-position margin is 3), 0.4 % of the travel on the worm gear.
+HERKULEX_TOLERANCE_RAW = 5
+WORM_TOLERANCE_RAW = 1000
+#: How long after the playtime a HerkuleX servo may take to read back at its target, s.
+HERKULEX_SETTLE_S = 1.5
+#: How long the worm gear may take to get there, s (the simulated one crosses its whole
+#: travel in ~3 s; the real one's speed is not public).
+WORM_TIMEOUT_S = 15.0
+#: The longest ``timeout_s`` of a waiting move, s.
+MAX_WAIT_S = 600.0
+#: A sample older than this when a wait gives up means the device went silent, s.
+_SILENT_S = 1.0
+#: Samples a waiting move keeps (the stream runs at 30 Hz).
+_QUEUE = 8
+
+_S = TypeVar("_S", "ServoSample", "WormNeckSample")
 
 _TORQUE_NAMES = {"on": TorqueControl.ON, "brake": TorqueControl.BRAKE, "free": TorqueControl.FREE}
 
@@ -96,6 +140,8 @@ class ServoHandle:
         on_command: Called with the loop time of every command (the hold-time guard).
         check: Called before anything is sent; it raises to refuse (the Robot's: its
             port is released to another program).
+        feedback: Subscribes to the servo's feedback stream, for ``move(wait=True)``
+            (raises to refuse when there is none); ``None``: waiting is refused.
     """
 
     def __init__(
@@ -109,6 +155,7 @@ class ServoHandle:
         zero_offset_raw: int = 0,
         on_command: Callable[[int], None] | None = None,
         check: Callable[[], None] | None = None,
+        feedback: Callable[[int], Subscription[ServoSample]] | None = None,
     ) -> None:
         self.servo = Servo(
             _CommandRequester(bus, check),
@@ -120,6 +167,7 @@ class ServoHandle:
         self.sid = sid
         self.rest_raw = rest_raw
         self._on_command = on_command
+        self._feedback = feedback
         # The torque mode this handle last set (None: none yet). The servo's cached
         # status can predate it (writes get no reply under ACK policy 1), so a move
         # after free() would otherwise skip the torque and be refused.
@@ -164,30 +212,72 @@ class ServoHandle:
         *,
         rad: float | None = None,
         playtime_s: float = 1.0,
-    ) -> None:
+        wait: bool = False,
+        timeout_s: float | None = None,
+    ) -> ServoSample | None:
         """Turn torque on if needed and move to ``raw`` counts or ``rad`` over ``playtime_s``.
 
+        With ``wait``, return once the servo's feedback stream reads back within
+        :data:`HERKULEX_TOLERANCE_RAW` of the target and done moving (at the deadline, a
+        read-back within the tolerance that still says moving will do).
+
+        Args:
+            raw: The target, raw counts within ``min_raw..max_raw``.
+            rad: Or the target in radians (0 = 512 + ``zero_offset_raw``).
+            playtime_s: How long the move takes, 0..2.84 s.
+            wait: Wait until the position reads back at the target.
+            timeout_s: With ``wait``, the longest wait from the move, 0..600 s;
+                default ``playtime_s`` + :data:`HERKULEX_SETTLE_S`.
+
+        Returns:
+            With ``wait``, the sample that read back at the target; else ``None``.
+
         Raises:
-            InvalidArgumentError: Neither or both of ``raw`` and ``rad``, or not numbers.
-            OutOfRangeError: Outside ``min_raw..max_raw`` or a playtime outside
-                0..2.84 s; nothing sent.
+            InvalidArgumentError: Neither or both of ``raw`` and ``rad``, not numbers, or
+                ``timeout_s`` without ``wait``.
+            OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside
+                0..2.84 s or a timeout outside 0..600 s; nothing sent.
             DeviceStatusError: The servo has a latched fault.
-            StateError: ``check`` refused (the Robot's port is released); nothing sent.
+            StateError: ``check`` refused (the Robot's port is released), or ``wait``
+                and the servo's stream is off; nothing sent.
+            PositionTimeoutError: ``wait``, and not there in time (or no sample came).
         """
         target = self.servo.target(raw, angle_rad=rad)  # checks before anything is sent
         if isinstance(playtime_s, bool) or not isinstance(playtime_s, int | float):
             raise InvalidArgumentError(f"playtime_s must be a number, not {playtime_s!r}")
         if not math.isfinite(playtime_s) or not 0.0 <= playtime_s <= 2.84:
             raise OutOfRangeError("playtime_s", playtime_s, 0.0, 2.84, "s")
-        self._touched()
-        status = self.servo.last_status
-        if (
-            status is None
-            or not status.torque_on
-            or self._torque_set not in (None, TorqueControl.ON)
-        ):
-            await self.torque(TorqueControl.ON)
-        await self.servo.move_to(target.value, playtime_s=playtime_s)
+        limit_s = _wait_limit(wait, timeout_s, playtime_s + HERKULEX_SETTLE_S)
+        samples = self._subscribe() if wait else None
+        try:
+            self._touched()
+            status = self.servo.last_status
+            if (
+                status is None
+                or not status.torque_on
+                or self._torque_set not in (None, TorqueControl.ON)
+            ):
+                await self.torque(TorqueControl.ON)
+            await self.servo.move_to(target.value, playtime_s=playtime_s)
+            if samples is None:
+                return None
+            return await servo_arrival(
+                samples,
+                sid=self.sid,
+                target_raw=target.value,
+                sent_s=asyncio.get_running_loop().time(),
+                limit_s=limit_s,
+            )
+        finally:
+            if samples is not None:
+                samples.close()
+
+    def _subscribe(self) -> Subscription[ServoSample]:
+        if self._feedback is None:
+            raise InvalidArgumentError(
+                f"servo {self.sid} has no feedback stream to wait on: wait=False"
+            )
+        return self._feedback(_QUEUE)
 
     async def torque(self, mode: TorqueControl | str) -> None:
         """Set the torque mode: ``"on"``, ``"brake"`` or ``"free"``.
@@ -230,14 +320,22 @@ class WormNeckHandle:
 
     The hardware stalls its motor until a power cycle on a target beyond its travel, so
     every target is checked against ``min_raw..max_raw`` (inside −127000…120000) first.
-    ``check``, if given, is called before anything is sent and raises to refuse.
+    ``check``, if given, is called before anything is sent and raises to refuse;
+    ``feedback`` subscribes to the ``new_neck`` stream for ``move(wait=True)``.
     """
 
     def __init__(
-        self, bus: Bus, *, min_raw: int, max_raw: int, check: Callable[[], None] | None = None
+        self,
+        bus: Bus,
+        *,
+        min_raw: int,
+        max_raw: int,
+        check: Callable[[], None] | None = None,
+        feedback: Callable[[int], Subscription[WormNeckSample]] | None = None,
     ) -> None:
         self._bus = bus
         self._check = check
+        self._feedback = feedback
         self.min_raw = min_raw
         self.max_raw = max_raw
         self.sid = 4
@@ -245,13 +343,37 @@ class WormNeckHandle:
     def __repr__(self) -> str:
         return f"<WormNeckHandle range={self.min_raw}..{self.max_raw}>"
 
-    async def move(self, raw: int | None = None, **unsupported: object) -> None:
+    async def move(
+        self,
+        raw: int | None = None,
+        *,
+        wait: bool = False,
+        timeout_s: float | None = None,
+        **unsupported: object,
+    ) -> WormNeckSample | None:
         """Drive the neck to ``raw`` (−127000 up … 120000 down, within the configured range).
 
+        With ``wait``, return once the ``new_neck`` stream reads back within
+        :data:`WORM_TOLERANCE_RAW` of the target, at rest.
+
+        Args:
+            raw: The target, raw.
+            wait: Wait until the position reads back at the target.
+            timeout_s: With ``wait``, the longest wait from the move, 0..600 s; default
+                :data:`WORM_TIMEOUT_S`.
+
+        Returns:
+            With ``wait``, the sample that read back at the target; else ``None``.
+
         Raises:
-            InvalidArgumentError: Not an int, or an argument only a HerkuleX neck takes.
-            OutOfRangeError: Outside the configured range; nothing sent.
-            StateError: ``check`` refused (the Robot's port is released); nothing sent.
+            InvalidArgumentError: Not an int, an argument only a HerkuleX neck takes, or
+                ``timeout_s`` without ``wait``.
+            OutOfRangeError: Outside the configured range, or a timeout outside
+                0..600 s; nothing sent.
+            StateError: ``check`` refused (the Robot's port is released), or ``wait``
+                and the ``new_neck`` stream is off; nothing sent.
+            PositionError: ``wait``, and the neck stalled (only a power cycle clears it).
+            PositionTimeoutError: ``wait``, and not there in time (or no sample came).
         """
         if unsupported:
             raise InvalidArgumentError(
@@ -260,9 +382,161 @@ class WormNeckHandle:
         position = check_worm_target(raw)  # type: ignore[arg-type]  # checked: None is refused there
         if not self.min_raw <= position <= self.max_raw:
             raise OutOfRangeError("worm neck position", position, self.min_raw, self.max_raw, "raw")
+        limit_s = _wait_limit(wait, timeout_s, WORM_TIMEOUT_S)
         if self._check is not None:
             self._check()
-        await self._bus.request(set_target(position), expect_reply=False, priority=COMMAND_PRIORITY)
+        samples = None
+        if wait:
+            if self._feedback is None:
+                raise InvalidArgumentError("the worm-gear neck has no feedback stream to wait on")
+            samples = self._feedback(_QUEUE)
+        try:
+            await self._bus.request(
+                set_target(position), expect_reply=False, priority=COMMAND_PRIORITY
+            )
+            if samples is None:
+                return None
+            return await worm_arrival(
+                samples,
+                target_raw=position,
+                sent_s=asyncio.get_running_loop().time(),
+                limit_s=limit_s,
+            )
+        finally:
+            if samples is not None:
+                samples.close()
 
     async def rest(self, *, free: bool = True) -> None:
         """Nothing to do: the worm gear holds its position without power."""
+
+
+# -- waiting for a move ------------------------------------------------------------------------
+
+
+async def servo_arrival(
+    samples: Subscription[ServoSample],
+    *,
+    sid: int,
+    target_raw: int,
+    sent_s: float,
+    limit_s: float,
+) -> ServoSample:
+    """The first sample read after ``sent_s`` within :data:`HERKULEX_TOLERANCE_RAW` of
+    ``target_raw`` and done moving; at ``sent_s + limit_s``, the last one if it is within
+    the tolerance (the MOVING bit stays set until the trajectory's end).
+
+    Raises:
+        PositionTimeoutError: Not there by then, or no sample came at all.
+    """
+    deadline = sent_s + limit_s
+    last: ServoSample | None = None
+    what = "the HerkuleX neck" if samples.name == "servo_neck" else f"HerkuleX servo {sid}"
+    while True:
+        sample = await _next_after(samples, sent_s, deadline)
+        if sample is None:
+            break
+        last = sample
+        there = abs(sample.position_raw - target_raw) <= HERKULEX_TOLERANCE_RAW
+        if there and (not sample.moving or asyncio.get_running_loop().time() >= deadline):
+            return sample
+    if last is None:
+        who = "the neck" if samples.name == "servo_neck" else f"servo {sid}"
+        raise PositionTimeoutError(
+            f"no {samples.name} sample came within {limit_s:.1f} s: is {who} still answering?",
+            sid=sid,
+            target_raw=target_raw,
+            sample=None,
+        )
+    if abs(last.position_raw - target_raw) <= HERKULEX_TOLERANCE_RAW:
+        return last
+    raise PositionTimeoutError(
+        f"{what} did not reach {target_raw} within {limit_s:g} s: "
+        f"{_read_back(last.stamp_s)} {last.position_raw} raw, torque "
+        f"{last.torque.name.lower()}"
+        + (f", errors {last.status_error!r}" if last.status_error else ""),
+        sid=sid,
+        target_raw=target_raw,
+        sample=last,
+    )
+
+
+async def worm_arrival(
+    samples: Subscription[WormNeckSample], *, target_raw: int, sent_s: float, limit_s: float
+) -> WormNeckSample:
+    """The first sample read after ``sent_s`` at rest within :data:`WORM_TOLERANCE_RAW` of
+    ``target_raw``.
+
+    Raises:
+        PositionError: The neck stalled (only a power cycle clears it).
+        PositionTimeoutError: Not there within ``limit_s``, or no sample came at all.
+    """
+    deadline = sent_s + limit_s
+    last: WormNeckSample | None = None
+    while True:
+        sample = await _next_after(samples, sent_s, deadline)
+        if sample is None:
+            break
+        last = sample
+        if sample.stalled:
+            raise PositionError(
+                f"the worm-gear neck stalled at {sample.position_raw}: only a power cycle "
+                "clears it",
+                sid=4,
+                target_raw=target_raw,
+                sample=sample,
+            )
+        if not sample.moving and abs(sample.position_raw - target_raw) <= WORM_TOLERANCE_RAW:
+            return sample
+    if last is None:
+        raise PositionTimeoutError(
+            f"no {samples.name} sample came within {limit_s:.1f} s: is the neck still answering?",
+            sid=4,
+            target_raw=target_raw,
+            sample=None,
+        )
+    raise PositionTimeoutError(
+        f"the worm-gear neck did not reach {target_raw} within {limit_s:g} s: "
+        f"{_read_back(last.stamp_s)} {last.position_raw}"
+        + (" (still moving)" if last.moving else ""),
+        sid=4,
+        target_raw=target_raw,
+        sample=last,
+    )
+
+
+def _wait_limit(wait: bool, timeout_s: float | None, default_s: float) -> float:
+    """How long a move waits for its read-back; checks ``wait`` and ``timeout_s``.
+
+    Raises:
+        InvalidArgumentError: ``wait`` is not a bool, or ``timeout_s`` is given without it.
+        OutOfRangeError: ``timeout_s`` outside 0..600 s.
+    """
+    if not isinstance(wait, bool):
+        raise InvalidArgumentError(f"wait must be True or False, not {wait!r}")
+    if timeout_s is None:
+        return default_s
+    if not wait:
+        raise InvalidArgumentError("timeout_s is the wait's: give it with wait=True")
+    check_seconds("timeout_s", timeout_s, 0.0, MAX_WAIT_S)
+    return float(timeout_s)
+
+
+async def _next_after(samples: Subscription[_S], after_s: float, deadline: float) -> _S | None:
+    """The next sample read at or after ``after_s``, or ``None`` at ``deadline`` or when
+    the stream ends."""
+    while True:
+        try:
+            async with asyncio.timeout_at(deadline):
+                sample = await anext(samples)
+        except (TimeoutError, StopAsyncIteration):
+            return None
+        if sample.stamp_s >= after_s:
+            return sample
+
+
+def _read_back(stamp_s: float) -> str:
+    """How a failure names the last sample: current, or stale (the device went silent)."""
+    age = asyncio.get_running_loop().time() - stamp_s
+    if age <= _SILENT_S:
+        return "it reads back"
+    return f"it stopped answering {age:.1f} s ago (no sample since), when it read back"

@@ -12,6 +12,10 @@ wheel to a stop. Brake mode shorts the motor (strong damping); free mode cuts th
 The model is integrated in fixed 1 ms sub-steps; the pose integrates the true wheel
 motion with exact arcs, so it is the ground truth that odometry is judged against.
 
+A wheel can be blocked (:meth:`DriveTrain.block`, ``SimRobot.block_wheels``): an
+obstacle holds it, so it stands still whatever the PWM, and its motor draws the stall
+current of its duty (``motor_current_a``) until it is freed.
+
 Board frame vs robot frame: each board counts up when driven with positive PWM. The
 right motor is mounted mirrored (``DriveProfile.right_mirrored``), so the right wheel
 moves the robot *forward* when its board turns *negative* — the vendor's
@@ -90,7 +94,7 @@ class Pose:
 
 
 class _Wheel:
-    __slots__ = ("count_offset", "duty", "speed_mps", "torque", "turns")
+    __slots__ = ("blocked", "count_offset", "duty", "speed_mps", "torque", "turns")
 
     def __init__(self, count_offset: int) -> None:
         self.duty = 0.0  # board frame
@@ -98,9 +102,13 @@ class _Wheel:
         self.turns = 0.0  # board frame, wheel turns since start
         self.torque = DriveTorque.ON
         self.count_offset = count_offset
+        self.blocked = False  # an obstacle holds the wheel still
 
     def step(self, model: MotorModel, dt: float) -> float:
         """Advance ``dt``; return the rim distance travelled (board frame)."""
+        if self.blocked:
+            self.speed_mps = 0.0
+            return 0.0
         v = self.speed_mps
         if self.torque is DriveTorque.ON:
             drive = model.accel_mps2 * (self.duty - v / model.v_free_mps)
@@ -176,8 +184,22 @@ class DriveTrain:
         """Set a board's PWM (board frame, −1000..1000)."""
         self.wheels[side].duty = max(-PWM_LIMIT, min(PWM_LIMIT, pwm)) / PWM_LIMIT
 
+    def block(self, side: int, blocked: bool) -> None:
+        """Hold a wheel still (an obstacle against it), or free it: while blocked it does
+        not turn whatever the PWM, and stops at once when blocked while turning."""
+        wheel = self.wheels[side]
+        wheel.blocked = blocked
+        if blocked:
+            wheel.speed_mps = 0.0
+
+    def blocked(self) -> tuple[bool, bool]:
+        """Whether the left and the right wheel are blocked."""
+        left, right = self.wheels
+        return left.blocked, right.blocked
+
     def motor_current_a(self) -> float:
-        """Rough motor current drawn from the pack (for the battery sag)."""
+        """Rough motor current drawn from the pack (for the battery sag): a motor held
+        still (a blocked wheel, or one starting) draws its duty's stall current."""
         total = 0.0
         for wheel in self.wheels:
             if wheel.torque is DriveTorque.ON:
@@ -217,8 +239,11 @@ class DriveTrain:
         """Both wheels at rest, held there by static friction (``_Wheel.step`` is a no-op)."""
         m = self.model
         return all(
-            w.speed_mps == 0.0
-            and (w.torque is not DriveTorque.ON or m.accel_mps2 * abs(w.duty) <= m.coulomb_mps2)
+            w.blocked
+            or (
+                w.speed_mps == 0.0
+                and (w.torque is not DriveTorque.ON or m.accel_mps2 * abs(w.duty) <= m.coulomb_mps2)
+            )
             for w in self.wheels
         )
 

@@ -6,7 +6,8 @@ option (the robot's and the line's) is in :mod:`ohmni_tb.sim.url`. The robot's o
 ``docked`` and ``count_offset``.
 
 The :class:`SimRobot` is reachable from the transport (``transport.robot``) for tests
-and tools: its ground-truth pose, the dock, the power switch.
+and tools: its ground-truth pose, the dock, the power switch, obstacles against the
+wheels (:meth:`SimRobot.block_wheels`).
 """
 
 from __future__ import annotations
@@ -119,6 +120,26 @@ class SimRobot:
         """Put the robot on its dock or take it off (from now on)."""
         self.sync()
         self.core.set_docked(docked)
+
+    def block_wheels(self, *, left: bool, right: bool) -> None:
+        """Put an obstacle against the left and/or right wheel, or take it away (from now on).
+
+        A blocked wheel does not turn whatever its board's PWM (its count holds, its speed
+        reads 0) and its motor draws the stall current of its duty from the pack; one
+        turning is stopped dead. ``block_wheels(left=False, right=False)`` frees both.
+        """
+        self.sync()
+        self.train.block(0, left)
+        self.train.block(1, right)
+
+    def unblock_wheels(self) -> None:
+        """Take every obstacle away from the wheels (from now on)."""
+        self.block_wheels(left=False, right=False)
+
+    @property
+    def blocked_wheels(self) -> tuple[bool, bool]:
+        """Whether the left and the right wheel are blocked."""
+        return self.train.blocked()
 
     @classmethod
     def from_options(cls, options: dict[str, str]) -> SimRobot:

@@ -19,8 +19,8 @@ sample dataclass as JSON (enums by value, tuples as lists, nested dataclasses as
 objects): :func:`sample_json` and :func:`sample_from_json` go both ways.
 :func:`parse_client_message` turns one frame into a message or raises
 :class:`RequestError` with the ``error`` to send back. :func:`json_schema` is the schema
-of them all, checked in at ``docs/daemon-schema.json`` (regenerate:
-``python -m ohmni_tb.daemon.protocol docs/daemon-schema.json``).
+of them all, checked in at ``docs/daemon-schema.json`` (regenerate it with
+:func:`write_schema`: ``python -c 'import ohmni_tb.robot.wire as w; w.write_schema()'``).
 """
 
 from __future__ import annotations
@@ -33,6 +33,23 @@ from typing import Annotated, Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.errors import (
+    ConfigError,
+    InvalidArgumentError,
+    MotionAbortedError,
+    MotionError,
+    MotionPreemptedError,
+    MotionResult,
+    MotionTimeoutError,
+    OhmniError,
+    OutOfRangeError,
+    PositionError,
+    PositionTimeoutError,
+    RobotClosedError,
+    StateError,
+    WheelStallError,
+)
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
     STREAMS,
@@ -48,16 +65,19 @@ __all__ = [
     "METHODS",
     "METHOD_SPECS",
     "PROTOCOL_VERSION",
+    "TOKEN_ENV",
     "AcquireArgs",
     "BatchMessage",
     "Call",
     "ClientMessage",
     "DriveArgs",
+    "DriveDistanceArgs",
     "DrivePwmArgs",
     "DriveWheelsArgs",
     "EnabledArgs",
     "ErrorCode",
     "ErrorMessage",
+    "GoToArgs",
     "Hello",
     "LatestArgs",
     "LeaseMessage",
@@ -74,6 +94,7 @@ __all__ = [
     "RequestError",
     "RestArgs",
     "Result",
+    "RotateArgs",
     "SampleMessage",
     "ServerMessage",
     "StreamArgs",
@@ -82,11 +103,18 @@ __all__ = [
     "Unsubscribe",
     "call_args",
     "encode",
+    "goal_from_json",
+    "goal_json",
+    "info_from_json",
     "json_schema",
     "parse_client_message",
     "parse_server_message",
+    "pid_from_json",
+    "raised_error",
+    "result_json",
     "sample_from_json",
     "sample_json",
+    "schedule_from_json",
     "schema_text",
     "stats_from_json",
     "stats_json",
@@ -94,8 +122,11 @@ __all__ = [
 ]
 
 #: Bumped on any change a peer of the previous version would misread (2: commands, lease;
-#: 3: strict types, ``hello`` says what the daemon serves).
-PROTOCOL_VERSION: Final = 3
+#: 3: strict types, ``hello`` says what the daemon serves; 4: the motion goals, and the
+#: Robot's own exception in ``error.raised``).
+PROTOCOL_VERSION: Final = 4
+#: The environment variable a client takes the daemon's token from.
+TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: What a client may ask (``op``).
 CLIENT_OPS: Final = ("subscribe", "unsubscribe", "call")
 #: Longest string ``id`` a client may use.
@@ -148,6 +179,10 @@ class _Request(_Message):
 
     model_config = ConfigDict(strict=True)
 
+    def call_kwargs(self) -> dict[str, Any]:
+        """The arguments of the Robot method a call names (:attr:`MethodSpec.call`)."""
+        return {name: getattr(self, name) for name in type(self).model_fields}
+
 
 # -- the methods' arguments -----------------------------------------------------------------
 
@@ -160,6 +195,9 @@ class LatestArgs(_Request):
     """``latest``: which stream."""
 
     topic: Topic
+
+    def call_kwargs(self) -> dict[str, Any]:
+        return {"name": self.topic}
 
 
 class AcquireArgs(_Request):
@@ -205,6 +243,14 @@ class PidArgs(_Request):
     kff: Number = 0.0
     ff_offset: Number = 0.0
 
+    def call_kwargs(self) -> dict[str, Any]:
+        return {"gains": PidGains(self.kp, self.ki, self.kd, self.kff, self.ff_offset)}
+
+    @classmethod
+    def of(cls, gains: PidGains) -> PidArgs:
+        """The arguments that set ``gains``."""
+        return cls(kp=gains.kp, ki=gains.ki, kd=gains.kd, kff=gains.kff, ff_offset=gains.ff_offset)
+
 
 class PoseArgs(_Request):
     """``reset_odometry``: the pose to set."""
@@ -228,6 +274,9 @@ class StreamArgs(_Request):
     topic: Topic
     enabled: bool = True
 
+    def call_kwargs(self) -> dict[str, Any]:
+        return {"name": self.topic, "enabled": self.enabled}
+
 
 class RateArgs(_Request):
     """``set_rate``: a polled stream's rate, within its ``rate_range_hz`` (the streams table,
@@ -235,6 +284,9 @@ class RateArgs(_Request):
 
     topic: Topic
     hz: Number
+
+    def call_kwargs(self) -> dict[str, Any]:
+        return {"name": self.topic, "hz": self.hz}
 
 
 class ReleasePortArgs(_Request):
@@ -256,14 +308,25 @@ class _ServoCommand(_Request):
             return value
         raise ValueError(f'target must be "neck" or a servo id 0..253, not {_shown(value)}')
 
+    def call_kwargs(self) -> dict[str, Any]:
+        # The target picks the handle; what is not given keeps the handle's default.
+        return {
+            name: getattr(self, name)
+            for name in type(self).model_fields
+            if name != "target" and getattr(self, name) is not None
+        }
+
 
 class MoveArgs(_ServoCommand):
     """``move``: the neck or servo ``target`` to ``raw`` counts or ``rad`` over ``playtime_s``
-    (a worm-gear neck takes ``raw`` only)."""
+    (a worm-gear neck takes ``raw`` only); with ``wait``, answered once it reads back at
+    the target (within ``timeout_s``)."""
 
     raw: int | None = None
     rad: Number | None = None
     playtime_s: Number | None = None
+    wait: bool = False
+    timeout_s: Number | None = None
 
 
 class TorqueArgs(_ServoCommand):
@@ -278,57 +341,121 @@ class RestArgs(_ServoCommand):
     free: bool = True
 
 
+class DriveDistanceArgs(_Request):
+    """``drive_distance``: as :meth:`Robot.drive_distance` (``null``: its default)."""
+
+    distance_m: Number
+    speed_mps: Number | None = None
+    timeout_s: Number | None = None
+
+
+class RotateArgs(_Request):
+    """``rotate``: as :meth:`Robot.rotate` (``null``: its default)."""
+
+    angle_rad: Number
+    speed_radps: Number | None = None
+    timeout_s: Number | None = None
+
+
+class GoToArgs(_Request):
+    """``go_to``: as :meth:`Robot.go_to` (``null``: its default; ``yaw_rad`` null: keep the
+    heading it arrives with)."""
+
+    x_m: Number
+    y_m: Number
+    yaw_rad: Number | None = None
+    speed_mps: Number | None = None
+    timeout_s: Number | None = None
+
+
 @dataclass(frozen=True, slots=True)
 class MethodSpec:
     """One service of the daemon.
 
     Attributes:
-        args: Its arguments' model.
+        args: Its arguments' model (:meth:`~_Request.call_kwargs` gives the call's).
         lease: Whether it needs the control lease.
         result: What its ``result`` carries (for the docs and the schema).
+        call: The :class:`~ohmni_tb.robot.Robot` method it calls (on the neck's or
+            servo's handle for ``move``, ``torque``, ``rest``), or ``None``: the
+            server's own (the lease, the shared stats, the settings).
+        awaited: Whether that method is a coroutine (the answer comes when it ends).
     """
 
     args: type[_Request]
     lease: bool
     result: str
+    call: str | None = None
+    awaited: bool = False
 
 
+#: What a motion goal's ``result`` carries: it ended short of its goal when ``error`` is
+#: not null (``type`` is the ``MotionError``'s class, with its fields).
+_GOAL_RESULT = "{result: MotionResult, error: null or {type, message, by?, timeout_s?, wheels?}}"
 #: Every service a ``call`` may name.
 METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     # Read-only: anyone.
     "stats": MethodSpec(NoArgs, False, "Robot.stats() (see results.stats)"),
     "info": MethodSpec(
-        NoArgs, False, "firmware tags, servo models (keys: ids), neck, present, absent"
+        NoArgs,
+        False,
+        "firmware tags, servo models (keys: ids), neck, present, absent",
+        "info",
+        awaited=True,
     ),
-    "latest": MethodSpec(LatestArgs, False, "the topic's sample (see samples), or null"),
-    "schedule": MethodSpec(NoArgs, False, "[[stream, hz, phase_s, line_time_s], ...]"),
-    "get_pid": MethodSpec(NoArgs, False, "{kp, ki, kd, kff, ff_offset}"),
+    "latest": MethodSpec(LatestArgs, False, "the topic's sample (see samples), or null", "latest"),
+    "schedule": MethodSpec(NoArgs, False, "[[stream, hz, phase_s, line_time_s], ...]", "schedule"),
+    "get_pid": MethodSpec(NoArgs, False, "{kp, ki, kd, kff, ff_offset}", "get_pid"),
     "config": MethodSpec(NoArgs, False, "the daemon's RobotConfig: every setting by name"),
     "lease": MethodSpec(NoArgs, False, "{holder: peer or null, you: bool}"),
     # The lease itself.
     "acquire": MethodSpec(AcquireArgs, False, "{holder, you: true, stolen_from: peer or null}"),
     "release": MethodSpec(NoArgs, True, "{holder: null, you: false}"),
     # Stopping: anyone may.
-    "stop": MethodSpec(NoArgs, False, "null"),
-    "estop": MethodSpec(NoArgs, False, "null"),
+    "stop": MethodSpec(NoArgs, False, "null", "stop"),
+    "estop": MethodSpec(NoArgs, False, "null", "estop", awaited=True),
     # Commands: the lease holder only.
-    "drive": MethodSpec(DriveArgs, True, "{requested: [m/s, rad/s], twist: [m/s, rad/s], scale}"),
-    "drive_wheels": MethodSpec(DriveWheelsArgs, True, "{left_mps, right_mps} driven"),
-    "drive_pwm": MethodSpec(DrivePwmArgs, True, "null"),
-    "clear_estop": MethodSpec(NoArgs, True, "null"),
-    "enable_controllers": MethodSpec(EnabledArgs, True, "null"),
-    "set_pid": MethodSpec(PidArgs, True, "null"),
-    "reset_odometry": MethodSpec(PoseArgs, True, "null"),
-    "light_ring": MethodSpec(LightArgs, True, "null"),
-    "enable_stream": MethodSpec(StreamArgs, True, "null"),
-    "set_rate": MethodSpec(RateArgs, True, "null"),
-    "move": MethodSpec(MoveArgs, True, "null (sent; the servo's stream shows it moving)"),
-    "torque": MethodSpec(TorqueArgs, True, "null"),
-    "rest": MethodSpec(RestArgs, True, "null (after the rest move, and the free)"),
-    "release_port": MethodSpec(
-        ReleasePortArgs, True, "null, once the wheels stopped and the port is closed"
+    "drive": MethodSpec(
+        DriveArgs, True, "{requested: [m/s, rad/s], twist: [m/s, rad/s], scale}", "drive"
     ),
-    "reclaim_port": MethodSpec(NoArgs, True, "null (robot_state says when it is back)"),
+    "drive_wheels": MethodSpec(
+        DriveWheelsArgs, True, "{left_mps, right_mps} driven", "drive_wheels"
+    ),
+    "drive_pwm": MethodSpec(DrivePwmArgs, True, "null", "drive_pwm"),
+    "clear_estop": MethodSpec(NoArgs, True, "null", "clear_estop"),
+    "enable_controllers": MethodSpec(EnabledArgs, True, "null", "enable_controllers"),
+    "set_pid": MethodSpec(PidArgs, True, "null", "set_pid"),
+    "reset_odometry": MethodSpec(PoseArgs, True, "null", "reset_odometry"),
+    "light_ring": MethodSpec(LightArgs, True, "null", "light_ring", awaited=True),
+    "enable_stream": MethodSpec(StreamArgs, True, "null", "enable_stream"),
+    "set_rate": MethodSpec(RateArgs, True, "null", "set_rate"),
+    "move": MethodSpec(
+        MoveArgs,
+        True,
+        "null (sent; the servo's stream shows it moving), or with wait the sample at the target",
+        "move",
+        awaited=True,
+    ),
+    "torque": MethodSpec(TorqueArgs, True, "null", "torque", awaited=True),
+    "rest": MethodSpec(
+        RestArgs, True, "null (after the rest move, and the free)", "rest", awaited=True
+    ),
+    "release_port": MethodSpec(
+        ReleasePortArgs,
+        True,
+        "null, once the wheels stopped and the port is closed",
+        "release_port",
+        awaited=True,
+    ),
+    "reclaim_port": MethodSpec(
+        NoArgs, True, "null (robot_state says when it is back)", "reclaim_port", awaited=True
+    ),
+    # Motion goals: they run in the daemon; the answer comes when the goal ends.
+    "drive_distance": MethodSpec(
+        DriveDistanceArgs, True, _GOAL_RESULT, "drive_distance", awaited=True
+    ),
+    "rotate": MethodSpec(RotateArgs, True, _GOAL_RESULT, "rotate", awaited=True),
+    "go_to": MethodSpec(GoToArgs, True, _GOAL_RESULT, "go_to", awaited=True),
 }
 #: The services a ``call`` may name.
 METHODS: Final = tuple(METHOD_SPECS)
@@ -469,6 +596,11 @@ class ErrorMessage(_Message):
     id: MessageId | None
     code: ErrorCode
     message: str
+    raised: dict[str, Any] | None = Field(
+        None,
+        description="A refusal of the daemon's Robot: its exception's class (type) and, "
+        "for an OutOfRangeError, the value and its range (name, value, low, high, unit).",
+    )
 
 
 ServerMessage = Annotated[
@@ -484,12 +616,20 @@ _SAMPLES: dict[type[Any], TypeAdapter[Any]] = {
     cls: TypeAdapter(cls) for cls in dict.fromkeys(spec.sample_type for spec in STREAMS.values())
 }
 _STATS: TypeAdapter[RobotStats] = TypeAdapter(RobotStats)
+_MOTION: TypeAdapter[MotionResult] = TypeAdapter(MotionResult)
 
 
 class RequestError(Exception):
     """A client message that cannot be served: the ``error`` to send back."""
 
-    def __init__(self, code: ErrorCode, message: str, id: int | str | None = None) -> None:
+    def __init__(
+        self,
+        code: ErrorCode,
+        message: str,
+        id: int | str | None = None,
+        *,
+        raised: OhmniError | None = None,
+    ) -> None:
         # What the client sent may be quoted (a key, a value): as UTF-8 text, and short.
         message = message.encode("utf-8", "backslashreplace").decode("utf-8")
         if len(message) > _MAX_ERROR_CHARS:
@@ -498,10 +638,59 @@ class RequestError(Exception):
         self.code: ErrorCode = code
         self.message = message
         self.id = id
+        self.raised = None if raised is None else _raised_json(raised)
 
     def reply(self) -> ErrorMessage:
         """The ``error`` message for the client."""
-        return ErrorMessage(id=self.id, code=self.code, message=self.message)
+        return ErrorMessage(id=self.id, code=self.code, message=self.message, raised=self.raised)
+
+
+#: The Robot's refusals a client raises as the Robot did (the class: the message alone).
+_RAISED: Final[dict[str, type[OhmniError]]] = {
+    cls.__name__: cls for cls in (InvalidArgumentError, StateError, ConfigError, RobotClosedError)
+}
+
+
+def raised_error(raised: dict[str, Any] | None, message: str) -> OhmniError | None:
+    """The daemon's Robot's refusal (``error.raised``, with its ``message``) as the exception
+    the Robot raised — the same class, the same message — or ``None`` when it is not one a
+    client can make again."""
+    if raised is None:
+        return None
+    kind = raised.get("type")
+    if kind == "OutOfRangeError":
+        try:
+            return OutOfRangeError(
+                str(raised["name"]),
+                raised["value"],
+                raised["low"],
+                raised["high"],
+                str(raised.get("unit") or ""),
+            )
+        except (KeyError, TypeError):
+            return None
+    if kind in ("PositionError", "PositionTimeoutError"):
+        position = PositionTimeoutError if kind == "PositionTimeoutError" else PositionError
+        try:
+            return position(
+                message, sid=int(raised["sid"]), target_raw=int(raised["target_raw"]), sample=None
+            )
+        except (KeyError, TypeError, ValueError):
+            return None
+    cls = _RAISED.get(str(kind))
+    return None if cls is None else cls(message)
+
+
+def _raised_json(exc: OhmniError) -> dict[str, Any]:
+    raised: dict[str, Any] = {"type": type(exc).__name__}
+    if isinstance(exc, OutOfRangeError):
+        value = exc.value
+        if not isinstance(value, int | float | str) or isinstance(value, bool):
+            value = repr(value)
+        raised.update(name=exc.name, value=value, low=exc.low, high=exc.high, unit=exc.unit)
+    elif isinstance(exc, PositionError):
+        raised.update(sid=exc.sid, target_raw=exc.target_raw)
+    return raised
 
 
 def parse_client_message(frame: str | bytes) -> Subscribe | Unsubscribe | Call:
@@ -548,7 +737,7 @@ def parse_client_message(frame: str | bytes) -> Subscribe | Unsubscribe | Call:
     return message
 
 
-def call_args(call: Call) -> BaseModel:
+def call_args(call: Call) -> _Request:
     """``call``'s arguments as its method's model (:data:`METHOD_SPECS`).
 
     Raises:
@@ -597,6 +786,69 @@ def sample_from_json(topic: str, data: Any) -> Sample:
     return sample
 
 
+def result_json(method: str, value: Any) -> Any:
+    """What the Robot method of ``method`` (:attr:`MethodSpec.call`) returned, as the data
+    of its ``result``."""
+    encode = _RESULTS.get(method)
+    return value if encode is None else encode(value)
+
+
+def pid_from_json(data: Any) -> PidGains:
+    """``get_pid``'s data as :class:`PidGains`."""
+    return PidGains(**data)
+
+
+def schedule_from_json(data: Any) -> list[tuple[str, float, float, float]]:
+    """``schedule``'s data as :meth:`Robot.schedule`'s rows."""
+    return [(str(name), float(hz), float(phase), float(cost)) for name, hz, phase, cost in data]
+
+
+def info_from_json(data: Any) -> dict[str, Any]:
+    """``info``'s data as :meth:`Robot.info`'s (servo models by int id: JSON keys are text)."""
+    info: dict[str, Any] = dict(data)
+    info["servos"] = {int(sid): model for sid, model in info.get("servos", {}).items()}
+    return info
+
+
+def goal_json(outcome: MotionResult | MotionError) -> dict[str, Any]:
+    """A motion goal's end as its ``result``'s data: what it did, and the error when it
+    ended short of its goal (its class and fields)."""
+    if isinstance(outcome, MotionResult):
+        return {"result": _MOTION.dump_python(outcome, mode="json"), "error": None}
+    error: dict[str, Any] = {"type": type(outcome).__name__, "message": str(outcome)}
+    if isinstance(outcome, MotionPreemptedError):
+        error["by"] = outcome.by
+    elif isinstance(outcome, MotionTimeoutError):
+        error["timeout_s"] = outcome.timeout_s
+    elif isinstance(outcome, WheelStallError):
+        error["wheels"] = list(outcome.wheels)
+    return {"result": _MOTION.dump_python(outcome.result, mode="json"), "error": error}
+
+
+def goal_from_json(data: Any) -> MotionResult:
+    """A motion goal's ``result`` data as what the goal returned.
+
+    Raises:
+        MotionError: The goal ended short of its goal: the same class as the daemon's
+            Robot raised (:class:`MotionPreemptedError` …), with its fields and result.
+        ValueError: The data is not a goal's result.
+    """
+    result = _MOTION.validate_python(data["result"])
+    error = data.get("error")
+    if error is None:
+        return result
+    kind, message = error.get("type"), str(error.get("message", ""))
+    if kind == "MotionPreemptedError":
+        raise MotionPreemptedError(message, result=result, by=str(error.get("by")))
+    if kind == "MotionTimeoutError":
+        raise MotionTimeoutError(message, result=result, timeout_s=float(error["timeout_s"]))
+    if kind == "WheelStallError":
+        raise WheelStallError(message, result=result, wheels=tuple(error.get("wheels", ())))
+    if kind == "MotionAbortedError":
+        raise MotionAbortedError(message, result=result)
+    raise MotionError(message, result=result)
+
+
 def stats_json(stats: RobotStats) -> dict[str, Any]:
     """:meth:`Robot.stats` as JSON-ready data."""
     data: dict[str, Any] = _STATS.dump_python(stats, mode="json")
@@ -635,7 +887,7 @@ def json_schema() -> dict[str, Any]:
     }
 
 
-def write_schema(path: str | os.PathLike[str]) -> None:
+def write_schema(path: str | os.PathLike[str] = "docs/daemon-schema.json") -> None:
     """Write :func:`json_schema` to ``path`` (``docs/daemon-schema.json``), as the repo keeps it."""
     Path(path).write_text(schema_text(), encoding="utf-8")
 
@@ -646,6 +898,28 @@ def schema_text() -> str:
 
 
 _ID: TypeAdapter[int | str] = TypeAdapter(MessageId)
+
+
+def _gains_json(gains: PidGains) -> dict[str, float]:
+    return {name: getattr(gains, name) for name in ("kp", "ki", "kd", "kff", "ff_offset")}
+
+
+#: The results that are not JSON as the Robot returns them.
+_RESULTS: dict[str, Any] = {
+    "latest": lambda sample: None if sample is None else sample_json(sample),
+    "move": lambda sample: None if sample is None else sample_json(sample),
+    "schedule": lambda rows: [list(row) for row in rows],
+    "get_pid": _gains_json,
+    "drive": lambda limited: {
+        "requested": [limited.requested.linear_mps, limited.requested.angular_radps],
+        "twist": [limited.twist.linear_mps, limited.twist.angular_radps],
+        "scale": limited.scale,
+    },
+    "drive_wheels": lambda wheels: {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps},
+    "drive_distance": goal_json,
+    "rotate": goal_json,
+    "go_to": goal_json,
+}
 
 
 def _readable_id(value: object) -> int | str | None:
@@ -690,9 +964,3 @@ def _problems(exc: ValidationError, op: str, whole: str = "message") -> str:
         given = "" if error["type"] == "missing" else f" (got {_shown(error.get('input'))})"
         parts.append(f"{where or whole}: {error['msg']}{given}")
     return "; ".join(parts)
-
-
-if __name__ == "__main__":
-    import sys
-
-    write_schema(sys.argv[1] if len(sys.argv) > 1 else "docs/daemon-schema.json")
