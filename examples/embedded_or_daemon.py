@@ -4,10 +4,11 @@
     ohmni serve --port sim:// &                                 # or: the daemon owns the port
     python examples/embedded_or_daemon.py --daemon ws://127.0.0.1:8766
 
-``patrol`` is written once against what the Robot and ``RobotClient`` share — ``drive``,
-``stop`` and ``subscribe`` — so only the line that opens the robot differs. Through the
-daemon the script takes the control lease first (one driver at a time); other programs
-can watch meanwhile (``ohmni status``).
+``Robot.open`` takes either: a port (``sim://``, ``/dev/ttyUSB0``) opens the robot in this
+process, a daemon's ``ws://`` address reaches the one ``ohmni serve`` runs — the same
+``Robot`` API either way, so only the address differs. Through the daemon the first
+command takes the control lease (one driver at a time); other programs can watch
+meanwhile (``ohmni status``).
 """
 
 from __future__ import annotations
@@ -16,14 +17,12 @@ import argparse
 import asyncio
 import math
 import sys
-from typing import Any
 
 import ohmni_tb
 from ohmni_tb import Robot
-from ohmni_tb.client import RobotClient
 
 
-async def patrol(robot: Any, *, speed_mps: float, seconds: float) -> float:
+async def patrol(robot: Robot, *, speed_mps: float, seconds: float) -> float:
     """Drive forward for ``seconds``, stop; return the distance the odometry measured."""
     loop = asyncio.get_running_loop()
     async with robot.subscribe("wheel_odom", maxlen=1) as odom:
@@ -42,12 +41,8 @@ async def patrol(robot: Any, *, speed_mps: float, seconds: float) -> float:
 
 
 async def main(daemon: str | None) -> int:
-    if daemon is None:
-        async with Robot.open("sim://") as robot:
-            travelled = await patrol(robot, speed_mps=0.3, seconds=1.0)
-    else:
-        async with RobotClient.connect(daemon) as client, client.lease():
-            travelled = await patrol(client, speed_mps=0.3, seconds=1.0)
+    async with Robot.open(daemon or "sim://") as robot:
+        travelled = await patrol(robot, speed_mps=0.3, seconds=1.0)
     where = f"the daemon at {daemon}" if daemon else "its own Robot on sim://"
     print(f"drove {travelled:.3f} m through {where}")
     return 0
