@@ -95,6 +95,10 @@ PUBLIC = {
         "StreamStats", "Subscription", "TbcoreStatusSample", "WheelEncoderSample",
         "WheelOdomSample", "WormNeckHandle", "WormNeckSample",
     ],
+    "ohmni_tb.robot.teleop": [
+        "ACTIONS", "DEFAULT_ANGULAR_RADPS", "DEFAULT_LINEAR_MPS", "KEYS", "KEY_HOLD_S",
+        "SCALE_STEP", "KeyParser", "KeyTeleop",
+    ],
     "ohmni_tb.client": [
         "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "RobotClient",
     ],

@@ -489,6 +489,14 @@ class RobotConfig(BaseSettings):
         """The wheel geometry."""
         return DiffDrive(self.wheel_radius_m, self.wheel_separation_m)
 
+    def top_linear_mps(self) -> float:
+        """The fastest the robot may drive straight: the linear limit, within the wheels'."""
+        return min(self.max_linear_mps, self.max_wheel_mps)
+
+    def top_angular_radps(self) -> float:
+        """The fastest it may turn on the spot: the angular limit, within the wheels'."""
+        return min(self.max_angular_radps, 2 * self.max_wheel_mps / self.wheel_separation_m)
+
     def velocity_limits(self) -> VelocityLimits:
         """The speed limits a command is scaled into."""
         return VelocityLimits(self.max_linear_mps, self.max_angular_radps, self.max_wheel_mps)

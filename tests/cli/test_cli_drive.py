@@ -473,19 +473,6 @@ def test_the_module_imports_neither_the_robot_nor_numpy() -> None:
 # -- teleop -----------------------------------------------------------------------------------
 
 
-def test_keys_parse_split_escape_sequences() -> None:
-    parser = drive_cli._KeyParser()
-    assert parser.feed(b"wW \x1b[A\x1b[B") == ["forward", "forward", "stop", "forward", "back"]
-    assert parser.feed(b"\x1b") == []
-    assert parser.feed(b"[") == []
-    assert parser.feed(b"Dx\x1bOCq") == ["left", "right", "quit"]
-    assert parser.feed(b"\x1b") == []
-    parser.flush()  # a lone Esc: dropped
-    assert parser.feed(b"+-=_\x03") == ["faster", "slower", "faster", "slower", "quit"]
-    assert parser.feed(b"\x1b[1;5A") == ["forward"]  # Ctrl-arrow: an arrow all the same
-    assert parser.feed(b"\x1b[15~a") == ["left"]  # F5: skipped whole
-
-
 class Terminal:
     """``ohmni drive --teleop`` running on a pseudo-terminal; the test is its keyboard."""
 

@@ -51,6 +51,7 @@ from ohmni_tb.errors import MotionError, OhmniError, StateError, StopNotConfirme
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot import Robot, RobotStats, WheelEncoderSample, WheelOdomSample
+    from ohmni_tb.robot.teleop import KeyTeleop
 
 __all__ = ["drive"]
 
@@ -81,10 +82,6 @@ STOP_CONFIRM_TIMEOUT_S = 2.0
 _FIRST_SAMPLE_S = 1.0
 #: --teleop: the display is redrawn this often, s.
 _REDRAW_S = 0.1
-#: --teleop: how much + and - change the key speeds.
-_SCALE_STEP = 1.25
-#: --teleop: the longest a key press drives (the watchdog, when it is shorter or on).
-_KEY_HOLD_S = 0.5
 
 _err = Console(stderr=True)
 _LOGGER = "ohmni_tb"
@@ -196,7 +193,7 @@ def _plan(
         _within("--distance", distance, -MAX_DISTANCE_M, MAX_DISTANCE_M, "m")
         speed = _linear_speed(config, linear)
         if speed < MIN_GOAL_LINEAR_MPS:
-            top = _fmt(_top_linear(config))
+            top = _fmt(config.top_linear_mps())
             raise typer.BadParameter(
                 f"--linear={_fmt(linear or 0.0)} is too slow for --distance: allowed "
                 f"{MIN_GOAL_LINEAR_MPS:g}..{top} m/s either way (the sign comes from the distance)"
@@ -213,7 +210,7 @@ def _plan(
         _within("--turn", turn, -MAX_TURN_DEG, MAX_TURN_DEG, "degrees")
         speed = _angular_speed(config, angular)
         if speed < MIN_GOAL_ANGULAR_RADPS:
-            top = _fmt(_top_angular(config))
+            top = _fmt(config.top_angular_radps())
             raise typer.BadParameter(
                 f"--angular={_fmt(angular or 0.0)} is too slow for --turn: allowed "
                 f"{MIN_GOAL_ANGULAR_RADPS:g}..{top} rad/s either way (the sign comes from the turn)"
@@ -237,22 +234,14 @@ def _plan(
 def _linear_speed(config: RobotConfig, linear: float | None) -> float:
     """The speed a goal or teleop drive uses: ``--linear``'s size, else the default
     within the config's limit."""
-    return abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, _top_linear(config))
+    return abs(linear) if linear is not None else min(DEFAULT_LINEAR_MPS, config.top_linear_mps())
 
 
 def _angular_speed(config: RobotConfig, angular: float | None) -> float:
     """The same for turning: ``--angular``'s size, else the default within the limit."""
     if angular is not None:
         return abs(angular)
-    return min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
-
-
-def _top_linear(config: RobotConfig) -> float:
-    return min(config.max_linear_mps, config.max_wheel_mps)
-
-
-def _top_angular(config: RobotConfig) -> float:
-    return min(config.max_angular_radps, 2 * config.max_wheel_mps / config.wheel_separation_m)
+    return min(DEFAULT_ANGULAR_RADPS, config.top_angular_radps())
 
 
 # -- the command ----------------------------------------------------------------------------
@@ -776,135 +765,8 @@ def _print_result(result: dict[str, Any], *, teleop: bool) -> None:
 
 # -- teleop ---------------------------------------------------------------------------------
 
-#: Key bytes → action. Arrows come as ESC [ A..D (or ESC O A..D in application mode).
-_KEYS: dict[str, str] = {
-    "w": "forward",
-    "W": "forward",
-    "s": "back",
-    "S": "back",
-    "a": "left",
-    "A": "left",
-    "d": "right",
-    "D": "right",
-    " ": "stop",
-    "+": "faster",
-    "=": "faster",
-    "-": "slower",
-    "_": "slower",
-    "q": "quit",
-    "Q": "quit",
-    "\x03": "quit",  # Ctrl-C
-    "\x04": "quit",  # Ctrl-D
-}
-_ARROWS = {"A": "forward", "B": "back", "C": "right", "D": "left"}
 
-
-class _KeyParser:
-    """Bytes from the terminal → actions; an escape sequence may come split.
-
-    Arrows are ``ESC [ A..D`` (``ESC [ 1;5 A`` with a modifier) or ``ESC O A..D``; any
-    other escape sequence is skipped whole, so its letters are not taken for keys.
-    """
-
-    def __init__(self) -> None:
-        self._pending = ""
-
-    def feed(self, data: bytes) -> list[str]:
-        text = self._pending + data.decode("latin-1")
-        self._pending = ""
-        actions: list[str] = []
-        i = 0
-        while i < len(text):
-            char = text[i]
-            if char != "\x1b":
-                if char in _KEYS:
-                    actions.append(_KEYS[char])
-                i += 1
-                continue
-            end = _sequence_end(text, i)
-            if end is None:
-                self._pending = text[i:]  # the rest of the sequence is still coming
-                break
-            final = text[end - 1]
-            if end - i >= 3 and final in _ARROWS:
-                actions.append(_ARROWS[final])
-            i = end
-        return actions
-
-    def flush(self) -> None:
-        """A lone Esc left pending: drop it."""
-        self._pending = ""
-
-
-def _sequence_end(text: str, start: int) -> int | None:
-    """Where the escape sequence at ``start`` ends (exclusive), ``None`` if cut short.
-
-    A lone Esc followed by another key is one character long.
-    """
-    if start + 1 >= len(text):
-        return None
-    kind = text[start + 1]
-    if kind == "O":  # SS3: one more character
-        return start + 3 if start + 2 < len(text) else None
-    if kind != "[":
-        return start + 1
-    for end in range(start + 2, len(text)):
-        if "@" <= text[end] <= "~":  # CSI: parameters, then a final byte
-            return end + 1
-    return None
-
-
-@dataclass
-class _Teleop:
-    """The keyboard's state: the key speeds and the command of the last key."""
-
-    linear_mps: float
-    angular_radps: float
-    top_linear_mps: float
-    top_angular_radps: float
-    hold_s: float
-    command: tuple[float, float] = (0.0, 0.0)
-    action: str = "stopped"
-    last_key_s: float = -math.inf
-    first_key_s: float | None = None
-    keys: int = 0
-    quit: bool = False
-    note: str = ""
-
-    def press(self, action: str, now: float, robot: Robot) -> None:
-        if action == "quit":
-            self.quit = True
-            return
-        if action in ("faster", "slower"):
-            factor = _SCALE_STEP if action == "faster" else 1 / _SCALE_STEP
-            self.linear_mps = min(self.top_linear_mps, max(0.01, self.linear_mps * factor))
-            self.angular_radps = min(self.top_angular_radps, max(0.05, self.angular_radps * factor))
-            return
-        if action == "stop":
-            robot.stop()
-            self.command, self.action, self.last_key_s = (0.0, 0.0), "stopped (space)", -math.inf
-            return
-        linear, angular = {
-            "forward": (self.linear_mps, 0.0),
-            "back": (-self.linear_mps, 0.0),
-            "left": (0.0, self.angular_radps),
-            "right": (0.0, -self.angular_radps),
-        }[action]
-        robot.drive(linear, angular)
-        self.command, self.action, self.last_key_s = (linear, angular), action, now
-        self.keys += 1
-        if self.first_key_s is None:
-            self.first_key_s = now
-
-    def decay(self, now: float, robot: Robot) -> None:
-        """No key within the hold time: the command is over (the watchdog stops it)."""
-        if self.command != (0.0, 0.0) and now - self.last_key_s > self.hold_s:
-            robot.stop()
-            self.command = (0.0, 0.0)
-            self.action = f"stopped (no key for {self.hold_s:g} s)"
-
-
-def _teleop_screen(robot: Robot, state: _Teleop, start: _Snapshot, port: str) -> Any:
+def _teleop_screen(robot: Robot, state: KeyTeleop, start: _Snapshot, port: str, note: str) -> Any:
     from rich.table import Table  # noqa: PLC0415
 
     table = Table.grid(padding=(0, 2))
@@ -934,8 +796,8 @@ def _teleop_screen(robot: Robot, state: _Teleop, start: _Snapshot, port: str) ->
     ]
     robot_line = f"{port}, link {state_sample.link}" + (f", {', '.join(flags)}" if flags else "")
     table.add_row("robot", escape(robot_line))
-    if state.note:
-        table.add_row("note", escape(state.note))
+    if note:
+        table.add_row("note", escape(note))
     return table
 
 
@@ -944,17 +806,14 @@ async def _teleop(
 ) -> dict[str, Any]:
     from rich.live import Live  # noqa: PLC0415
 
-    config = robot.config
+    from ohmni_tb.robot.teleop import KeyParser, KeyTeleop  # noqa: PLC0415
+
     loop = asyncio.get_running_loop()
-    watchdog = config.watchdog_s
-    state = _Teleop(
-        linear_mps=min(plan.linear_mps, _top_linear(config)),
-        angular_radps=min(plan.angular_radps, _top_angular(config)),
-        top_linear_mps=_top_linear(config),
-        top_angular_radps=_top_angular(config),
-        hold_s=min(watchdog, _KEY_HOLD_S) if watchdog > 0 else _KEY_HOLD_S,
+    state = KeyTeleop(
+        robot, linear_mps=plan.linear_mps or None, angular_radps=plan.angular_radps or None
     )
-    parser = _KeyParser()
+    notes = [""]  # the newest warning, shown under the keys
+    parser = KeyParser()
     failure: list[BaseException] = []
     wake = asyncio.Event()
 
@@ -969,7 +828,7 @@ async def _teleop(
             state.quit = True
         try:
             for action in parser.feed(data):
-                state.press(action, loop.time(), robot)
+                state.press(action, loop.time())
         except OhmniError as exc:  # an emergency stop latched, the robot closed
             failure.append(exc)
             state.quit = True
@@ -977,7 +836,7 @@ async def _teleop(
             wake.set()
 
     def note(text: str) -> None:
-        state.note = text
+        notes[0] = text
 
     shown = watch.show
     watch.show = note
@@ -986,7 +845,7 @@ async def _teleop(
     loop.add_reader(fd, readable)
     try:
         with Live(
-            _teleop_screen(robot, state, start, port),
+            _teleop_screen(robot, state, start, port, notes[0]),
             console=console,
             auto_refresh=False,
             redirect_stdout=False,
@@ -998,8 +857,8 @@ async def _teleop(
                         await wake.wait()
                 except TimeoutError:
                     parser.flush()
-                state.decay(loop.time(), robot)
-                live.update(_teleop_screen(robot, state, start, port), refresh=True)
+                state.decay(loop.time())
+                live.update(_teleop_screen(robot, state, start, port, notes[0]), refresh=True)
     finally:
         loop.remove_reader(fd)
         robot.stop()
