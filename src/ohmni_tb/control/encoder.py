@@ -28,7 +28,15 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from ohmni_tb._checks import FLOAT_MAX, finite, finite_result, integer, non_negative, positive, whole
+from ohmni_tb._checks import (
+    FLOAT_MAX,
+    finite,
+    finite_result,
+    integer,
+    non_negative,
+    positive,
+    whole,
+)
 from ohmni_tb.control.defaults import DEFAULT_TICKS_PER_REV, DEFAULT_WHEEL_RADIUS_M
 from ohmni_tb.errors import InvalidArgumentError
 

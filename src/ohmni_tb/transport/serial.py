@@ -159,7 +159,10 @@ class SerialTransport(Transport):
             TransportError: The port cannot be opened now; the message names it.
         """
         return await SerialTransport.open(
-            self._asked, self._asked_baudrate, low_latency=self._low_latency, exclusive=self._exclusive
+            self._asked,
+            self._asked_baudrate,
+            low_latency=self._low_latency,
+            exclusive=self._exclusive,
         )
 
     def _try_low_latency(self) -> None:
