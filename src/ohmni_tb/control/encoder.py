@@ -464,7 +464,13 @@ class CountFilter:
 
         On :attr:`CountVerdict.REBASED` the encoder has been reset and has taken ``raw``
         as its new origin; nothing is to be taken.
+
+        Raises:
+            InvalidArgumentError: ``raw`` is not an int, or ``t_s`` not a finite number.
+            OutOfRangeError: ``raw`` does not fit the counter (a rebase on it).
         """
+        whole("raw", raw)
+        finite("t_s", t_s, "s")
         last_raw, last_t = self._raw, self._t_s
         if last_t is None or last_raw is None:
             return CountVerdict.TAKE
@@ -488,12 +494,13 @@ class CountFilter:
         """Feed a read :meth:`check` found plausible to the encoder; its sample.
 
         Raises:
+            InvalidArgumentError: ``raw`` is not an int, or ``t_s`` is not after the
+                previous read.
             OutOfRangeError: ``raw`` does not fit the counter.
-            InvalidArgumentError: ``t_s`` is not after the previous read.
         """
+        sample = self.encoder.update(whole("raw", raw), t_s)
         self._in_row = 0
         self._raw, self._t_s = raw, t_s
-        sample = self.encoder.update(raw, t_s)
         assert sample is not None  # a read, not a failed one: always a sample
         return sample
 
