@@ -55,10 +55,7 @@ from ohmni_tb.protocol.core import set_light_ring
 from ohmni_tb.protocol.drive import PWM_LIMIT, wheel_command
 from ohmni_tb.robot.control_loop import ControlLoop
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
-from ohmni_tb.robot.discovery import (
-    DISCOVERY_RETRIES,  # noqa: F401  # importable from here too
-    Discovery,
-)
+from ohmni_tb.robot.discovery import Discovery
 from ohmni_tb.robot.feedback import Feedback
 from ohmni_tb.robot.guards import Guards
 from ohmni_tb.robot.link import RELEASE_MAX_S, RELEASE_MIN_S, LinkKeeper

@@ -75,8 +75,7 @@ class RobotState:
     releasing: asyncio.Task[Any] | None = None
     #: The first attempt of a reclaim under way (done once it was tried).
     reclaim: asyncio.Future[None] | None = None
-    #: Samples received and rejected (unparsable counts), commands clamped.
-    rejected: int = 0
+    #: Drive commands clamped into the limits, and wheel PWM the governor capped or cut.
     clamped: int = 0
     #: Every background task (the link watcher, reprobes, guards).
     tasks: set[asyncio.Task[Any]] = field(default_factory=set)
