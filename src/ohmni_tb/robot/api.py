@@ -713,7 +713,7 @@ class Robot(abc.ABC):
             OutOfRangeError: ``duration_s`` is not a number of seconds in 0.1..3600;
                 nothing changed.
             StateError: The robot is closed, or it cannot reopen its port (it was opened
-                on an injected transport that is not simulated); nothing changed.
+                on an injected transport that cannot reopen); nothing changed.
             StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
                 may be moving. The port was released all the same, as closing would
                 have closed it (the other program may be what is needed to stop it).
