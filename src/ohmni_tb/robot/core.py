@@ -25,7 +25,7 @@ same Robot: its streams, statistics and subscriptions carry on.
 
 :class:`LocalRobot` implements the contract (:class:`~ohmni_tb.robot.api.Robot`, where the
 API is documented) in this process. It is a façade: it opens and closes, checks arguments
-(with the checks the remote robot makes, from :mod:`ohmni_tb.robot.api`), makes every
+(with the checks the remote robot makes: :mod:`ohmni_tb.robot.checks`), makes every
 motion command preempt a motion goal under way (:mod:`~ohmni_tb.robot.motion`), and hands
 the work to parts of one job each, which share one
 :class:`~ohmni_tb.robot.state.RobotState`: :mod:`~ohmni_tb.robot.discovery`,
@@ -51,9 +51,8 @@ from ohmni_tb.errors import ConfigError, StopNotConfirmedError
 from ohmni_tb.eventloop import MILLISECOND_S, timer_resolution_s
 from ohmni_tb.protocol.core import set_light_ring
 from ohmni_tb.protocol.drive import wheel_command
-from ohmni_tb.robot.api import (
-    Robot,
-    SampleStream,
+from ohmni_tb.robot.api import Robot, SampleStream
+from ohmni_tb.robot.checks import (
     check_enabled,
     check_gains,
     check_pose,
