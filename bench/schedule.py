@@ -62,7 +62,7 @@ SERVO_HZ = 30.0
 CORE_HZ = 10.0
 SERVOS = (3, 11, 12)
 #: The control slot must start this soon after its due time, or it is dropped: three
-#: quarters of a period, as the Robot's (robot.core.CONTROL_SLACK, which says why).
+#: quarters of a period, as the Robot's (robot.control_loop.CONTROL_SLACK, which says why).
 WHEEL_SLACK_S = 0.015
 
 LEFT, RIGHT, STOP = read_count(0), read_count(1), wheel_command(0, 0)

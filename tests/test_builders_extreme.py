@@ -123,6 +123,14 @@ def _wheel_encoder_update(raw: Any, t_s: Any) -> object:
     return wheel.update(raw, t_s)
 
 
+def _count_filter(max_mps: Any, slack_m: Any = 0.002, rebase_after: Any = 3) -> encoder.CountFilter:
+    counts = encoder.CountFilter(
+        encoder.WheelEncoder(), max_mps, slack_m=slack_m, rebase_after=rebase_after
+    )
+    counts.take(0, 0.0)
+    return counts
+
+
 def _pose_at(t_s: Any) -> object:
     odo = odometry.Odometry()
     odo.update(0.0, 0.0, 0.0)
@@ -315,6 +323,9 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "encoder.VelocityEstimator.update": (2, _estimator_update),
     "encoder.WheelEncoder.update": (2, _wheel_encoder_update),
     "encoder.unwrap_delta": (3, encoder.unwrap_delta),
+    "encoder.CountFilter": (3, lambda a, b, c: _count_filter(a, b, c).check(5_000, 0.02)),
+    "encoder.CountFilter.check": (2, lambda a, b: _count_filter(3.0).check(a, b)),
+    "encoder.CountFilter.take": (2, lambda a, b: _count_filter(3.0).take(a, b)),
     # control.limiter
     "limiter.AccelLimits": (
         2,
@@ -362,6 +373,7 @@ NOT_FUZZED: dict[str, str] = {
     "kinematics.LimitedTwist": "a result record of limit_twist, fuzzed",
     "pid.PidStep": "a result record of PidController.step, fuzzed",
     "encoder.WheelSample": "a result record of WheelEncoder.update, fuzzed",
+    "registers.ServoFeedback": "a parsed block: built from bytes by decode_feedback",
     "calibration.WheelCalibration": "a result record of the calibrate functions, fuzzed",
 }
 

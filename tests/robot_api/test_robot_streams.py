@@ -30,7 +30,7 @@ from ohmni_tb.robot import (
     WheelEncoderSample,
     WormNeckSample,
 )
-from ohmni_tb.robot.core import DISCOVERY_RETRIES
+from ohmni_tb.robot.discovery import DISCOVERY_RETRIES
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.transport import SimTransport
 

@@ -15,21 +15,38 @@ and mapped into ``[-range/2, range/2)``. The right wheel counts mirrored; a mirr
 A failed read is never a sample: pass ``None`` and nothing changes, so the next good read
 carries the whole motion since the last good one, and the speed estimate does not see a
 fake stop.
+
+A read can also be wrong and still pass the bus's 7-bit checksum (a flipped bit): a
+:class:`CountFilter` in front of the encoder rejects a count no wheel can reach from the
+last one, and counts it.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 from collections import deque
 from dataclasses import dataclass
 
-from ohmni_tb._checks import FLOAT_MAX, finite, finite_result, integer, positive, whole
+from ohmni_tb._checks import (
+    FLOAT_MAX,
+    finite,
+    finite_result,
+    integer,
+    non_negative,
+    positive,
+    whole,
+)
 from ohmni_tb.control.defaults import DEFAULT_TICKS_PER_REV, DEFAULT_WHEEL_RADIUS_M
 from ohmni_tb.errors import InvalidArgumentError
 
 __all__ = [
     "COUNT_BITS",
+    "COUNT_SLACK_M",
     "MOTOR_POSITION_BITS",
+    "REBASE_AFTER",
+    "CountFilter",
+    "CountVerdict",
     "EncoderConfig",
     "Unwrapper",
     "VelocityEstimator",
@@ -48,6 +65,12 @@ MAX_COUNTER_BITS = 64
 _MAX_COUNT = 1 << 63
 #: Closest two samples may be: a speed over less is a division by rounding noise.
 MIN_SAMPLE_SPACING_S = 1e-9
+#: What a plausible read may roll beyond the fastest wheel in the time between two reads:
+#: a couple of millimetres of timing noise and the count's own step.
+COUNT_SLACK_M = 0.002
+#: Implausible reads in a row after which the count really moved (a board reset) and is
+#: taken as a new origin.
+REBASE_AFTER = 3
 
 
 def unwrap_delta(previous: int, current: int, bits: int) -> int:
@@ -375,3 +398,114 @@ class WheelEncoder:
         self._velocity.reset()
         self._origin = None
         self._last = None
+
+
+class CountVerdict(enum.Enum):
+    """What :meth:`CountFilter.check` makes of one read."""
+
+    #: Plausible: :meth:`CountFilter.take` it.
+    TAKE = "take"
+    #: A step no wheel can make since the last read taken: rejected (counted).
+    IMPLAUSIBLE = "implausible"
+    #: The last of :data:`REBASE_AFTER` implausible reads in a row (counted): the count
+    #: really moved, and the encoder starts again from it.
+    REBASED = "rebased"
+    #: Not after the last read taken: ignored.
+    STALE = "stale"
+
+
+class CountFilter:
+    """One wheel's count reads, checked before its encoder takes them (sans-IO).
+
+    A read whose step from the last one taken is more than a wheel at ``max_mps`` rolls
+    in the time between them (plus ``slack_m``) is rejected: a bit flipped past the bus's
+    7-bit checksum would otherwise hand odometry a jump of metres. After ``rebase_after``
+    such reads in a row the count did move (the board reset): the encoder is reset and
+    starts from that read.
+
+    Checking and taking are two steps, so a caller that needs both wheels of one tick
+    (odometry) takes both reads or neither.
+
+    Args:
+        encoder: The wheel's encoder, fed by :meth:`take`.
+        max_mps: The fastest a wheel can roll, m/s.
+        slack_m: What a read may exceed that by.
+        rebase_after: Implausible reads in a row before the count is a new origin.
+
+    Attributes:
+        encoder: The wheel's encoder.
+        rejected: Reads rejected as implausible, rebases included.
+    """
+
+    def __init__(
+        self,
+        encoder: WheelEncoder,
+        max_mps: float,
+        *,
+        slack_m: float = COUNT_SLACK_M,
+        rebase_after: int = REBASE_AFTER,
+    ) -> None:
+        self.encoder = encoder
+        self.max_mps = positive("max_mps", max_mps, "m/s")
+        self.slack_m = non_negative("slack_m", slack_m, "m")
+        self.rebase_after = integer("rebase_after", rebase_after, 1)
+        self.rejected = 0
+        self._in_row = 0
+        self._raw: int | None = None
+        self._t_s: float | None = None
+
+    @property
+    def last_raw(self) -> int | None:
+        """The last raw count taken (or rebased on)."""
+        return self._raw
+
+    def check(self, raw: int, t_s: float) -> CountVerdict:
+        """Judge the read ``raw`` at ``t_s`` against the last one taken.
+
+        On :attr:`CountVerdict.REBASED` the encoder has been reset and has taken ``raw``
+        as its new origin; nothing is to be taken.
+
+        Raises:
+            InvalidArgumentError: ``raw`` is not an int, or ``t_s`` not a finite number.
+            OutOfRangeError: ``raw`` does not fit the counter (a rebase on it).
+        """
+        whole("raw", raw)
+        finite("t_s", t_s, "s")
+        last_raw, last_t = self._raw, self._t_s
+        if last_t is None or last_raw is None:
+            return CountVerdict.TAKE
+        if t_s <= last_t:
+            return CountVerdict.STALE
+        ticks = abs(unwrap_delta(last_raw, raw, self.encoder.config.counter_bits))
+        if ticks * self.encoder.config.metres_per_tick <= self.max_mps * (t_s - last_t) + (
+            self.slack_m
+        ):
+            return CountVerdict.TAKE
+        self.rejected += 1
+        self._in_row += 1
+        if self._in_row < self.rebase_after:
+            return CountVerdict.IMPLAUSIBLE
+        self.encoder.reset()
+        self.encoder.update(raw, t_s)
+        self._raw, self._t_s, self._in_row = raw, t_s, 0
+        return CountVerdict.REBASED
+
+    def take(self, raw: int, t_s: float) -> WheelSample:
+        """Feed a read :meth:`check` found plausible to the encoder; its sample.
+
+        Raises:
+            InvalidArgumentError: ``raw`` is not an int, or ``t_s`` is not after the
+                previous read.
+            OutOfRangeError: ``raw`` does not fit the counter.
+        """
+        sample = self.encoder.update(whole("raw", raw), t_s)
+        self._in_row = 0
+        self._raw, self._t_s = raw, t_s
+        assert sample is not None  # a read, not a failed one: always a sample
+        return sample
+
+    def reset(self) -> None:
+        """Forget the reads taken and the encoder's history."""
+        self.encoder.reset()
+        self._raw = self._t_s = None
+        self._in_row = 0

@@ -26,12 +26,15 @@ from dataclasses import dataclass
 from typing import Final
 
 from ohmni_tb._checks import show
-from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
-from ohmni_tb.protocol import Memory
+from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError, OutOfRangeError
+from ohmni_tb.protocol import Memory, StatusDetail, StatusError
+from ohmni_tb.protocol.messages import STATUS_DETAILS, STATUS_ERRORS
 
 __all__ = [
     "EEP",
     "EEP_SIZE",
+    "FEEDBACK_ADDR",
+    "FEEDBACK_SIZE",
     "RAM",
     "RAM_SIZE",
     "BaudRate",
@@ -39,7 +42,9 @@ __all__ = [
     "Model",
     "Register",
     "RegisterMap",
+    "ServoFeedback",
     "TorqueControl",
+    "decode_feedback",
     "model_from_bytes",
     "resolve",
 ]
@@ -428,3 +433,69 @@ def _build(memory: Memory, size: int) -> RegisterMap:
 EEP: Final = _build(Memory.EEP, EEP_SIZE)
 #: The RAM map (live settings, status, torque, LED and feedback).
 RAM: Final = _build(Memory.RAM, RAM_SIZE)
+
+
+# -- the feedback block ---------------------------------------------------------------
+
+#: The block a stream polls in one read: RAM 48 (status error) through 59 (the calibrated
+#: position's high byte): status, torque, voltage, temperature and position together.
+FEEDBACK_ADDR: Final = RAM["status_error"].addr
+FEEDBACK_SIZE: Final = RAM["calibrated_position"].end - FEEDBACK_ADDR
+
+
+@dataclass(frozen=True, slots=True)
+class ServoFeedback:
+    """One read of the feedback block (RAM 48..59), decoded.
+
+    Attributes:
+        status_error: RAM 48.
+        status_detail: RAM 49.
+        torque: RAM 52, the torque mode.
+        voltage_raw: RAM 54, 0.074 V a count (:func:`~ohmni_tb.herkulex.voltage_v_from_raw`).
+        temperature_raw: RAM 55, raw.
+        position_raw: RAM 58..59, the calibrated position, 0..1023.
+    """
+
+    status_error: StatusError
+    status_detail: StatusDetail
+    torque: TorqueControl
+    voltage_raw: int
+    temperature_raw: int
+    position_raw: int
+
+
+def decode_feedback(data: bytes | bytearray) -> ServoFeedback:
+    """Decode the data of a read of the feedback block (:data:`FEEDBACK_ADDR`, 12 bytes).
+
+    Raises:
+        MalformedReplyError: ``data`` is not :data:`FEEDBACK_SIZE` bytes, or its torque
+            byte is not a :class:`TorqueControl` value.
+    """
+    if len(data) != FEEDBACK_SIZE:
+        raise MalformedReplyError(
+            f"a servo feedback block is {FEEDBACK_SIZE} bytes, got {len(data)}: "
+            f"{bytes(data).hex(' ')}"
+        )
+    torque = _TORQUE_MODES.get(data[_TORQUE])
+    if torque is None:
+        raise MalformedReplyError(f"servo feedback: torque byte 0x{data[_TORQUE]:02X}")
+    return ServoFeedback(
+        status_error=STATUS_ERRORS[data[_STATUS_ERROR]],
+        status_detail=STATUS_DETAILS[data[_STATUS_DETAIL]],
+        torque=torque,
+        voltage_raw=data[_VOLTAGE],
+        temperature_raw=data[_TEMPERATURE],
+        # A position is 10 bits on these models: the register's upper bits are not one.
+        position_raw=(data[_POSITION] | data[_POSITION + 1] << 8) & 0x3FF,
+    )
+
+
+#: Each register's offset in the block, from the map (the one place addresses live).
+_STATUS_ERROR: Final = RAM["status_error"].addr - FEEDBACK_ADDR
+_STATUS_DETAIL: Final = RAM["status_detail"].addr - FEEDBACK_ADDR
+_TORQUE: Final = RAM["torque_control"].addr - FEEDBACK_ADDR
+_VOLTAGE: Final = RAM["voltage"].addr - FEEDBACK_ADDR
+_TEMPERATURE: Final = RAM["temperature"].addr - FEEDBACK_ADDR
+_POSITION: Final = RAM["calibrated_position"].addr - FEEDBACK_ADDR
+#: The torque byte to its mode (an enum call per sample costs more).
+_TORQUE_MODES: Final[Mapping[int, TorqueControl]] = {int(mode): mode for mode in TorqueControl}

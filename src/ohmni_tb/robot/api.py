@@ -13,9 +13,9 @@ the implementation by the port — :class:`~ohmni_tb.robot.LocalRobot` runs the 
 (``sim://``, a device path, a :class:`~ohmni_tb.transport.Transport`);
 :class:`~ohmni_tb.robot.RemoteRobot` talks to the daemon (``ws://``, ``wss://``). Both
 answer every call below the same way: a call that is plain on one is plain on the other,
-and a bad value raises the same error, with the same message, before anything is sent.
-What only a local robot has (``bus``, ``ports()``, ``exit_error``) is on
-:class:`~ohmni_tb.robot.LocalRobot`.
+and a bad value raises the same error, with the same message, before anything is sent
+(:mod:`ohmni_tb.robot.checks`). What only a local robot has (``bus``, ``ports()``,
+``exit_error``) is on :class:`~ohmni_tb.robot.LocalRobot`.
 """
 
 from __future__ import annotations
@@ -24,17 +24,13 @@ import abc
 from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, TypeVar, overload
 
-from ohmni_tb._checks import bounded, check_seconds, number
-from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
-from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import ConfigError, InvalidArgumentError, OutOfRangeError
-from ohmni_tb.protocol.drive import PWM_LIMIT
-from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
+from ohmni_tb.errors import ConfigError
 from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
     from ohmni_tb.control.kinematics import LimitedTwist, WheelSpeeds
+    from ohmni_tb.control.pid import PidGains
     from ohmni_tb.errors import MotionResult
     from ohmni_tb.herkulex import TorqueControl
     from ohmni_tb.robot.samples import (
@@ -52,9 +48,6 @@ if TYPE_CHECKING:
 __all__ = ["HerkulexHandle", "NeckHandle", "Robot", "SampleStream"]
 
 T_co = TypeVar("T_co", covariant=True)
-#: A timed port release, seconds (:meth:`Robot.release_port`).
-RELEASE_MIN_S = 0.1
-RELEASE_MAX_S = 3600.0
 
 
 class SampleStream(Protocol[T_co]):
@@ -713,7 +706,7 @@ class Robot(abc.ABC):
             OutOfRangeError: ``duration_s`` is not a number of seconds in 0.1..3600;
                 nothing changed.
             StateError: The robot is closed, or it cannot reopen its port (it was opened
-                on an injected transport that is not simulated); nothing changed.
+                on an injected transport that cannot reopen); nothing changed.
             StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
                 may be moving. The port was released all the same, as closing would
                 have closed it (the other program may be what is needed to stop it).
@@ -740,92 +733,3 @@ class Robot(abc.ABC):
         Raises:
             StateError: The robot is closed (or closed while this waited).
         """
-
-
-# -- the checks both implementations make before anything is sent ------------------------------
-
-
-def check_stream(name: str) -> None:
-    """Raises InvalidArgumentError: ``name`` is not a stream (the message lists them)."""
-    if name not in STREAM_NAMES:
-        raise InvalidArgumentError(f"no stream {name!r}: the streams are {', '.join(STREAM_NAMES)}")
-
-
-def check_enabled(enabled: object) -> None:
-    """Raises InvalidArgumentError: ``enabled`` is not a bool."""
-    if not isinstance(enabled, bool):
-        raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
-
-
-def check_rate(name: str, hz: float) -> float:
-    """``hz`` for :meth:`Robot.set_rate` of stream ``name``, checked by the streams table.
-
-    Raises:
-        InvalidArgumentError: No such stream, it is not polled, or ``hz`` is not a number.
-        OutOfRangeError: Outside the stream's range.
-    """
-    check_stream(name)
-    spec = STREAMS[name]
-    if spec.rate_range_hz is None:
-        how = (
-            f"it comes with every {spec.follows} sample (set that one's rate)"
-            if spec.follows
-            else f"its rate is the {spec.rate_setting} setting"
-        )
-        raise InvalidArgumentError(f"stream {name!r} is not polled: {how}")
-    low, high = spec.rate_range_hz
-    if not low <= number("hz", hz) <= high:
-        raise OutOfRangeError(f"{name} rate", hz, low, high, "Hz")
-    return float(hz)
-
-
-def check_pwm(left: int, right: int) -> None:
-    """Raises InvalidArgumentError or OutOfRangeError: a PWM that is not an int in
-    −1000..1000."""
-    for name, value in (("left", left), ("right", right)):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
-        if not -PWM_LIMIT <= value <= PWM_LIMIT:
-            raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
-
-
-def check_gains(gains: object) -> PidGains:
-    """``gains`` for :meth:`Robot.set_pid`, each within its range.
-
-    Raises:
-        InvalidArgumentError: Not a :class:`PidGains`.
-        OutOfRangeError: A gain outside its range.
-    """
-    if not isinstance(gains, PidGains):
-        raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
-    for name, (low, high) in WHEEL_GAIN_RANGES.items():
-        value = getattr(gains, name)
-        if not low <= value <= high:
-            raise OutOfRangeError(f"pid {name}", value, low, high)
-    return gains
-
-
-def check_pose(x_m: float, y_m: float, yaw_rad: float) -> tuple[float, float, float]:
-    """The pose for :meth:`Robot.reset_odometry`.
-
-    Raises:
-        InvalidArgumentError: A value is not a finite number.
-        OutOfRangeError: A value beyond ±1e6.
-    """
-    x, y, yaw = (
-        bounded(name, number(name, value), -MAX_POSE_M, MAX_POSE_M, unit)
-        for name, value, unit in (("x_m", x_m, "m"), ("y_m", y_m, "m"), ("yaw_rad", yaw_rad, "rad"))
-    )
-    return x, y, yaw
-
-
-def check_release(duration_s: float | None) -> float | None:
-    """``duration_s`` for :meth:`Robot.release_port`.
-
-    Raises:
-        OutOfRangeError: Not a number of seconds in 0.1..3600.
-    """
-    if duration_s is None:
-        return None
-    check_seconds("duration_s", duration_s, RELEASE_MIN_S, RELEASE_MAX_S)
-    return float(duration_s)

@@ -65,9 +65,8 @@ from ohmni_tb.errors import (
     TransportClosedError,
 )
 from ohmni_tb.robot._connection import DEFAULT_TIMEOUT_S, DaemonConnection, open_websocket
-from ohmni_tb.robot.api import (
-    Robot,
-    SampleStream,
+from ohmni_tb.robot.api import Robot, SampleStream
+from ohmni_tb.robot.checks import (
     check_enabled,
     check_gains,
     check_pose,

@@ -52,6 +52,22 @@ class SimTransport(Transport):
     def closed(self) -> bool:
         return self._closed or self._lost
 
+    @property
+    def can_reopen(self) -> bool:
+        return True
+
+    async def reopen(self) -> SimTransport:
+        """Plug back into the same line: the robot is found as it was (a reconnect).
+
+        Raises:
+            StateError: This end is still connected to the line (close it first).
+        """
+        return SimTransport(self.line, robot=self.robot, name=self.name)
+
+    @property
+    def simulated(self) -> SimRobot | None:
+        return self.robot
+
     def write_nowait(self, data: bytes) -> None:
         if self._closed:
             raise TransportClosedError(f"{self.name} is closed")

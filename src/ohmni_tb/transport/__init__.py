@@ -14,7 +14,10 @@ URLs understood:
                                                     (:mod:`ohmni_tb.transport.ports`)
 ==================================================  =============================================
 
-More schemes can be added with :func:`register_transport`.
+More schemes can be added with :func:`register_transport`. A transport that can open its
+link again (after a loss, or after handing the port to another program) says so with
+:attr:`Transport.can_reopen` and does it in :meth:`Transport.reopen`: serial ports and
+the simulated robot do; an in-memory pipe does not.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from ohmni_tb.transport.memory import (
     drop_bytes,
     split,
 )
+from ohmni_tb.transport.ports import AUTO_PORT
 from ohmni_tb.transport.serial import DEFAULT_BAUDRATE, SerialTransport
 
 __all__ = [
@@ -88,10 +92,9 @@ async def open_transport(url: str) -> Transport:
         TransportError: The transport exists but cannot be opened.
         NoBusPortError: ``auto`` found no bus adapter (a :class:`TransportError`).
     """
-    if url == "auto":
-        from ohmni_tb.transport.ports import resolve_port  # noqa: PLC0415  # lists the ports
-
-        url = resolve_port(url)
+    if url == AUTO_PORT:
+        # Looked for when it opens, and again when it is reopened.
+        return await SerialTransport.open(AUTO_PORT)
     if url.startswith("/"):
         url = "serial://" + url
     try:

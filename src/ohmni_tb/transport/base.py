@@ -127,6 +127,29 @@ class Transport(abc.ABC):
     def closed(self) -> bool:
         """Whether :meth:`aclose` was called or the link was lost."""
 
+    @property
+    def can_reopen(self) -> bool:
+        """Whether :meth:`reopen` can open this link again (a serial port, a simulated
+        line); ``False`` for a transport that cannot (an in-memory pipe)."""
+        return False
+
+    async def reopen(self) -> Transport:
+        """Open the same link again, as a new transport: after a lost link, or after the
+        port was handed to another program. This one is left as it is (close it first).
+
+        Raises:
+            StateError: This transport cannot be reopened (:attr:`can_reopen` is false).
+            TransportError: The link cannot be opened now (another program holds the
+                port, the adapter is unplugged).
+        """
+        raise StateError(f"{self!r} cannot be reopened: it was not opened from a port")
+
+    @property
+    def simulated(self) -> object | None:
+        """The simulated robot behind this link (its ground truth, for tests and tools),
+        or ``None`` on a real one."""
+        return None
+
     async def __aenter__(self) -> Self:
         return self
 

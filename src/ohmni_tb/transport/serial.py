@@ -30,6 +30,7 @@ import serial_asyncio_fast
 from ohmni_tb.errors import TransportClosedError, TransportError
 from ohmni_tb.protocol.timing import DEFAULT_BAUDRATE
 from ohmni_tb.transport.base import LostHandler, ReceiveBuffer, Receiver, Transport
+from ohmni_tb.transport.ports import AUTO_PORT, resolve_port
 
 __all__ = ["DEFAULT_BAUDRATE", "SerialTransport"]
 
@@ -61,9 +62,23 @@ class _Protocol(asyncio.Protocol):
 class SerialTransport(Transport):
     """A serial port. Open it with :meth:`open` (or ``open_transport("/dev/ttyUSB0")``)."""
 
-    def __init__(self, *, port: str, baudrate: int) -> None:
+    def __init__(
+        self,
+        *,
+        port: str,
+        baudrate: int,
+        low_latency: bool = True,
+        exclusive: bool = True,
+        asked: str | None = None,
+    ) -> None:
         self.port = port
         self.baudrate = baudrate
+        # What reopen() opens: the port as asked (``auto`` is looked for again: the
+        # adapter may come back under another name), with the same settings.
+        self._asked = port if asked is None else asked
+        self._asked_baudrate = baudrate
+        self._low_latency = low_latency
+        self._exclusive = exclusive
         self._rx = ReceiveBuffer(f"serial port {port}")
         self._serial: serial_asyncio_fast.SerialTransport | None = None
         self._closed = False
@@ -84,7 +99,9 @@ class SerialTransport(Transport):
         """Open ``port`` at ``baudrate`` 8N1.
 
         Args:
-            port: The device path, e.g. ``/dev/ttyUSB0``.
+            port: The device path, e.g. ``/dev/ttyUSB0``, or ``auto``: the bus adapter,
+                found by its USB id (:func:`~ohmni_tb.transport.ports.resolve_port`), and
+                found again by :meth:`reopen`.
             baudrate: Bits per second.
             low_latency: Ask the driver for low-latency mode (the FTDI adapter otherwise
                 holds received bytes up to 16 ms). Ports that cannot (a pseudo-terminal)
@@ -93,8 +110,16 @@ class SerialTransport(Transport):
 
         Raises:
             TransportError: The port cannot be opened; the message names it.
+            NoBusPortError: ``auto`` found no bus adapter (a :class:`TransportError`).
         """
-        transport = cls(port=port, baudrate=baudrate)
+        transport = cls(
+            port=resolve_port(port) if port == AUTO_PORT else port,
+            baudrate=baudrate,
+            low_latency=low_latency,
+            exclusive=exclusive,
+            asked=port,
+        )
+        port = transport.port
         loop = asyncio.get_running_loop()
         transport._gone = loop.create_future()
         try:
@@ -121,6 +146,24 @@ class SerialTransport(Transport):
         if low_latency:
             transport._try_low_latency()
         return transport
+
+    @property
+    def can_reopen(self) -> bool:
+        return True
+
+    async def reopen(self) -> SerialTransport:
+        """Open the same port again with the same settings (``auto``: the adapter found
+        again), as a new transport (see :meth:`open`).
+
+        Raises:
+            TransportError: The port cannot be opened now; the message names it.
+        """
+        return await SerialTransport.open(
+            self._asked,
+            self._asked_baudrate,
+            low_latency=self._low_latency,
+            exclusive=self._exclusive,
+        )
 
     def _try_low_latency(self) -> None:
         port = self._port()

@@ -1,0 +1,117 @@
+"""The argument checks both robots make before anything is sent, local and remote alike
+(:class:`~ohmni_tb.robot.LocalRobot`, :class:`~ohmni_tb.robot.RemoteRobot`): one function
+each, so a bad value raises the same error with the same message either way
+(``tests/contract`` compares them)."""
+
+from __future__ import annotations
+
+from ohmni_tb._checks import bounded, check_seconds, number
+from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
+from ohmni_tb.control.pid import PidGains
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.protocol.drive import PWM_LIMIT
+from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
+
+__all__ = [
+    "RELEASE_MAX_S",
+    "RELEASE_MIN_S",
+    "check_enabled",
+    "check_gains",
+    "check_pose",
+    "check_pwm",
+    "check_rate",
+    "check_release",
+    "check_stream",
+]
+
+#: A timed port release (``Robot.release_port``), seconds: long enough for the other
+#: program to open the port at all, and at most an hour — longer, or open-ended, is
+#: ``duration_s=None`` (until ``Robot.reclaim_port``).
+RELEASE_MIN_S = 0.1
+RELEASE_MAX_S = 3600.0
+
+
+def check_stream(name: str) -> None:
+    """Raises InvalidArgumentError: ``name`` is not a stream (the message lists them)."""
+    if name not in STREAM_NAMES:
+        raise InvalidArgumentError(f"no stream {name!r}: the streams are {', '.join(STREAM_NAMES)}")
+
+
+def check_enabled(enabled: object) -> None:
+    """Raises InvalidArgumentError: ``enabled`` is not a bool."""
+    if not isinstance(enabled, bool):
+        raise InvalidArgumentError(f"enabled must be True or False, not {enabled!r}")
+
+
+def check_rate(name: str, hz: float) -> float:
+    """``hz`` for ``Robot.set_rate`` of stream ``name``, checked by the streams table.
+
+    Raises:
+        InvalidArgumentError: No such stream, it is not polled, or ``hz`` is not a number.
+        OutOfRangeError: Outside the stream's range.
+    """
+    check_stream(name)
+    spec = STREAMS[name]
+    if spec.rate_range_hz is None:
+        how = (
+            f"it comes with every {spec.follows} sample (set that one's rate)"
+            if spec.follows
+            else f"its rate is the {spec.rate_setting} setting"
+        )
+        raise InvalidArgumentError(f"stream {name!r} is not polled: {how}")
+    low, high = spec.rate_range_hz
+    if not low <= number("hz", hz) <= high:
+        raise OutOfRangeError(f"{name} rate", hz, low, high, "Hz")
+    return float(hz)
+
+
+def check_pwm(left: int, right: int) -> None:
+    """Raises InvalidArgumentError or OutOfRangeError: a PWM that is not an int in
+    −1000..1000."""
+    for name, value in (("left", left), ("right", right)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
+        if not -PWM_LIMIT <= value <= PWM_LIMIT:
+            raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
+
+
+def check_gains(gains: object) -> PidGains:
+    """``gains`` for ``Robot.set_pid``, each within its range.
+
+    Raises:
+        InvalidArgumentError: Not a :class:`PidGains`.
+        OutOfRangeError: A gain outside its range.
+    """
+    if not isinstance(gains, PidGains):
+        raise InvalidArgumentError(f"gains must be PidGains, not {type(gains).__name__}")
+    for name, (low, high) in WHEEL_GAIN_RANGES.items():
+        value = getattr(gains, name)
+        if not low <= value <= high:
+            raise OutOfRangeError(f"pid {name}", value, low, high)
+    return gains
+
+
+def check_pose(x_m: float, y_m: float, yaw_rad: float) -> tuple[float, float, float]:
+    """The pose for ``Robot.reset_odometry``.
+
+    Raises:
+        InvalidArgumentError: A value is not a finite number.
+        OutOfRangeError: A value beyond ±1e6.
+    """
+    x, y, yaw = (
+        bounded(name, number(name, value), -MAX_POSE_M, MAX_POSE_M, unit)
+        for name, value, unit in (("x_m", x_m, "m"), ("y_m", y_m, "m"), ("yaw_rad", yaw_rad, "rad"))
+    )
+    return x, y, yaw
+
+
+def check_release(duration_s: float | None) -> float | None:
+    """``duration_s`` for ``Robot.release_port``.
+
+    Raises:
+        OutOfRangeError: Not a number of seconds in 0.1..3600.
+    """
+    if duration_s is None:
+        return None
+    check_seconds("duration_s", duration_s, RELEASE_MIN_S, RELEASE_MAX_S)
+    return float(duration_s)
