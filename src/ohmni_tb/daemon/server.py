@@ -246,8 +246,6 @@ class RobotServer:
         self._host = host
         self._port = port
         self._read_only = read_only
-        self._token = token
-        self._origins = tuple(origins)
         self._server: Server | None = None
         self._clients: set[_Client] = set()
         self._pumps: dict[str, _Pump] = {}
@@ -255,17 +253,11 @@ class RobotServer:
         self._holder: _Client | None = None
         self._flusher = _Flusher(SAMPLE_FLUSH_S)
         self._closed = False
-        self._max_clients = max_clients
-        #: Connections admitted (the handshake's checks passed) and not yet gone.
-        self._admitted: set[ServerConnection] = set()
-        #: TCP connections open: from accepted until closed.
-        self._tcp_connections = 0
+        self._door = _Doorkeeper(max_clients, token, tuple(origins))
         self._simulated = robot.sim is not None
         self._serves = serves if serves is not None else "sim://" if self._simulated else None
         self._budget = _Budget(READER_MESSAGES_PER_S, READER_BURST)
         self._stats: tuple[float, RobotStats, str] | None = None
-        self._over_cap = _Throttled(REFUSAL_LOG_S)
-        self._accept_failures = _AcceptFailures(REFUSAL_LOG_S)
 
     @property
     def url(self) -> str:
@@ -286,13 +278,13 @@ class RobotServer:
     def max_clients(self) -> int:
         """Connections served at once (as asked, or lowered at :meth:`start` to keep file
         descriptors in reserve)."""
-        return self._max_clients
+        return self._door.max_clients
 
     @property
     def refused_connections(self) -> int:
         """Connections refused so far because ``max_clients`` were connected, and
         ``accept()`` failures (the process out of file descriptors)."""
-        return self._over_cap.total + self._accept_failures.total
+        return self._door.refused
 
     async def start(self) -> None:
         """Listen.
@@ -306,7 +298,7 @@ class RobotServer:
 
         from ohmni_tb.errors import TransportError  # noqa: PLC0415
 
-        self._fit_descriptors()
+        self._door.fit_descriptors()
         try:
             self._server = await serve(
                 self._handle,
@@ -317,8 +309,8 @@ class RobotServer:
                 write_limit=_WRITE_LIMIT,
                 close_timeout=_CLOSE_TIMEOUT_S,
                 compression=None,  # loopback: deflate would cost CPU per client for nothing
-                process_request=self._admit,
-                create_connection=_capped_connection(self),
+                process_request=self._door.admit,
+                create_connection=_capped_connection(self._door),
             )
         except OSError as exc:
             raise TransportError(f"cannot listen on {self.url}: {exc.strerror or exc}") from exc
@@ -327,101 +319,20 @@ class RobotServer:
             # already open it would shrink a window the peer was promised, and stall it.
             listening.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCKET_RECEIVE_BUFFER)
         self._port = self._server.sockets[0].getsockname()[1]  # the one chosen for 0
-        logging.getLogger("asyncio").addFilter(self._accept_failures)
-        _log.info("serving on %s (at most %d clients)", self.url, self._max_clients)
-
-    def _fit_descriptors(self) -> None:
-        """Lower ``max_clients`` so that every client, the handshakes beyond and a reserve
-        fit the files this process may open: a full server then refuses with 503 instead
-        of failing ``accept()`` with the whole process out of descriptors."""
-        room = _descriptors_free()
-        if room is None:
-            return
-        fits = room - _FD_RESERVE - _HANDSHAKE_SLACK
-        if fits < 1:
-            raise ConfigError(
-                f"this process may open {room} more files, too few to serve a client and "
-                f"keep {_FD_RESERVE + _HANDSHAKE_SLACK} in reserve: raise ulimit -n"
-            )
-        if fits < self._max_clients:
-            _log.warning(
-                "serving at most %d clients instead of %d: this process may open %d more "
-                "files (ulimit -n), %d of them kept in reserve",
-                fits,
-                self._max_clients,
-                room,
-                _FD_RESERVE + _HANDSHAKE_SLACK,
-            )
-            self._max_clients = fits
-
-    def _tcp_opened(self) -> bool:
-        """One more TCP connection accepted: whether it fits (clients, handshakes and the
-        closing ones together, at most ``max_clients`` + :data:`_HANDSHAKE_SLACK`)."""
-        self._tcp_connections += 1
-        if self._tcp_connections <= self._max_clients + _HANDSHAKE_SLACK:
-            return True
-        self._over_cap.note(
-            _log,
-            "connections closed at once: %d clients and %d handshakes already "
-            "(ohmni serve --max-clients)",
-            self._max_clients,
-            _HANDSHAKE_SLACK,
-        )
-        return False
-
-    def _tcp_closed(self) -> None:
-        self._tcp_connections -= 1
-
-    def _admit(self, connection: ServerConnection, request: Request) -> Response | None:
-        """The handshake's checks: room for one more client, a browser's origin, then the
-        token. A refusal is an HTTP error before any WebSocket exists, logged with the peer
-        (over the cap: at most once per :data:`REFUSAL_LOG_S`)."""
-        peer = _peer(connection)
-        if len(self._admitted) >= self._max_clients:
-            self._over_cap.note(
-                _log,
-                f"connections refused (503): {self._max_clients} clients connected, the "
-                "most this daemon serves (ohmni serve --max-clients); the last from %s",
-                peer,
-            )
-            return connection.respond(
-                503, f"this daemon serves at most {self._max_clients} clients: try again later\n"
-            )
-        origin = request.headers.get("Origin")
-        if not check_origin(origin, self._origins):
-            _log.warning("client %s: refused: origin %r is not allowed", peer, origin)
-            return connection.respond(
-                403, f"origin {origin} is not allowed (ohmni serve --allow-origin)\n"
-            )
-        if self._token is not None:
-            given = presented_token(request.path, request.headers.get("Authorization"))
-            if not check_token(given, self._token):
-                _log.warning(
-                    "client %s: refused: %s token", peer, "no" if given is None else "a wrong"
-                )
-                return connection.respond(
-                    401,
-                    "this daemon needs its token: Authorization: Bearer <token>, or ?token=\n",
-                )
-        # Counted from here until its TCP connection is gone, handshake failed or not.
-        self._admitted.add(connection)
-        connection.connection_lost_waiter.add_done_callback(
-            lambda _: self._admitted.discard(connection)
-        )
-        return None
+        logging.getLogger("asyncio").addFilter(self._door.accept_failures)
+        _log.info("serving on %s (at most %d clients)", self.url, self._door.max_clients)
 
     async def aclose(self) -> None:
         """Close every client (1001, going away), stop listening. Idempotent."""
         if self._closed:
             return
         self._closed = True
-        logging.getLogger("asyncio").removeFilter(self._accept_failures)
+        logging.getLogger("asyncio").removeFilter(self._door.accept_failures)
         if self._server is not None:
             self._server.close(close_connections=True)
             await self._server.wait_closed()
         self._flusher.close()
-        self._over_cap.close()
-        self._accept_failures.close()
+        self._door.close()
         for pump in list(self._pumps.values()):
             pump.subscription.close()
         tasks = list(self._tasks)
@@ -1114,7 +1025,114 @@ class _AcceptFailures(logging.Filter):
         self._throttled.close()
 
 
-def _capped_connection(server: RobotServer) -> Any:
+class _Doorkeeper:
+    """Who may come in: room for one more client (``max_clients``, fitted to the files
+    the process may open), a browser's origin, then the token — checked in the
+    handshake, a refusal an HTTP error before any WebSocket exists."""
+
+    def __init__(self, max_clients: int, token: str | None, origins: tuple[str, ...]) -> None:
+        self.max_clients = max_clients
+        self._token = token
+        self._origins = origins
+        #: Connections admitted (the handshake's checks passed) and not yet gone.
+        self._admitted: set[ServerConnection] = set()
+        #: TCP connections open: from accepted until closed.
+        self._tcp_connections = 0
+        self._over_cap = _Throttled(REFUSAL_LOG_S)
+        #: ``accept()`` failures, counted and logged from asyncio's log (a filter).
+        self.accept_failures = _AcceptFailures(REFUSAL_LOG_S)
+
+    @property
+    def refused(self) -> int:
+        """Connections refused over the cap, and ``accept()`` failures."""
+        return self._over_cap.total + self.accept_failures.total
+
+    def fit_descriptors(self) -> None:
+        """Lower ``max_clients`` so that every client, the handshakes beyond and a reserve
+        fit the files this process may open: a full server then refuses with 503 instead
+        of failing ``accept()`` with the whole process out of descriptors."""
+        room = _descriptors_free()
+        if room is None:
+            return
+        fits = room - _FD_RESERVE - _HANDSHAKE_SLACK
+        if fits < 1:
+            raise ConfigError(
+                f"this process may open {room} more files, too few to serve a client and "
+                f"keep {_FD_RESERVE + _HANDSHAKE_SLACK} in reserve: raise ulimit -n"
+            )
+        if fits < self.max_clients:
+            _log.warning(
+                "serving at most %d clients instead of %d: this process may open %d more "
+                "files (ulimit -n), %d of them kept in reserve",
+                fits,
+                self.max_clients,
+                room,
+                _FD_RESERVE + _HANDSHAKE_SLACK,
+            )
+            self.max_clients = fits
+
+    def tcp_opened(self) -> bool:
+        """One more TCP connection accepted: whether it fits (clients, handshakes and the
+        closing ones together, at most ``max_clients`` + :data:`_HANDSHAKE_SLACK`)."""
+        self._tcp_connections += 1
+        if self._tcp_connections <= self.max_clients + _HANDSHAKE_SLACK:
+            return True
+        self._over_cap.note(
+            _log,
+            "connections closed at once: %d clients and %d handshakes already "
+            "(ohmni serve --max-clients)",
+            self.max_clients,
+            _HANDSHAKE_SLACK,
+        )
+        return False
+
+    def tcp_closed(self) -> None:
+        self._tcp_connections -= 1
+
+    def admit(self, connection: ServerConnection, request: Request) -> Response | None:
+        """The handshake's checks: room for one more client, a browser's origin, then the
+        token. A refusal is an HTTP error before any WebSocket exists, logged with the peer
+        (over the cap: at most once per :data:`REFUSAL_LOG_S`)."""
+        peer = _peer(connection)
+        if len(self._admitted) >= self.max_clients:
+            self._over_cap.note(
+                _log,
+                f"connections refused (503): {self.max_clients} clients connected, the "
+                "most this daemon serves (ohmni serve --max-clients); the last from %s",
+                peer,
+            )
+            return connection.respond(
+                503, f"this daemon serves at most {self.max_clients} clients: try again later\n"
+            )
+        origin = request.headers.get("Origin")
+        if not check_origin(origin, self._origins):
+            _log.warning("client %s: refused: origin %r is not allowed", peer, origin)
+            return connection.respond(
+                403, f"origin {origin} is not allowed (ohmni serve --allow-origin)\n"
+            )
+        if self._token is not None:
+            given = presented_token(request.path, request.headers.get("Authorization"))
+            if not check_token(given, self._token):
+                _log.warning(
+                    "client %s: refused: %s token", peer, "no" if given is None else "a wrong"
+                )
+                return connection.respond(
+                    401,
+                    "this daemon needs its token: Authorization: Bearer <token>, or ?token=\n",
+                )
+        # Counted from here until its TCP connection is gone, handshake failed or not.
+        self._admitted.add(connection)
+        connection.connection_lost_waiter.add_done_callback(
+            lambda _: self._admitted.discard(connection)
+        )
+        return None
+
+    def close(self) -> None:
+        self._over_cap.close()
+        self.accept_failures.close()
+
+
+def _capped_connection(door: _Doorkeeper) -> Any:
     """websockets' connection class, closing a TCP connection as soon as it is accepted
     when ``max_clients`` and the handshakes beyond are all taken: it then holds no file
     descriptor while it would wait for its handshake."""
@@ -1123,11 +1141,11 @@ def _capped_connection(server: RobotServer) -> Any:
     class CappedConnection(ServerConnection):
         def connection_made(self, transport: asyncio.BaseTransport) -> None:
             super().connection_made(transport)
-            if not server._tcp_opened():
+            if not door.tcp_opened():
                 self.transport.abort()
 
         def connection_lost(self, exc: Exception | None) -> None:
-            server._tcp_closed()
+            door.tcp_closed()
             super().connection_lost(exc)
 
     return CappedConnection
