@@ -416,6 +416,21 @@ async def test_flooding_readers_neither_stop_the_control_tick_nor_the_watchdog(
     assert stopped_after <= robot.config.watchdog_s + 2.0, stopped_after
 
 
+async def test_readers_that_flooded_then_left_are_gone_at_once(server: RobotServer) -> None:
+    loop = asyncio.get_running_loop()
+    async with flooding(server.url, 60):
+        await asyncio.sleep(1.0)
+    left = loop.time()
+    # What the flooders had queued is not worked off at the readers' budget's pace after
+    # they left (that took 15 s): their connections end as soon as their closing is seen.
+    for _ in range(200):
+        if not server.clients:
+            break
+        await asyncio.sleep(0.05)
+    assert not server.clients
+    assert loop.time() - left < 3.0
+
+
 async def test_accept_failing_for_want_of_descriptors_is_logged_once_per_interval() -> None:
     with daemon_process(256, "exhaust") as (proc, url, _):
         assert proc.stdout is not None

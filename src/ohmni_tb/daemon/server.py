@@ -377,18 +377,28 @@ class RobotServer:
                 self._set_holder(None, f"released: {client.peer} disconnected")
             client.refusals.close()
             _log.info(
-                "client %s left (%s; sent %d, dropped %d, refused %d messages)",
+                "client %s left (%s; sent %d, dropped %d, refused %d messages, "
+                "%d not handled: they came after the connection closed)",
                 client.peer,
                 _close_text(ws),
                 client.sent,
                 client.dropped_total,
                 client.refusals.total,
+                client.unhandled,
             )
 
     async def _read_loop(self, client: _Client) -> None:
+        from websockets.protocol import State  # noqa: PLC0415  # loaded when serving
+
         bucket = _TokenBucket(MAX_MESSAGES_PER_S, BURST_MESSAGES)
         async for frame in client.ws:
             size = len(frame) if isinstance(frame, bytes) else len(frame.encode())
+            if client.ws.state is not State.OPEN and not _may_stop(frame, size):
+                # Gone (or the server closing): what it queued before can no longer be
+                # answered, and must not spend the readers' budget. Counted, not handled;
+                # a stop or an estop it sent last still is.
+                client.unhandled += 1
+                continue
             if self._holder is not client and not _may_stop(frame, size):
                 # The readers' shared budget, before any work on the frame: beyond it the
                 # frame waits here, and the next ones in the socket (backpressure). A
@@ -786,6 +796,8 @@ class _Client:
         self.lease_since = 0.0
         #: Its messages refused, logged at most once per REFUSAL_LOG_S.
         self.refusals = _Throttled(REFUSAL_LOG_S)
+        #: Its messages left unhandled: read after its connection closed.
+        self.unhandled = 0
 
     @property
     def dropped_total(self) -> int:
