@@ -118,7 +118,7 @@ PUBLIC = {
         "write_schema",
     ],
     "ohmni_tb.robot.api": [
-        "HerkulexHandle", "NeckHandle", "Robot", "SampleStream",
+        "HerkulexHandle", "NeckHandle", "Robot", "RobotStreams", "SampleStream",
     ],
     "ohmni_tb.robot.remote": [
         "DEFAULT_TIMEOUT_S", "DEFAULT_URL", "STATS_IDLE_REFRESH_S", "STATS_IDLE_S",

@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from ohmni_tb.robot.stats import RobotStats
     from ohmni_tb.transport import Transport
 
-__all__ = ["HerkulexHandle", "NeckHandle", "Robot", "SampleStream"]
+__all__ = ["HerkulexHandle", "NeckHandle", "Robot", "RobotStreams", "SampleStream"]
 
 T_co = TypeVar("T_co", covariant=True)
 
@@ -187,97 +187,9 @@ class HerkulexHandle(NeckHandle, Protocol):
         ...
 
 
-class Robot(abc.ABC):
-    """One Ohmni robot: open it with :meth:`open` (module docstring).
-
-    Attributes:
-        config: The settings the robot runs with (a remote robot's: the daemon's).
-        sim: The simulated robot (its ground truth: ``pose``, ``wheel_speeds_mps()``…)
-            when this process runs the simulator behind a ``sim://`` port, else ``None``
-            (a remote robot's simulator runs in the daemon).
-    """
-
-    config: RobotConfig
-    sim: Any
-    #: The implementations, each with the ports it opens (``_opens``).
-    _implementations: ClassVar[list[type[Robot]]] = []
-
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        if "_opens" in cls.__dict__:
-            Robot._implementations.append(cls)
-
-    @classmethod
-    def _opens(cls, port: str | Transport | None) -> bool:
-        """Whether this implementation opens ``port`` (each implementation says)."""
-        return False
-
-    # -- opening -----------------------------------------------------------------------------
-
-    @classmethod
-    def open(
-        cls,
-        port: str | Transport | None = None,
-        *,
-        token: str | None = None,
-        config: RobotConfig | None = None,
-        **overrides: Any,
-    ) -> AbstractAsyncContextManager[Robot]:
-        """Open the robot on ``port`` and run it: ``async with Robot.open(port) as robot:``.
-
-        The port picks the implementation: ``ws://host:port`` or ``wss://…`` is a daemon
-        (``ohmni serve``) and gives a :class:`~ohmni_tb.robot.RemoteRobot`; anything else
-        (``sim://``, ``/dev/ttyUSB0``, ``serial://…``, ``auto``, an open
-        :class:`~ohmni_tb.transport.Transport`, ``None`` for ``config.port``) gives a
-        :class:`~ohmni_tb.robot.LocalRobot`, which runs the bus in this process.
-
-        Leaving the block stops the robot. A local robot stops the wheels (confirmed by
-        their counts, within ``stop_timeout_s``) and rests or frees the neck
-        (``on_exit_neck``), even on an error or a cancellation, then closes the port;
-        when the block ended cleanly but the counts did not confirm the stop, leaving
-        raises :class:`~ohmni_tb.errors.StopNotConfirmedError`. A remote robot closes its
-        connection: the daemon stops the robot if this connection held the control lease.
-
-        Args:
-            port: Where the robot is (see above; default ``config.port``).
-            token: The daemon's token (its token file's content), needed beyond loopback;
-                default ``$OHMNI_DAEMON_TOKEN``. A local robot takes none.
-            config: The settings of a local robot (default: :class:`RobotConfig` from the
-                environment and the config file). A remote robot runs with the daemon's.
-            overrides: Settings that replace the config's, by field name (a local robot);
-                a remote robot takes ``timeout_s`` (each call, 5 s) and ``reconnect``.
-
-        Raises:
-            ConfigError: A setting is invalid (the message names it), a token for a local
-                robot, settings for a remote one, or a malformed daemon URL.
-            TransportError: The port cannot be opened, or the daemon does not answer or
-                refused the connection.
-        """
-        for implementation in Robot._implementations:
-            if implementation._opens(port):
-                return implementation.open(port, token=token, config=config, **overrides)
-        raise ConfigError(f"no Robot implementation opens {port!r}")
-
-    @property
-    @abc.abstractmethod
-    def closed(self) -> bool:
-        """Whether the robot was closed: every call then raises
-        :class:`~ohmni_tb.errors.RobotClosedError` (the plain reads excepted)."""
-
-    async def confirm(self) -> None:  # noqa: B027  # a no-op here, on purpose: see the docstring
-        """Wait until every command so far has taken effect.
-
-        A local robot applies each command as it is called (this returns at once); a
-        remote robot sends plain commands without waiting, and this waits for the
-        daemon's answers to all of them.
-
-        Raises:
-            OhmniError: The first of them that was refused (the lease taken by another
-                client, an emergency stop latched meanwhile …), if not raised already.
-            TransportError: The daemon did not answer in time, or went away.
-        """
-
-    # -- streams -------------------------------------------------------------------------------
+class RobotStreams(abc.ABC):
+    """The streams half of the Robot's contract (:class:`Robot` is the whole): the newest
+    sample of a stream, subscriptions, the figures, and turning streams on and off."""
 
     @overload
     def latest(self, name: Literal["wheel_encoder"]) -> WheelEncoderSample | None: ...
@@ -411,6 +323,97 @@ class Robot(abc.ABC):
             InvalidArgumentError: No such stream, or it is not polled.
             OutOfRangeError: ``hz`` is outside the stream's range; nothing changes.
             RobotClosedError: The robot is closed.
+        """
+
+
+class Robot(RobotStreams):
+    """One Ohmni robot: open it with :meth:`open` (module docstring).
+
+    Attributes:
+        config: The settings the robot runs with (a remote robot's: the daemon's).
+        sim: The simulated robot (its ground truth: ``pose``, ``wheel_speeds_mps()``…)
+            when this process runs the simulator behind a ``sim://`` port, else ``None``
+            (a remote robot's simulator runs in the daemon).
+    """
+
+    config: RobotConfig
+    sim: Any
+    #: The implementations, each with the ports it opens (``_opens``).
+    _implementations: ClassVar[list[type[Robot]]] = []
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "_opens" in cls.__dict__:
+            Robot._implementations.append(cls)
+
+    @classmethod
+    def _opens(cls, port: str | Transport | None) -> bool:
+        """Whether this implementation opens ``port`` (each implementation says)."""
+        return False
+
+    # -- opening -----------------------------------------------------------------------------
+
+    @classmethod
+    def open(
+        cls,
+        port: str | Transport | None = None,
+        *,
+        token: str | None = None,
+        config: RobotConfig | None = None,
+        **overrides: Any,
+    ) -> AbstractAsyncContextManager[Robot]:
+        """Open the robot on ``port`` and run it: ``async with Robot.open(port) as robot:``.
+
+        The port picks the implementation: ``ws://host:port`` or ``wss://…`` is a daemon
+        (``ohmni serve``) and gives a :class:`~ohmni_tb.robot.RemoteRobot`; anything else
+        (``sim://``, ``/dev/ttyUSB0``, ``serial://…``, ``auto``, an open
+        :class:`~ohmni_tb.transport.Transport`, ``None`` for ``config.port``) gives a
+        :class:`~ohmni_tb.robot.LocalRobot`, which runs the bus in this process.
+
+        Leaving the block stops the robot. A local robot stops the wheels (confirmed by
+        their counts, within ``stop_timeout_s``) and rests or frees the neck
+        (``on_exit_neck``), even on an error or a cancellation, then closes the port;
+        when the block ended cleanly but the counts did not confirm the stop, leaving
+        raises :class:`~ohmni_tb.errors.StopNotConfirmedError`. A remote robot closes its
+        connection: the daemon stops the robot if this connection held the control lease.
+
+        Args:
+            port: Where the robot is (see above; default ``config.port``).
+            token: The daemon's token (its token file's content), needed beyond loopback;
+                default ``$OHMNI_DAEMON_TOKEN``. A local robot takes none.
+            config: The settings of a local robot (default: :class:`RobotConfig` from the
+                environment and the config file). A remote robot runs with the daemon's.
+            overrides: Settings that replace the config's, by field name (a local robot);
+                a remote robot takes ``timeout_s`` (each call, 5 s) and ``reconnect``.
+
+        Raises:
+            ConfigError: A setting is invalid (the message names it), a token for a local
+                robot, settings for a remote one, or a malformed daemon URL.
+            TransportError: The port cannot be opened, or the daemon does not answer or
+                refused the connection.
+        """
+        for implementation in Robot._implementations:
+            if implementation._opens(port):
+                return implementation.open(port, token=token, config=config, **overrides)
+        raise ConfigError(f"no Robot implementation opens {port!r}")
+
+    @property
+    @abc.abstractmethod
+    def closed(self) -> bool:
+        """Whether the robot was closed: every call then raises
+        :class:`~ohmni_tb.errors.RobotClosedError` (the plain reads excepted)."""
+
+    async def confirm(self) -> None:  # a no-op here, on purpose: see the docstring
+        """Wait until every command so far has taken effect.
+
+        A local robot applies each command as it is called (this returns at once); a
+        remote robot sends plain commands without waiting, and this waits for the
+        daemon's answers to all of them.
+
+        Raises:
+            OhmniError: The first of them that was refused (the lease taken by another
+                client, an emergency stop latched meanwhile …), if not raised already.
+            TransportError: The daemon did not answer in time, or went away.
         """
 
     # -- motion --------------------------------------------------------------------------------
