@@ -527,6 +527,17 @@ def test_watch_on_a_terminal_until_ctrl_c() -> None:
             assert ready, f"no frames: {seen[-2000:]!r}"
             seen += os.read(master, 65536)
         proc.send_signal(signal.SIGINT)
+        # Read on while it ends: a terminal nobody reads fills up, and the command's last
+        # frames and its goodbye wait in their writes.
+        deadline = time.monotonic() + 30.0
+        while proc.poll() is None:
+            assert time.monotonic() < deadline, f"it did not end: {seen[-2000:]!r}"
+            ready, _, _ = select.select([master], [], [], 0.1)
+            if ready:
+                try:
+                    seen += os.read(master, 65536)
+                except OSError:  # the terminal's other end is closed
+                    break
         code = proc.wait(timeout=30)
         while True:
             ready, _, _ = select.select([master], [], [], 0.5)

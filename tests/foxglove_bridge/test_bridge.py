@@ -11,7 +11,7 @@ import time
 from collections.abc import AsyncIterator
 
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidMessage
 
 from ohmni_tb import Robot
 from ohmni_tb.errors import TransportError
@@ -222,8 +222,10 @@ async def test_a_client_that_never_reads_costs_the_robot_nothing(
         assert bridge.stats()["/tf"].messages >= published
         stats = bridge.stats()
         # The bridge handed every sample to the SDK (which drops that client's oldest when
-        # its queue is full): it lost none, and the Robot kept its rate.
-        assert published >= 90
+        # its queue is full): it lost none, and the Robot kept its rate — 100 in 2 s, less
+        # on a loaded machine (87 beside other test runs); a Robot held up by the client's
+        # full socket would stall.
+        assert published >= 60
         assert all(s.dropped == 0 for s in stats.values())
     finally:
         await client.close()
@@ -241,5 +243,7 @@ async def test_the_bridge_serves_beside_a_robot_and_closes_before_it() -> None:
                 await client.close()
             assert len(messages) >= 15  # 50 Hz
             assert "/tf" in client.channels
-        with pytest.raises(ConnectionRefusedError):  # closed before the Robot
+        # Closed before the Robot: nothing answers there. (On a loaded machine the SDK's
+        # threads may still take a connection a moment after its stop, and drop it unanswered.)
+        with pytest.raises((ConnectionRefusedError, InvalidMessage)):
             await FoxgloveClient.connect(url)

@@ -111,11 +111,14 @@ def test_ctrl_c_ends_an_open_recording_normally(tmp_path: Path) -> None:
     # process lived (a loaded machine delivers the signal late).
     seconds = float(first.split()[1])
     assert 1.5 <= seconds <= ended - started, first
-    counts, _ = read_back(path)
-    # The rates over that time (said to 0.1 s): no more than they give, and most of it on
-    # a loaded machine.
-    assert (1 - TOLERANCE) * 50 * seconds <= counts["/tf"] <= 50 * (seconds + 0.05) + 1, counts
-    assert counts["/tb_control/tbcore_status"] >= (1 - TOLERANCE) * 10 * seconds - 1, counts
+    counts, records = read_back(path)
+    # Recorded until the signal: the 50 Hz stream from its start to its end, at no more
+    # than its rate over that time (said to 0.1 s). How much of the rate a process gets on
+    # a loaded machine is not this test's (runs beside other test runs gave 36 Hz).
+    stamps = sorted(m.log_time for _, channel, m in records if channel.topic == "/tf")
+    assert (stamps[-1] - stamps[0]) / 1e9 >= seconds - 0.5, (stamps[0], stamps[-1], seconds)
+    assert 0.5 * 50 * seconds <= counts["/tf"] <= 50 * (seconds + 0.05) + 1, counts
+    assert counts["/tb_control/tbcore_status"] >= 0.5 * 10 * seconds - 1, counts
 
 
 def test_a_file_size_limit_stops_it_with_one_line_and_the_file_reads(tmp_path: Path) -> None:
