@@ -368,7 +368,7 @@ class LocalRobot(Robot):
 
     @staticmethod
     def ports() -> list[dict[str, Any]]:
-        """Serial ports on this machine with their USB ids, the likely bus adapter first
+        """Serial ports of the computer it runs on, with their USB ids, the likely adapter first
         (``likely_bus``; :func:`ohmni_tb.transport.ports.list_ports`)."""
         from ohmni_tb.transport.ports import list_ports  # noqa: PLC0415  # slow: when asked
 

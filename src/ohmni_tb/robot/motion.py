@@ -473,7 +473,7 @@ class MotionGoals:
             speed_mps,
             default=DEFAULT_LINEAR_MPS,
             low=MIN_GOAL_LINEAR_MPS,
-            top=_top_linear(config),
+            top=config.top_linear_mps(),
         )
         timeout = _timeout(
             timeout_s,
@@ -510,7 +510,7 @@ class MotionGoals:
             speed_radps,
             default=DEFAULT_ANGULAR_RADPS,
             low=MIN_GOAL_ANGULAR_RADPS,
-            top=_top_angular(config),
+            top=config.top_angular_radps(),
             unit="rad/s",
         )
         timeout = _timeout(
@@ -552,9 +552,9 @@ class MotionGoals:
             speed_mps,
             default=DEFAULT_LINEAR_MPS,
             low=MIN_GOAL_LINEAR_MPS,
-            top=_top_linear(config),
+            top=config.top_linear_mps(),
         )
-        turn_speed = min(DEFAULT_ANGULAR_RADPS, _top_angular(config))
+        turn_speed = min(DEFAULT_ANGULAR_RADPS, config.top_angular_radps())
         if timeout_s is not None:
             _timeout(timeout_s, 0.0)
 
@@ -758,14 +758,6 @@ class MotionGoals:
 
 
 # -- helpers -----------------------------------------------------------------------------------
-
-
-def _top_linear(config: RobotConfig) -> float:
-    return min(config.max_linear_mps, config.max_wheel_mps)
-
-
-def _top_angular(config: RobotConfig) -> float:
-    return min(config.max_angular_radps, 2 * config.max_wheel_mps / config.wheel_separation_m)
 
 
 def _speed(

@@ -26,6 +26,9 @@ from typing import TYPE_CHECKING, Final
 from ohmni_tb._checks import positive
 from ohmni_tb.errors import InvalidArgumentError
 
+# Key speeds when none are given: a goal's (the robot's limits cap them).
+from ohmni_tb.robot.motion import DEFAULT_ANGULAR_RADPS, DEFAULT_LINEAR_MPS
+
 if TYPE_CHECKING:
     from ohmni_tb.robot.api import Robot
 
@@ -40,9 +43,6 @@ __all__ = [
     "KeyTeleop",
 ]
 
-#: Key speeds when none are given; the robot's limits cap them.
-DEFAULT_LINEAR_MPS: Final = 0.3
-DEFAULT_ANGULAR_RADPS: Final = 1.0
 #: How much ``faster`` and ``slower`` change the key speeds.
 SCALE_STEP: Final = 1.25
 #: The longest a key press drives without another (the watchdog, when shorter).
