@@ -24,6 +24,12 @@ settings.register_profile("ci", derandomize=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
+# pytest-xdist's workers start with COLUMNS/LINES set to 80x24, and rich fixes a console's
+# width when it is created with COLUMNS set: the CLI's console, created at import, would then
+# ignore the width each CliRunner call asks for. The tests set the width per call instead.
+for _name in ("COLUMNS", "LINES"):
+    os.environ.pop(_name, None)
+
 _PORT_OPTION = "--ohmni-port"
 
 
