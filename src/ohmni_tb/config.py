@@ -431,14 +431,14 @@ class RobotConfig(BaseSettings):
         default=DEFAULT_ODOM_FRAME,
         min_length=1,
         description="Frame of the odometry pose: wheel_odom's frame_id, the parent of the "
-        f"transform on Foxglove's /tf. {_FRAME_ALLOWED}.",
+        f"transform on Foxglove's /tf. Allowed: {_FRAME_ALLOWED}.",
         json_schema_extra={"allowed": _FRAME_ALLOWED},
     )
     frame_id_baselink: str = Field(
         default=DEFAULT_BASE_FRAME,
         min_length=1,
         description="The robot's body frame: wheel_odom's child_frame_id, the child of the "
-        f"transform on Foxglove's /tf. {_FRAME_ALLOWED}, other than frame_id_odom.",
+        f"transform on Foxglove's /tf; other than frame_id_odom. Allowed: {_FRAME_ALLOWED}.",
         json_schema_extra={"allowed": _FRAME_ALLOWED},
     )
     enable_broadcast_transform: bool = Field(
