@@ -38,6 +38,7 @@ FIELDS = [
     "neck", "neck_id", "neck_min_raw", "neck_max_raw", "neck_rest_raw",
     "neck_zero_offset_raw", "worm_min_raw", "worm_max_raw", "ext_servo_ids",
     "wheel_hz", "servo_hz", "core_hz", "new_neck_hz", "state_hz", "pid_debug",
+    "frame_id_odom", "frame_id_baselink", "enable_broadcast_transform",
 ]  # fmt: skip
 
 

@@ -52,8 +52,10 @@ from pydantic_settings.exceptions import SettingsError
 from ohmni_tb._checks import show
 from ohmni_tb.control.defaults import (
     CONTROL_HZ_RANGE,
+    DEFAULT_BASE_FRAME,
     DEFAULT_MAX_ANGULAR_RADPS,
     DEFAULT_MAX_LINEAR_MPS,
+    DEFAULT_ODOM_FRAME,
     DEFAULT_TICKS_PER_REV,
     DEFAULT_WHEEL_RADIUS_M,
     DEFAULT_WHEEL_SEPARATION_M,
@@ -106,6 +108,8 @@ _RAW_MAX = 1023
 #: Event-loop delay the bus allows on top of the adapter's latency timer: DEFAULT_TIMEOUT_S
 #: is the default 16 ms latency timer plus this.
 _LOOP_MARGIN_S = 0.009
+#: What a frame id may be: a ROS frame name has no spaces.
+_FRAME_ALLOWED = "a non-empty name without spaces"
 #: The PWM limit of the drive boards, for the PID descriptions.
 _PWM = "PWM -1000..1000"
 
@@ -422,6 +426,27 @@ class RobotConfig(BaseSettings):
         description="Publish the pid_debug stream: both wheels' PID terms every tick.",
     )
 
+    # Frames (tb_control's ~frame_id_odom, ~frame_id_baselink, ~enable_broadcast_transform).
+    frame_id_odom: str = Field(
+        default=DEFAULT_ODOM_FRAME,
+        min_length=1,
+        description="Frame of the odometry pose: wheel_odom's frame_id, the parent of the "
+        f"transform on Foxglove's /tf. Allowed: {_FRAME_ALLOWED}.",
+        json_schema_extra={"allowed": _FRAME_ALLOWED},
+    )
+    frame_id_baselink: str = Field(
+        default=DEFAULT_BASE_FRAME,
+        min_length=1,
+        description="The robot's body frame: wheel_odom's child_frame_id, the child of the "
+        f"transform on Foxglove's /tf; other than frame_id_odom. Allowed: {_FRAME_ALLOWED}.",
+        json_schema_extra={"allowed": _FRAME_ALLOWED},
+    )
+    enable_broadcast_transform: bool = Field(
+        default=True,
+        description="Publish the odometry as the transform frame_id_odom -> "
+        "frame_id_baselink on Foxglove's /tf (live and recorded); off, no /tf.",
+    )
+
     if not TYPE_CHECKING:
         # Hidden from mypy, which then checks calls against the fields' own signature.
         def __init__(self, **values: Any) -> None:
@@ -619,6 +644,13 @@ class RobotConfig(BaseSettings):
                 raise ValueError(f"{shown} repeats id {sid}")
         return ids
 
+    @field_validator("frame_id_odom", "frame_id_baselink", mode="after")
+    @classmethod
+    def _check_frame(cls, frame: str, info: ValidationInfo) -> str:
+        if frame and any(char.isspace() for char in frame):
+            raise ValueError(f"{info.field_name}={frame!r} has a space: allowed {_FRAME_ALLOWED}")
+        return frame
+
     @model_validator(mode="after")
     def _check_relations(self) -> Self:
         problems: list[tuple[str, str]] = []
@@ -641,6 +673,14 @@ class RobotConfig(BaseSettings):
                     "worm_min_raw",
                     f"worm_min_raw={self.worm_min_raw} must be below "
                     f"worm_max_raw={self.worm_max_raw}",
+                )
+            )
+        if self.frame_id_odom == self.frame_id_baselink:
+            problems.append(
+                (
+                    "frame_id_baselink",
+                    f"frame_id_baselink={self.frame_id_baselink!r} is frame_id_odom's too: "
+                    "the body frame needs a name of its own",
                 )
             )
         if self.neck_id in self.ext_servo_ids:

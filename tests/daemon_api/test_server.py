@@ -288,6 +288,6 @@ async def test_loopback_addresses_serve(robot: Robot, host: str) -> None:
         pytest.skip(f"{host}: {exc}")
     try:
         async with RobotClient.connect(server.url) as client:
-            assert client.hello.protocol == PROTOCOL_VERSION == 4
+            assert client.hello.protocol == PROTOCOL_VERSION == 5
     finally:
         await server.aclose()

@@ -14,8 +14,10 @@ from ohmni_tb.protocol.drive import PWM_LIMIT
 
 __all__ = [
     "CONTROL_HZ_RANGE",
+    "DEFAULT_BASE_FRAME",
     "DEFAULT_MAX_ANGULAR_RADPS",
     "DEFAULT_MAX_LINEAR_MPS",
+    "DEFAULT_ODOM_FRAME",
     "DEFAULT_TICKS_PER_REV",
     "DEFAULT_WHEEL_RADIUS_M",
     "DEFAULT_WHEEL_SEPARATION_M",
@@ -62,3 +64,8 @@ WHEEL_GAIN_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
 #: in radians likewise): beyond, a float's resolution (about 1e-10 m at 1e6 m) is no
 #: longer a wheel's.
 MAX_POSE_M = 1e6
+#: The odometry's frames, as tb_control names them by default (``~frame_id_odom``,
+#: ``~frame_id_baselink``): where the robot was when the odometry started, and the body
+#: between the wheels on the floor (ROS's conventions).
+DEFAULT_ODOM_FRAME = "odom"
+DEFAULT_BASE_FRAME = "base_link"

@@ -19,6 +19,7 @@ import foxglove
 
 from ohmni_tb.foxglove.channels import (
     CHANNELS,
+    TF_TOPIC,
     ChannelSpec,
     Encoder,
     WallClock,
@@ -29,7 +30,7 @@ from ohmni_tb.foxglove.channels import (
 if TYPE_CHECKING:
     from ohmni_tb.robot import Robot
 
-__all__ = ["ChannelStats", "Pump"]
+__all__ = ["ChannelStats", "Pump", "robot_channels"]
 
 _log = logging.getLogger("ohmni_tb.foxglove")
 
@@ -56,13 +57,23 @@ class ChannelStats:
     dropped: int
 
 
+def robot_channels(robot: Robot) -> tuple[ChannelSpec, ...]:
+    """The channels a robot's streams go to: :data:`CHANNELS`, without the transform on
+    ``/tf`` when its config turns it off (``enable_broadcast_transform``, tb_control's
+    ``~enable_broadcast_transform``)."""
+    if robot.config.enable_broadcast_transform:
+        return CHANNELS
+    return tuple(spec for spec in CHANNELS if spec.topic != TF_TOPIC)
+
+
 class Pump:
     """Publishes a Robot's streams on :data:`CHANNELS` in ``context`` while it runs.
 
     Args:
         source: An open Robot, on a port or a daemon's.
         context: The SDK context the channels are made in; its sinks get the messages.
-        specs: The channels (all of them by default).
+        specs: The channels (default: all of them, ``/tf`` only when the robot's
+            ``enable_broadcast_transform`` is on).
         admit: Asked before each sample is encoded; ``False`` drops it (counted). A
             recorder's bound on its backlog.
         window: Only samples stamped in ``[start, end)`` (loop clock) are published.
@@ -74,13 +85,13 @@ class Pump:
         source: Robot,
         context: foxglove.Context,
         *,
-        specs: Sequence[ChannelSpec] = CHANNELS,
+        specs: Sequence[ChannelSpec] | None = None,
         admit: Callable[[], bool] | None = None,
         window: tuple[float, float] | None = None,
         queue: int = DEFAULT_QUEUE,
     ) -> None:
         self._source = source
-        self._specs = tuple(specs)
+        self._specs = tuple(specs) if specs is not None else robot_channels(source)
         self._admit = admit
         self._window = window
         self._queue = queue

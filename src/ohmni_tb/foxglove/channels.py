@@ -5,8 +5,10 @@ whose message is the stream's sample exactly as the daemon sends it
 (:func:`ohmni_tb.robot.wire.sample_json`: enums by value, tuples as lists), so a
 recording holds every field and the samples can be rebuilt from it. The odometry also
 goes out in Foxglove's well-known schemas, protobuf-encoded, for the 3D panel: the
-transform ``odom`` → ``base_link`` on ``/tf`` and the pose on ``/tb_control/wheel_odom``
-(its JSON on ``/tb_control/wheel_odom/json``). The Robot's state changes, in words, go
+transform between the sample's frames (``frame_id_odom`` → ``frame_id_baselink``,
+``odom`` → ``base_link`` by default) on ``/tf`` — unless ``enable_broadcast_transform``
+is off — and the pose on ``/tb_control/wheel_odom`` (its JSON on
+``/tb_control/wheel_odom/json``). The Robot's state changes, in words, go
 to ``/tb_control/log`` as ``foxglove.Log`` for the Log panel.
 
 Time: a sample's ``stamp_s`` is the event loop's monotonic clock; Foxglove and MCAP want
@@ -18,7 +20,6 @@ a manual change) during a run does not reorder them.
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +39,7 @@ from foxglove.messages import (
 )
 from pydantic import TypeAdapter
 
+from ohmni_tb.control.defaults import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
 from ohmni_tb.robot.samples import STREAMS, RobotStateSample, Sample, WheelOdomSample
 
 __all__ = [
@@ -53,10 +55,14 @@ __all__ = [
     "json_schema_of",
 ]
 
-#: The odometry frame: where the robot was when the Robot opened (or the odometry was reset).
-ODOM_FRAME: Final = "odom"
-#: The robot's body frame, between the wheels on the floor (ROS's convention).
-BASE_FRAME: Final = "base_link"
+#: The odometry frame by default (``frame_id_odom``): where the robot was when the Robot
+#: opened (or the odometry was reset).
+ODOM_FRAME: Final = DEFAULT_ODOM_FRAME
+#: The robot's body frame by default (``frame_id_baselink``), between the wheels on the
+#: floor (ROS's convention).
+BASE_FRAME: Final = DEFAULT_BASE_FRAME
+#: The transforms' topic.
+TF_TOPIC: Final = "/tf"
 
 _PREFIX = "/tb_control"
 
@@ -95,18 +101,19 @@ def _json_channel(stream: str, topic: str | None = None, what: str = "") -> Chan
 #: with ids 1, 2, … when it is the only user of its context.
 CHANNELS: Final[tuple[ChannelSpec, ...]] = (
     ChannelSpec(
-        "/tf",
+        TF_TOPIC,
         "wheel_odom",
         "foxglove.FrameTransform",
         "protobuf",
-        f"the odometry as the transform {ODOM_FRAME} → {BASE_FRAME}",
+        "the odometry as the transform frame_id_odom → frame_id_baselink "
+        f"({ODOM_FRAME} → {BASE_FRAME} by default)",
     ),
     ChannelSpec(
         f"{_PREFIX}/wheel_odom",
         "wheel_odom",
         "foxglove.PoseInFrame",
         "protobuf",
-        f"the odometry pose in {ODOM_FRAME}",
+        f"the odometry pose in frame_id_odom ({ODOM_FRAME} by default)",
     ),
     _json_channel(
         "wheel_odom",
@@ -223,28 +230,28 @@ def _timestamp(ns: int) -> Timestamp:
     return Timestamp(sec, nsec)
 
 
-def _rotation(yaw_rad: float) -> Quaternion:
-    half = 0.5 * yaw_rad
-    return Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half))
+def _rotation(sample: WheelOdomSample) -> Quaternion:
+    x, y, z, w = sample.orientation
+    return Quaternion(x=x, y=y, z=z, w=w)
 
 
 def _encode_transform(sample: WheelOdomSample, ns: int) -> bytes:
     return FrameTransform(
         timestamp=_timestamp(ns),
-        parent_frame_id=ODOM_FRAME,
-        child_frame_id=BASE_FRAME,
+        parent_frame_id=sample.frame_id,
+        child_frame_id=sample.child_frame_id,
         translation=Vector3(x=sample.x_m, y=sample.y_m, z=0.0),
-        rotation=_rotation(sample.yaw_rad),
+        rotation=_rotation(sample),
     ).encode()
 
 
 def _encode_pose(sample: WheelOdomSample, ns: int) -> bytes:
     return PoseInFrame(
         timestamp=_timestamp(ns),
-        frame_id=ODOM_FRAME,
+        frame_id=sample.frame_id,
         pose=Pose(
             position=Vector3(x=sample.x_m, y=sample.y_m, z=0.0),
-            orientation=_rotation(sample.yaw_rad),
+            orientation=_rotation(sample),
         ),
     ).encode()
 

@@ -172,9 +172,20 @@ class ServoHandle:
         # status can predate it (writes get no reply under ACK policy 1), so a move
         # after free() would otherwise skip the torque and be refused.
         self._torque_set: TorqueControl | None = None
+        self._position_cmd: int | None = None
 
     def __repr__(self) -> str:
         return f"<ServoHandle sid={self.sid} range={self.min_raw}..{self.max_raw}>"
+
+    @property
+    def position_raw_cmd(self) -> int | None:
+        """The last position target sent, raw (``None`` before the first move)."""
+        return self._position_cmd
+
+    @property
+    def torque_cmd(self) -> TorqueControl | None:
+        """The last torque mode set (``None`` before the first)."""
+        return self._torque_set
 
     @property
     def min_raw(self) -> int:
@@ -259,6 +270,7 @@ class ServoHandle:
             ):
                 await self.torque(TorqueControl.ON)
             await self.servo.move_to(target.value, playtime_s=playtime_s)
+            self._position_cmd = target.value
             if samples is None:
                 return None
             return await servo_arrival(
@@ -339,9 +351,15 @@ class WormNeckHandle:
         self.min_raw = min_raw
         self.max_raw = max_raw
         self.sid = 4
+        self._position_cmd: int | None = None
 
     def __repr__(self) -> str:
         return f"<WormNeckHandle range={self.min_raw}..{self.max_raw}>"
+
+    @property
+    def position_raw_cmd(self) -> int | None:
+        """The last target sent, raw (``None`` before the first move)."""
+        return self._position_cmd
 
     async def move(
         self,
@@ -394,6 +412,7 @@ class WormNeckHandle:
             await self._bus.request(
                 set_target(position), expect_reply=False, priority=COMMAND_PRIORITY
             )
+            self._position_cmd = position
             if samples is None:
                 return None
             return await worm_arrival(

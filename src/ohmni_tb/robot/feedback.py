@@ -26,6 +26,7 @@ from ohmni_tb.protocol.core import parse_status, read_status
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
 from ohmni_tb.robot.control_loop import CONTROL_SLACK, ControlLoop
+from ohmni_tb.robot.devices import WormNeckHandle
 from ohmni_tb.robot.discovery import EXT_STREAMS
 from ohmni_tb.robot.guards import Guards
 from ohmni_tb.robot.samples import (
@@ -307,16 +308,24 @@ class Feedback:
         if block is None:
             return
         position = block.position_raw
+        handle = watch.handle
+        zero_offset = handle.zero_offset_raw
+        position_cmd = handle.position_raw_cmd
         sample = ServoSample(
             stamp_s=result.started_s,
             sid=sid,
             position_raw=position,
-            angle_rad=angle_rad_from_raw(position, zero_offset_raw=watch.handle.zero_offset_raw),
+            angle_rad=angle_rad_from_raw(position, zero_offset_raw=zero_offset),
             temperature_raw=block.temperature_raw,
             voltage_v=voltage_v_from_raw(block.voltage_raw),
             torque=block.torque,
             status_error=block.status_error,
             status_detail=block.status_detail,
+            position_raw_cmd=position_cmd,
+            pos_rad_cmd=None
+            if position_cmd is None
+            else angle_rad_from_raw(position_cmd, zero_offset_raw=zero_offset),
+            torque_cmd=handle.torque_cmd,
         )
         watch.sample = sample
         topic.publish(sample, result.started_s)
@@ -328,7 +337,13 @@ class Feedback:
         feedback = self._parsed(topic, result, parse_feedback)
         if feedback is None:
             return
-        sample = WormNeckSample(result.started_s, feedback.position, feedback.flags)
+        neck = state.neck
+        sample = WormNeckSample(
+            result.started_s,
+            feedback.position,
+            feedback.flags,
+            neck.position_raw_cmd if isinstance(neck, WormNeckHandle) else None,
+        )
         topic.publish(sample, result.started_s)
         fault = "neck_stalled"
         if sample.stalled and fault not in state.faults:

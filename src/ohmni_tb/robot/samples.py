@@ -8,20 +8,31 @@ reply (a USB adapter may hold replies up to 16 ms).
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal
 
-from ohmni_tb.control.defaults import CONTROL_HZ_RANGE
+from ohmni_tb.control.defaults import (
+    CONTROL_HZ_RANGE,
+    DEFAULT_BASE_FRAME,
+    DEFAULT_ODOM_FRAME,
+    PID_RATE_HZ,
+)
 from ohmni_tb.control.pid import PidStep
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.protocol.messages import StatusDetail, StatusError
 from ohmni_tb.protocol.worm_neck import WormFlags
 
 __all__ = [
+    "ENCODER_POSITION_MODULUS",
+    "ENCODER_VEL_PERIOD_HZ",
+    "POSE_UNOBSERVED_VARIANCE",
+    "POSE_VARIANCE_FLOOR",
     "STREAMS",
     "STREAM_NAMES",
+    "TWIST_COVARIANCE",
     "Link",
     "PidDebugSample",
     "RobotStateSample",
@@ -33,6 +44,52 @@ __all__ = [
     "WheelOdomSample",
     "WormNeckSample",
 ]
+
+
+#: tb_control's wheel positions are on 0..2¹² (``motor_left_pos``, ``motor_right_pos``).
+ENCODER_POSITION_MODULUS = 1 << 12
+#: tb_control's control rate, whose period is the unit of its wheel speeds
+#: (``motor_left_vel``: ticks per 50 Hz period).
+ENCODER_VEL_PERIOD_HZ = PID_RATE_HZ
+#: The variance given to what wheel odometry cannot observe — z, roll and pitch in the
+#: pose, z speed, roll and pitch rates in the twist: large, so a filter fusing the
+#: odometry (robot_localization, robot_pose_ekf) ignores it, as diff-drive drivers do.
+POSE_UNOBSERVED_VARIANCE = 1e6
+#: The least variance of x, y (m²) and yaw (rad²) in ``pose_covariance``: 1 mm and 1 mrad.
+#: The odometry's own covariance starts at zero where the Robot opened; a filter that
+#: inverts the matrix needs it positive.
+POSE_VARIANCE_FLOOR = 1e-6
+#: Forward and sideways speed variance in ``twist_covariance``, (m/s)²: ~3 cm/s, the
+#: wheel speed estimate's spread under slip and its 0.1 s window. Sideways the robot
+#: cannot move (a diff drive): the same small value says so.
+_SPEED_VARIANCE = 1e-3
+#: Yaw-rate variance, (rad/s)²: two wheels' speed variance over the separation squared
+#: (2 × 1e-3 / 0.33²).
+_YAW_RATE_VARIANCE = 0.02
+
+
+def _diagonal(*variances: float) -> tuple[float, ...]:
+    """A 6×6 row-major matrix with ``variances`` on its diagonal."""
+    return tuple(variances[row] if row == col else 0.0 for row in range(6) for col in range(6))
+
+
+#: ``wheel_odom``'s twist covariance, 6×6 row-major over (vx, vy, vz, wx, wy, wz) in
+#: the body frame: one shared tuple (nav_msgs/Odometry's ``twist.covariance``).
+TWIST_COVARIANCE: tuple[float, ...] = _diagonal(
+    _SPEED_VARIANCE,
+    _SPEED_VARIANCE,
+    POSE_UNOBSERVED_VARIANCE,
+    POSE_UNOBSERVED_VARIANCE,
+    POSE_UNOBSERVED_VARIANCE,
+    _YAW_RATE_VARIANCE,
+)
+#: Where the 3×3 (x, y, yaw) covariance's entries go in the 6×6 (x, y, z, roll, pitch,
+#: yaw) one, row-major.
+_POSE_SLOTS = tuple(row * 6 + col for row in (0, 1, 5) for col in (0, 1, 5))
+#: The pose covariance's unobserved part: z, roll and pitch.
+_POSE_UNOBSERVED = _diagonal(
+    0.0, 0.0, POSE_UNOBSERVED_VARIANCE, POSE_UNOBSERVED_VARIANCE, POSE_UNOBSERVED_VARIANCE, 0.0
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,6 +106,11 @@ class WheelEncoderSample:
         right_m: The right rim's.
         left_mps: Left rim speed estimate.
         right_mps: Right rim speed estimate.
+        left_vel_raw: tb_control's ``motor_left_vel``: the left count's speed estimate in
+            ticks per 50 Hz period (ticks/s ÷ 50, whatever ``wheel_hz`` is), in the
+            board's own sense, like ``left_raw``.
+        right_vel_raw: tb_control's ``motor_right_vel``: the right board's, in its own
+            sense (negative while the robot drives forward: it counts mirrored).
     """
 
     stamp_s: float
@@ -60,6 +122,19 @@ class WheelEncoderSample:
     right_m: float
     left_mps: float
     right_mps: float
+    left_vel_raw: float
+    right_vel_raw: float
+
+    @property
+    def left_pos_raw(self) -> int:
+        """tb_control's ``motor_left_pos``: the left count as read, on 0..4095
+        (``left_raw`` modulo 2¹²)."""
+        return self.left_raw % ENCODER_POSITION_MODULUS
+
+    @property
+    def right_pos_raw(self) -> int:
+        """tb_control's ``motor_right_pos``: the right count as read, on 0..4095."""
+        return self.right_raw % ENCODER_POSITION_MODULUS
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,6 +152,9 @@ class WheelOdomSample:
         covariance: 3 × 3 covariance of (x, y, yaw), row-major.
         commanded_linear_mps: The limited command the wheels were following.
         commanded_angular_radps: Its yaw rate.
+        frame_id: The frame the pose is in (``frame_id_odom``; tb_control's
+            ``header.frame_id``).
+        child_frame_id: The robot's body frame (``frame_id_baselink``).
     """
 
     stamp_s: float
@@ -89,6 +167,33 @@ class WheelOdomSample:
     covariance: tuple[float, ...]
     commanded_linear_mps: float
     commanded_angular_radps: float
+    frame_id: str = DEFAULT_ODOM_FRAME
+    child_frame_id: str = DEFAULT_BASE_FRAME
+
+    @property
+    def orientation(self) -> tuple[float, float, float, float]:
+        """The heading as a unit quaternion ``(x, y, z, w)``, about the z axis."""
+        half = 0.5 * self.yaw_rad
+        return (0.0, 0.0, math.sin(half), math.cos(half))
+
+    @property
+    def pose_covariance(self) -> tuple[float, ...]:
+        """6×6 row-major covariance of (x, y, z, roll, pitch, yaw), as nav_msgs/Odometry's
+        ``pose.covariance``: the x, y, yaw block is :attr:`covariance` (it grows with the
+        distance rolled) with at least :data:`POSE_VARIANCE_FLOOR` on its diagonal; z,
+        roll and pitch, which wheels cannot observe, get :data:`POSE_UNOBSERVED_VARIANCE`."""
+        matrix = list(_POSE_UNOBSERVED)
+        for slot, value in zip(_POSE_SLOTS, self.covariance, strict=True):
+            matrix[slot] = value
+        for slot in (0, 7, 35):
+            matrix[slot] = max(matrix[slot], POSE_VARIANCE_FLOOR)
+        return tuple(matrix)
+
+    @property
+    def twist_covariance(self) -> tuple[float, ...]:
+        """6×6 row-major covariance of (vx, vy, vz, wx, wy, wz), as nav_msgs/Odometry's
+        ``twist.covariance``: the fixed :data:`TWIST_COVARIANCE` (one shared tuple)."""
+        return TWIST_COVARIANCE
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,6 +237,12 @@ class ServoSample:
         torque: Torque mode (free, brake, on).
         status_error: RAM 48 error bits.
         status_detail: RAM 49 detail bits (moving, in position, motor on …).
+        position_raw_cmd: The last position target this Robot sent the servo, raw;
+            ``None`` before its first move.
+        pos_rad_cmd: That target in radians (tb_control's ``servo_pos_rad_cmd``, with
+            the zero offset of ``angle_rad``); ``None`` before the first move.
+        torque_cmd: The last torque mode this Robot set (tb_control's ``torque_cmd``);
+            ``None`` before it set one.
     """
 
     stamp_s: float
@@ -143,6 +254,9 @@ class ServoSample:
     torque: TorqueControl
     status_error: StatusError
     status_detail: StatusDetail
+    position_raw_cmd: int | None = None
+    pos_rad_cmd: float | None = None
+    torque_cmd: TorqueControl | None = None
 
     @property
     def moving(self) -> bool:
@@ -154,15 +268,39 @@ class ServoSample:
 class WormNeckSample:
     """The worm-gear neck's feedback (``new_neck``, 30 Hz).
 
+    It has the shape of the HerkuleX neck's sample, as tb_control's ``new_neck``: but the
+    worm gear's raw units have no known angle (its gear and zero are not public), so
+    :attr:`pos_rad` and :attr:`pos_rad_cmd` are always ``None``; and it has no torque
+    mode to command (the worm gear holds its position without power), so
+    :attr:`torque_cmd` is always ``None``. The last target is :attr:`position_raw_cmd`.
+
     Attributes:
         stamp_s: When it was read.
         position_raw: −127000 (up) … 120000 (down).
         flags: Moving / stalled.
+        position_raw_cmd: The last target this Robot sent, raw; ``None`` before the
+            first move.
     """
 
     stamp_s: float
     position_raw: int
     flags: WormFlags
+    position_raw_cmd: int | None = None
+
+    @property
+    def pos_rad(self) -> None:
+        """Always ``None``: no angle is known for the worm gear's raw units."""
+        return None
+
+    @property
+    def pos_rad_cmd(self) -> None:
+        """Always ``None``: no angle is known for the worm gear's raw units."""
+        return None
+
+    @property
+    def torque_cmd(self) -> None:
+        """Always ``None``: the worm gear has no torque mode to command."""
+        return None
 
     @property
     def moving(self) -> bool:

@@ -20,7 +20,7 @@ from ohmni_tb.errors import OhmniError
 from ohmni_tb.protocol import ReadReply
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.drive import parse_count, read_count, wheel_command
-from ohmni_tb.robot.samples import WheelEncoderSample, WheelOdomSample
+from ohmni_tb.robot.samples import ENCODER_VEL_PERIOD_HZ, WheelEncoderSample, WheelOdomSample
 from ohmni_tb.robot.schedule import CycleResult
 from ohmni_tb.robot.state import RobotState
 
@@ -53,6 +53,13 @@ class WheelCounts:
             CountFilter(WheelEncoder(right_cfg), config.implausible_mps),
         )
         self.odometry = Odometry(config.wheel_separation_m)
+        self._frames = (config.frame_id_odom, config.frame_id_baselink)
+        # A speed in m/s, forward positive → tb_control's ticks per 50 Hz period in the
+        # board's own sense (the right board counts mirrored).
+        self._vel_raw_per_mps = tuple(
+            (-1.0 if cfg.mirrored else 1.0) / (cfg.metres_per_tick * ENCODER_VEL_PERIOD_HZ)
+            for cfg in (left_cfg, right_cfg)
+        )
         self.reads = (read_count(DeviceId.LEFT_DRIVE), read_count(DeviceId.RIGHT_DRIVE))
         self._unparsed = 0
         # Each count's time: when its read went on the wire, after the slot's command.
@@ -92,6 +99,7 @@ class WheelCounts:
         ramped velocity target, carried in the odometry sample)."""
         topics = self._state.topics
         left, right, t_left = counts.left, counts.right, counts.stamp_s
+        left_scale, right_scale = self._vel_raw_per_mps
         encoder = WheelEncoderSample(
             stamp_s=t_left,
             left_raw=counts.left_raw,
@@ -102,6 +110,8 @@ class WheelCounts:
             right_m=right.position_m,
             left_mps=left.velocity_mps,
             right_mps=right.velocity_mps,
+            left_vel_raw=left.velocity_mps * left_scale,
+            right_vel_raw=right.velocity_mps * right_scale,
         )
         if topics["wheel_encoder"].enabled:
             topics["wheel_encoder"].publish(encoder, t_left)
@@ -122,6 +132,8 @@ class WheelCounts:
                 covariance=odometry.covariance_rows,
                 commanded_linear_mps=commanded.linear_mps,
                 commanded_angular_radps=commanded.angular_radps,
+                frame_id=self._frames[0],
+                child_frame_id=self._frames[1],
             )
             if odom_topic.enabled:
                 odom_topic.publish(odom, t_left)

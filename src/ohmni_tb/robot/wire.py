@@ -123,8 +123,9 @@ __all__ = [
 
 #: Bumped on any change a peer of the previous version would misread (2: commands, lease;
 #: 3: strict types, ``hello`` says what the daemon serves; 4: the motion goals, and the
-#: Robot's own exception in ``error.raised``).
-PROTOCOL_VERSION: Final = 4
+#: Robot's own exception in ``error.raised``; 5: tb_control's sample fields, and the
+#: frame settings in ``config``, which a client of 4 refuses as unknown).
+PROTOCOL_VERSION: Final = 5
 #: The environment variable a client takes the daemon's token from.
 TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: What a client may ask (``op``).
