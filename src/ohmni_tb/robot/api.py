@@ -186,6 +186,58 @@ class HerkulexHandle(NeckHandle, Protocol):
         """Torque off: the servo can be turned by hand and draws no holding current."""
         ...
 
+    # -- maintenance (tb_control's get_servo_info, servo_write_eep, reset_servo_id,
+    # set_servo_zero_offset); through the daemon all but info need the control lease.
+
+    async def info(self) -> dict[str, dict[str, int]]:
+        """Every register of the servo, ``{"eep": {name: value}, "ram": {...}}``
+        (tb_control's ``get_servo_info``). Read-only: no lease needed through the daemon.
+
+        Raises:
+            StateError: The port is released (:meth:`Robot.release_port`).
+            BusTimeoutError: The servo did not answer.
+        """
+        ...
+
+    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
+        """Write a RAM register (acts now); with ``persist`` its EEP copy too (survives a
+        reboot: tb_control's ``servo_write_eep``). Checked against the register map first.
+
+        Raises:
+            InvalidArgumentError: Unknown or read-only register, no EEP copy to persist,
+                or the id (:meth:`set_id` changes it); nothing sent.
+            OutOfRangeError: The value is outside the register's range; nothing sent.
+            StateError: The port is released; nothing sent.
+        """
+        ...
+
+    async def set_id(self, new_sid: int) -> None:
+        """Give the servo a new id, in EEP and RAM (tb_control's ``reset_servo_id``).
+
+        The robot follows: this handle and ``robot.servo(new_sid)`` speak to it, its
+        stream (``servo_neck``, ``servo_ext1``…) goes on from the new id without a missed
+        cycle, ``robot.servo(old)`` raises :class:`~ohmni_tb.errors.StateError` naming
+        the new id, and ``config.ext_servo_ids`` (or ``config.neck_id``) holds the new id.
+
+        Raises:
+            OutOfRangeError: ``new_sid`` is not 0..253; nothing sent.
+            StateError: Another device the robot knows has that id (a board, the neck, an
+                external servo), or the port is released; nothing sent.
+        """
+        ...
+
+    async def set_zero_offset(self, raw: int) -> None:
+        """Set :attr:`zero_offset_raw`, the raw counts added to 512 to define 0 rad
+        (tb_control's ``set_servo_zero_offset``): angles read and commanded from now on
+        use it (the neck's ``neck_zero_offset_raw`` setting follows). Nothing is sent to
+        the servo.
+
+        Raises:
+            InvalidArgumentError: Not an int.
+            OutOfRangeError: Outside −512..511.
+        """
+        ...
+
 
 class RobotStreams(abc.ABC):
     """The streams half of the Robot's contract (:class:`Robot` is the whole): the newest
@@ -653,6 +705,28 @@ class Robot(RobotStreams):
 
         Raises:
             StateError: No such servo answered.
+        """
+
+    @abc.abstractmethod
+    async def reset_board_id(self, sid: int, new_sid: int, *, confirm: bool = False) -> None:
+        """Give drive board ``sid`` (0 left, 1 right) the bus id ``new_sid``, in EEP and RAM
+        (tb_control's ``reset_servo_id`` on a motor board, for new hardware).
+
+        The robot drives its wheels by ids 0 and 1: a board given another id no longer
+        takes the wheel command, and ``robot_state`` shows it absent until it is given
+        its id back (``reset_board_id(new_sid, sid, confirm=True)``: the robot remembers
+        where it sent it). So it is done only with ``confirm=True``, after the wheels are
+        stopped (confirmed by their counts). The id change's bytes are an assumption of
+        the profile (:class:`~ohmni_tb.protocol.drive.DriveProfile`). Through the daemon
+        it needs the control lease.
+
+        Raises:
+            InvalidArgumentError: ``sid`` is not a drive board's, or ``confirm`` is not
+                ``True``; nothing sent.
+            OutOfRangeError: An id is not 0..253; nothing sent.
+            StateError: Another device the robot knows answers to ``new_sid``, the board
+                does not answer, or the port is released; nothing sent.
+            StopNotConfirmedError: The wheels were not confirmed stopped; nothing sent.
         """
 
     @abc.abstractmethod

@@ -67,6 +67,7 @@ from ohmni_tb.robot.feedback import Feedback
 from ohmni_tb.robot.guards import Guards
 from ohmni_tb.robot.link import LinkKeeper
 from ohmni_tb.robot.motion import MotionGoals, MotionResult
+from ohmni_tb.robot.renumber import Renumbering
 from ohmni_tb.robot.samples import RobotStateSample
 from ohmni_tb.robot.state import RobotState
 from ohmni_tb.robot.stats import BusFigures, RobotStats
@@ -84,7 +85,6 @@ class LocalRobot(Robot):
 
     def __init__(self, bus: Bus, config: RobotConfig, *, sim: Any = None) -> None:
         self._bus = bus
-        self.config = config
         #: The simulated robot (ground truth) on ``sim://``, else ``None``.
         self.sim = sim
         self._loop = asyncio.get_running_loop()
@@ -96,6 +96,10 @@ class LocalRobot(Robot):
         self._feedback = Feedback(state, self._control, self._counts, Guards(state))
         self._discovery = Discovery(state, self._feedback.found)
         self._link = LinkKeeper(state, self._control, self._feedback, self._discovery)
+        self._renumbering = Renumbering(state, self._feedback, self._reconfigure)
+        self._discovery.renumber = self._renumbering.servo
+        self._discovery.zero_offset = self._zero_offset_set
+        self._discovery.moved = self._renumbering.moved
         # Motion goals: every other motion command preempts the one under way.
         self._motion = MotionGoals(self, check=self._control.check_can_drive)
         #: Why the stop on the way out was not confirmed, if it was not (also raised
@@ -185,6 +189,24 @@ class LocalRobot(Robot):
     def closed(self) -> bool:
         """Whether the Robot was closed."""
         return self._state.closed
+
+    @property
+    def config(self) -> RobotConfig:
+        """The settings the Robot runs with (the servo ids and the neck's zero offset follow
+        their changes at run time)."""
+        return self._state.config
+
+    @config.setter
+    def config(self, config: RobotConfig) -> None:
+        self._state.config = config
+
+    def _reconfigure(self, **changes: Any) -> None:
+        """The settings with ``changes`` (ids and offsets the Robot follows)."""
+        self._state.config = self._state.config.replace(**changes)
+
+    def _zero_offset_set(self, sid: int, raw: int) -> None:
+        if sid == self._state.config.neck_id:
+            self._reconfigure(neck_zero_offset_raw=raw)
 
     @property
     def bus(self) -> Bus:
@@ -354,6 +376,15 @@ class LocalRobot(Robot):
     def servo(self, sid: int) -> ServoHandle:
         """A HerkuleX servo's handle (:meth:`Robot.servo <ohmni_tb.robot.api.Robot.servo>`)."""
         return self._discovery.servo(sid)
+
+    async def reset_board_id(self, sid: int, new_sid: int, *, confirm: bool = False) -> None:
+        """A drive board's new id (the contract: ohmni_tb.robot.api.Robot)."""
+        self._state.check_open()
+        await self._renumbering.board(sid, new_sid, confirm=confirm, stop=self._board_stop)
+
+    def _board_stop(self) -> None:
+        self._motion.preempt("reset_board_id")
+        self._control.stop()
 
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """The light ring's colour (the contract: ohmni_tb.robot.api.Robot)."""
