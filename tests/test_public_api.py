@@ -105,7 +105,8 @@ PUBLIC = {
     "ohmni_tb.robot.wire": [
         "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS",
         "METHOD_SPECS", "PROTOCOL_VERSION", "TOKEN_ENV", "AcquireArgs", "BatchMessage",
-        "BoardIdArgs", "Call", "ClientMessage", "DriveArgs", "DriveDistanceArgs", "DrivePwmArgs",
+        "BoardIdArgs", "Call", "ClientMessage", "ConnectArgs", "DriveArgs",
+        "DriveDistanceArgs", "DrivePwmArgs",
         "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "GoToArgs", "Hello",
         "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion",
         "MoveArgs", "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",

@@ -623,6 +623,7 @@ class RobotServer:
         },
         "acquire": _acquire,
         "release": _release,
+        "port": lambda self, client, args: self._robot.port,
     }
 
     def _subscribe(self, client: _Client, message: Subscribe) -> dict[str, Any]:
@@ -670,7 +671,9 @@ class RobotServer:
 
 #: The commands whose effect ``stats`` shows (a rate, a stream on or off, the link): the
 #: shared figures are computed again after them.
-_CHANGES_STATS: Final = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
+_CHANGES_STATS: Final = frozenset(
+    {"set_rate", "enable_stream", "release_port", "reclaim_port", "connect", "disconnect"}
+)
 #: One of the server's own services: (server, client, args) → result data.
 _OwnCall = Callable[["RobotServer", "_Client", Any], Any]
 

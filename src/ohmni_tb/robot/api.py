@@ -789,6 +789,51 @@ class Robot(RobotStreams):
                 have closed it (the other program may be what is needed to stop it).
         """
 
+    @property
+    @abc.abstractmethod
+    def port(self) -> str | None:
+        """The port open now: a serial device (``/dev/ttyUSB0``; ``auto`` as found),
+        ``sim://…`` or the URL it was opened with; ``None`` while disconnected, released
+        or closed. A remote robot's is its daemon's robot's, as last fetched (at
+        connecting, and after its own :meth:`connect` and :meth:`disconnect`)."""
+
+    @abc.abstractmethod
+    async def connect(self, port: str | None = None) -> None:
+        """Switch to ``port`` at run time (tb_control's ``connect`` service: the wrong port
+        of several serial devices, a robot on another adapter), or open the port again
+        after :meth:`disconnect` (``None``: the one it had).
+
+        The port open now is closed first as :meth:`release_port` closes it: the wheels
+        stopped and confirmed by their counts, the neck rested or freed
+        (``on_exit_neck``). Then ``port`` opens, a zero wheel command goes out first and
+        the streams restart; devices that do not answer there are asked again every few
+        seconds (``robot_state``: ``present``, ``absent``). :attr:`port` then says
+        ``port``, and ``robot_state`` says ``connected to …``. Through the daemon it
+        needs the control lease, and ``port`` is opened on the daemon's machine.
+
+        Raises:
+            InvalidArgumentError: ``port`` is not a port's name or URL.
+            StopNotConfirmedError: The wheels on the old port were not confirmed stopped:
+                it is closed all the same, and ``port`` is not opened (disconnected).
+            TransportError: ``port`` cannot be opened (another program holds it, no such
+                device): disconnected, :meth:`connect` again.
+            StateError: The robot is closed.
+        """
+
+    @abc.abstractmethod
+    async def disconnect(self) -> None:
+        """Close the port until :meth:`connect`, as :meth:`release_port` does (the wheels
+        stopped and confirmed first, the neck rested or freed); :attr:`port` is then
+        ``None`` and commands raise :class:`~ohmni_tb.errors.StateError` (disconnected).
+        Through the daemon it needs the control lease.
+
+        Raises:
+            StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
+                may be moving (the port is closed all the same).
+            StateError: The robot is closed, or it cannot reopen its port (an injected
+                transport that cannot reopen).
+        """
+
     @abc.abstractmethod
     async def reclaim_port(self) -> None:
         """Take the serial port back after :meth:`release_port`. A no-op when not released.

@@ -20,6 +20,7 @@ __all__ = [
     "check_board_id",
     "check_enabled",
     "check_gains",
+    "check_port_name",
     "check_pose",
     "check_pwm",
     "check_rate",
@@ -169,3 +170,18 @@ def check_servo_id(new_sid: int) -> int:
         OutOfRangeError: Not 0..253.
     """
     return RAM["id"].check(new_sid)
+
+
+def check_port_name(port: object) -> None:
+    """A port to connect to (``Robot.connect``): ``None``, or a serial device or URL.
+
+    Raises:
+        InvalidArgumentError: Anything else (a daemon's URL included).
+    """
+    if port is None:
+        return
+    if not isinstance(port, str) or not port.strip() or port.lower().startswith(("ws:", "wss:")):
+        raise InvalidArgumentError(
+            "port must be a serial device or URL (/dev/ttyUSB0, serial://…, sim://, auto), "
+            f"not {port!r}"
+        )

@@ -71,6 +71,7 @@ from ohmni_tb.robot.checks import (
     check_board_id,
     check_enabled,
     check_gains,
+    check_port_name,
     check_pose,
     check_pwm,
     check_rate,
@@ -87,6 +88,7 @@ from ohmni_tb.robot.wire import (
     TOKEN_ENV,
     AcquireArgs,
     BoardIdArgs,
+    ConnectArgs,
     DriveArgs,
     DriveDistanceArgs,
     DrivePwmArgs,
@@ -155,7 +157,9 @@ STATS_IDLE_REFRESH_S: Final = 5.0
 #: oldest: half a second of the 50 Hz streams and more (the read loop takes them at once).
 _MIRROR_QUEUE = 256
 #: The methods after which the figures and the schedule are fetched again.
-_CHANGES_SCHEDULE = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
+_CHANGES_SCHEDULE = frozenset(
+    {"set_rate", "enable_stream", "release_port", "reclaim_port", "connect", "disconnect"}
+)
 
 _log = logging.getLogger("ohmni_tb.client")
 
@@ -179,6 +183,7 @@ class RemoteRobot(Robot):
         self._acquiring: asyncio.Future[Any] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._refetches: set[asyncio.Task[Any]] = set()
+        self._port: str | None = None
         #: The zero offsets of the external servos set through this robot, by id.
         self._zero_offsets: dict[int, int] = {}
         #: Old id → new id of the servos given another id through this robot.
@@ -264,7 +269,9 @@ class RemoteRobot(Robot):
         connection = self._connection
         subscribed = [self._subscribe_daemon(name) for name in STREAM_NAMES]
         latest = [connection.call("latest", LatestArgs(topic=name)) for name in STREAM_NAMES]
-        *answers, _ = await asyncio.gather(*subscribed, *latest, self._figures.fetch())
+        *answers, _, self._port = await asyncio.gather(
+            *subscribed, *latest, self._figures.fetch(), connection.call("port")
+        )
         for name, data in zip(STREAM_NAMES, answers[len(STREAM_NAMES) :], strict=True):
             topic = self._topics[name]
             if data is not None and topic.latest is None:
@@ -577,6 +584,30 @@ class RemoteRobot(Robot):
     async def reclaim_port(self) -> None:
         """:meth:`Robot.reclaim_port <ohmni_tb.robot.api.Robot.reclaim_port>`."""
         await self._call("reclaim_port")
+        self._port = await self._connection.call("port")
+
+    @property
+    def port(self) -> str | None:
+        """The daemon's robot's port, as last fetched (:attr:`Robot.port
+        <ohmni_tb.robot.api.Robot.port>`)."""
+        return self._port
+
+    async def connect(self, port: str | None = None) -> None:
+        """:meth:`Robot.connect <ohmni_tb.robot.api.Robot.connect>`, by the daemon's robot
+        (``port`` is opened on the daemon's machine)."""
+        check_port_name(port)
+        try:
+            await self._call("connect", ConnectArgs(port=port))
+        finally:
+            self._port = await self._connection.call("port")
+
+    async def disconnect(self) -> None:
+        """:meth:`Robot.disconnect <ohmni_tb.robot.api.Robot.disconnect>`, by the daemon's
+        robot."""
+        try:
+            await self._call("disconnect")
+        finally:
+            self._port = await self._connection.call("port")
 
     # -- the command path --------------------------------------------------------------------
 

@@ -48,6 +48,7 @@ from ohmni_tb.errors import (
     PositionTimeoutError,
     RobotClosedError,
     StateError,
+    TransportError,
     WheelStallError,
 )
 from ohmni_tb.robot.samples import (
@@ -71,6 +72,7 @@ __all__ = [
     "BoardIdArgs",
     "Call",
     "ClientMessage",
+    "ConnectArgs",
     "DriveArgs",
     "DriveDistanceArgs",
     "DrivePwmArgs",
@@ -388,6 +390,13 @@ class BoardIdArgs(_Request):
     confirm: bool = False
 
 
+class ConnectArgs(_Request):
+    """``connect``: open ``port`` (a serial device or URL on the daemon's machine) in place
+    of the one open now; ``null``: the one it had, again."""
+
+    port: str | None = None
+
+
 class DriveDistanceArgs(_Request):
     """``drive_distance``: as :meth:`Robot.drive_distance` (``null``: its default)."""
 
@@ -496,6 +505,21 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     ),
     "servo_zero_offset": MethodSpec(ZeroOffsetArgs, True, "null", "set_zero_offset", awaited=True),
     "reset_board_id": MethodSpec(BoardIdArgs, True, "null", "reset_board_id", awaited=True),
+    "port": MethodSpec(NoArgs, False, "the port open now, or null (disconnected, released)"),
+    "connect": MethodSpec(
+        ConnectArgs,
+        True,
+        "null, once the port is open (robot_state: connected to …)",
+        "connect",
+        awaited=True,
+    ),
+    "disconnect": MethodSpec(
+        NoArgs,
+        True,
+        "null, once the wheels stopped and the port is closed",
+        "disconnect",
+        awaited=True,
+    ),
     "release_port": MethodSpec(
         ReleasePortArgs,
         True,
@@ -703,7 +727,14 @@ class RequestError(Exception):
 
 #: The Robot's refusals a client raises as the Robot did (the class: the message alone).
 _RAISED: Final[dict[str, type[OhmniError]]] = {
-    cls.__name__: cls for cls in (InvalidArgumentError, StateError, ConfigError, RobotClosedError)
+    cls.__name__: cls
+    for cls in (
+        InvalidArgumentError,
+        StateError,
+        ConfigError,
+        RobotClosedError,
+        TransportError,  # the daemon's robot cannot open a port (connect)
+    )
 }
 
 
