@@ -35,7 +35,7 @@ PUBLIC = {
     "ohmni_tb.protocol.drive": [
         "DRIVE_PROFILE", "MOTOR_POSITION_MODULUS", "PWM_LIMIT", "DriveProfile", "DriveTorque",
         "WheelJogForm", "decode_wheel_command", "parse_count", "parse_motor_position",
-        "read_count", "read_firmware_tag", "read_motor_position", "set_torque",
+        "read_count", "read_firmware_tag", "read_motor_position", "set_board_id", "set_torque",
         "wheel_command",
     ],
     "ohmni_tb.protocol.jog": [
@@ -105,12 +105,14 @@ PUBLIC = {
     "ohmni_tb.robot.wire": [
         "CLIENT_OPS", "ERROR_CODES", "LEASE_METHODS", "MAX_QUEUE", "METHODS",
         "METHOD_SPECS", "PROTOCOL_VERSION", "TOKEN_ENV", "AcquireArgs", "BatchMessage",
-        "Call", "ClientMessage", "DriveArgs", "DriveDistanceArgs", "DrivePwmArgs",
+        "BoardIdArgs", "Call", "ClientMessage", "ConnectArgs", "DriveArgs",
+        "DriveDistanceArgs", "DrivePwmArgs",
         "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "GoToArgs", "Hello",
         "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion",
         "MoveArgs", "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",
         "RequestError", "RestArgs", "Result", "RotateArgs", "SampleMessage",
-        "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe",
+        "ServerMessage", "ServoArgs", "ServoCommand", "ServoIdArgs", "ServoWriteArgs",
+        "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe", "ZeroOffsetArgs",
         "call_args", "encode", "goal_from_json", "goal_json", "info_from_json",
         "json_schema", "parse_client_message", "parse_server_message", "pid_from_json",
         "raised_error", "result_json", "sample_from_json", "sample_json",

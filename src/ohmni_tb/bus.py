@@ -578,6 +578,16 @@ class Bus:
         """Whether :meth:`reconnect` can reopen the port (the bus was given a way to)."""
         return self._reopen is not None
 
+    @property
+    def reopen(self) -> Reopen | None:
+        """How :meth:`reconnect` opens a fresh transport (``None``: it cannot)."""
+        return self._reopen
+
+    @reopen.setter
+    def reopen(self, reopen: Reopen | None) -> None:
+        # Another port from the next reconnect() on (Robot.connect).
+        self._reopen = reopen
+
     async def release(self) -> None:
         """Close the port but keep the Bus, so another program can open it; :meth:`reconnect`
         takes it back. Idempotent.

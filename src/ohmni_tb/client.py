@@ -20,9 +20,10 @@ uses :class:`RobotClient`: the same robot, whose commands need the lease taken w
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator
+import functools
+from collections.abc import AsyncIterator, Coroutine
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import ClassVar
+from typing import Any, ClassVar, Protocol, overload
 
 from ohmni_tb.errors import LeaseError, TransportError
 from ohmni_tb.robot.remote import DEFAULT_TIMEOUT_S, DEFAULT_URL, RemoteRobot
@@ -31,29 +32,57 @@ from ohmni_tb.robot.wire import AcquireArgs, Hello
 __all__ = ["DEFAULT_TIMEOUT_S", "DEFAULT_URL", "RobotClient"]
 
 
+class _Opener(Protocol):
+    def __call__(
+        self,
+        url: str = DEFAULT_URL,
+        *,
+        token: str | None = None,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        reconnect: bool = False,
+    ) -> AbstractAsyncContextManager[RobotClient]: ...
+
+
+class _Connector(Protocol):
+    def __call__(self, port: str | None = None) -> Coroutine[Any, Any, None]: ...
+
+
+class _OpenOrConnect:
+    """``RobotClient.connect``: on the class, connect to the daemon at ``url`` (leaving the
+    block closes the connection and gives the lease back, which stops the robot; with
+    ``reconnect`` the lease is **not** taken again after the daemon came back: a driver
+    must :meth:`RobotClient.acquire` anew); on a client, :meth:`Robot.connect
+    <ohmni_tb.robot.api.Robot.connect>` (switch the daemon's robot to another port)."""
+
+    @overload
+    def __get__(self, instance: None, owner: type[RobotClient]) -> _Opener: ...
+    @overload
+    def __get__(self, instance: RobotClient, owner: type[RobotClient]) -> _Connector: ...
+    def __get__(self, instance: RobotClient | None, owner: type[RobotClient]) -> Any:
+        if instance is None:
+
+            def opener(
+                url: str = DEFAULT_URL,
+                *,
+                token: str | None = None,
+                timeout_s: float = DEFAULT_TIMEOUT_S,
+                reconnect: bool = False,
+            ) -> AbstractAsyncContextManager[RobotClient]:
+                return owner.open(url, token=token, timeout_s=timeout_s, reconnect=reconnect)
+
+            return opener
+        return functools.partial(RemoteRobot.connect, instance)
+
+
 class RobotClient(RemoteRobot):
     """The daemon's robot whose commands need the lease taken explicitly (module
     docstring). Open it with ``async with RobotClient.connect(url) as client:``."""
 
     _auto_lease: ClassVar[bool] = False
 
-    @classmethod
-    def connect(
-        cls,
-        url: str = DEFAULT_URL,
-        *,
-        token: str | None = None,
-        timeout_s: float = DEFAULT_TIMEOUT_S,
-        reconnect: bool = False,
-    ) -> AbstractAsyncContextManager[RobotClient]:
-        """Connect to the daemon at ``url``; leaving the block closes the connection (and
-        gives the lease back, which stops the robot).
-
-        As :meth:`RemoteRobot.open <ohmni_tb.robot.RemoteRobot.open>`; with ``reconnect``
-        the control lease is **not** taken again after the daemon came back: a driver
-        must :meth:`acquire` anew (:attr:`reconnects` tells it happened).
-        """
-        return cls.open(url, token=token, timeout_s=timeout_s, reconnect=reconnect)
+    #: ``RobotClient.connect(url)`` opens a client (as :meth:`RemoteRobot.open`);
+    #: ``client.connect(port)`` is the Robot's: switch the daemon's robot to ``port``.
+    connect = _OpenOrConnect()
 
     @property
     def hello(self) -> Hello:

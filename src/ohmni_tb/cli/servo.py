@@ -12,17 +12,21 @@ from rich.table import Table
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.cli.common import (
+    DirectOption,
     JsonOption,
     PortOption,
     TimeoutOption,
     console,
+    daemon_for,
     emit_json,
+    error_line,
     open_bus,
+    open_robot,
     parse_int,
     resolve_port,
     run,
 )
-from ohmni_tb.errors import BusTimeoutError, InvalidArgumentError
+from ohmni_tb.errors import BusTimeoutError, InvalidArgumentError, StateError
 from ohmni_tb.herkulex import EEP, RAM, TorqueControl, parse_reply, stat
 from ohmni_tb.herkulex.registers import Register, RegisterMap
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
@@ -36,6 +40,7 @@ from ohmni_tb.herkulex.units import (
 )
 from ohmni_tb.protocol import Memory, flag_names
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
+from ohmni_tb.robot.api import HerkulexHandle
 
 __all__ = ["app"]
 
@@ -74,8 +79,20 @@ def _with_servo(
     *,
     min_raw: int | None = None,
     max_raw: int | None = None,
+    direct: bool = False,
 ) -> T:
-    """Run ``action`` on the servo; the neck (sid 3) defaults to its safe range 280..650."""
+    """Run ``action`` on the servo; the neck (sid 3) defaults to its safe range 280..650.
+
+    Raises:
+        StateError: ``ohmni serve`` holds the port (and neither ``--port`` nor ``direct``).
+    """
+    if not direct and daemon_for(port, False) is not None:
+        error_line(
+            "ohmni serve holds the port: through it, ohmni servo takes info, write, set-id, "
+            "zero-offset and board-id (and ohmni neck moves the neck); for this command "
+            "stop it, or name the port with --port"
+        )
+        raise typer.Exit(1)
     if sid == DeviceId.HERKULEX_NECK:
         min_raw = NECK_RAW_RANGE[0] if min_raw is None else min_raw
         max_raw = NECK_RAW_RANGE[1] if max_raw is None else max_raw
@@ -83,6 +100,16 @@ def _with_servo(
     async def main() -> T:
         async with await open_bus(port, timeout_s) as bus:
             return await action(Servo(bus, sid, min_raw=min_raw, max_raw=max_raw))
+
+    return run(main)
+
+
+def _via_daemon(via: str, sid: int, action: Callable[[HerkulexHandle], Awaitable[T]]) -> T:
+    """Run ``action`` on servo ``sid`` of the daemon's robot at ``via``."""
+
+    async def main() -> T:
+        async with open_robot(resolve_port(None), via=via) as robot:
+            return await action(robot.servo(sid))
 
     return run(main)
 
@@ -245,13 +272,18 @@ def info(
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
+    direct: DirectOption = False,
 ) -> None:
-    """Every EEP and RAM register of a servo.
+    """Every EEP and RAM register of a servo (through ohmni serve when it runs).
 
     Example: ohmni servo info --sid 3 --port sim://
     """
     sid_value = _sid(sid)
-    values = _with_servo(port, sid_value, timeout, lambda s: s.info())
+    via = daemon_for(port, direct)
+    if via is not None:
+        values = _via_daemon(via, sid_value, lambda s: s.info())
+    else:
+        values = _with_servo(port, sid_value, timeout, lambda s: s.info(), direct=True)
     if as_json:
         emit_json(values)
         return
@@ -292,8 +324,10 @@ def write(
         bool, typer.Option("--persist", help="Also write the EEP copy (survives reboot).")
     ] = False,
     timeout: TimeoutOption = 0.05,
+    direct: DirectOption = False,
 ) -> None:
-    """Write one RAM register (and its EEP copy with --persist). Range-checked first.
+    """Write one RAM register (and its EEP copy with --persist). Range-checked first;
+    through ohmni serve when it runs (it needs the control lease there).
 
     Example: ohmni servo write led_control 1 --sid 3 --port sim://
     """
@@ -313,7 +347,13 @@ def write(
         except InvalidArgumentError as exc:  # OutOfRangeError too: names the register
             raise typer.BadParameter(f"VALUE={number}: {exc}") from None
     sid_value = _sid(sid)
-    _with_servo(port, sid_value, timeout, lambda s: s.write(reg, number, persist=persist))
+    via = daemon_for(port, direct)
+    if via is not None:
+        _via_daemon(via, sid_value, lambda s: s.write(reg.name, number, persist=persist))
+    else:
+        _with_servo(
+            port, sid_value, timeout, lambda s: s.write(reg, number, persist=persist), direct=True
+        )
     console.print(f"{reg.name} ← {number}" + (" (RAM and EEP)" if persist else ""))
 
 
@@ -441,3 +481,109 @@ def clear(
         emit_json(_status_dict(status))
     else:
         _print_kv(f"servo {sid_value} status after clearing", _status_dict(status))
+
+
+@app.command("set-id")
+def set_id(
+    new_id: Annotated[str, typer.Argument(help="The new id, 0..253 (0x.. accepted).")],
+    port: PortOption = None,
+    sid: SidOption = _NECK,
+    timeout: TimeoutOption = 0.05,
+    direct: DirectOption = False,
+) -> None:
+    """Give a servo a new id, in EEP and RAM (tb_control's reset_servo_id).
+
+    Through ohmni serve (when it runs) the robot follows: its stream and
+    robot.servo(NEW_ID) carry on from the new id. An id another device answers to is
+    refused before anything is sent.
+
+    Example: ohmni servo set-id 13 --sid 11 --port sim://
+    """
+    old = _sid(sid)
+    new = parse_int(new_id, "NEW_ID", 0, _MAX_SID)
+    via = daemon_for(port, direct)
+    if via is not None:
+        _via_daemon(via, old, lambda s: s.set_id(new))
+    else:
+        _with_servo(port, old, timeout, lambda s: _set_id_direct(s, new), direct=True)
+    console.print(f"servo {old} is now servo {new}", highlight=False)
+
+
+async def _set_id_direct(servo: Servo, new: int) -> None:
+    """A new id on a bus this command opened: refused when a board's id or when a device
+    answers to it already."""
+    if new == servo.sid:
+        return
+    # The neck's id is a servo's: a new neck servo (factory id 253) may be given it.
+    if new in {int(d) for d in DeviceId} - {int(DeviceId.HERKULEX_NECK)}:
+        raise StateError(
+            f"servo {servo.sid} cannot take id {new}: {device_name(new)} has it; nothing was sent"
+        )
+    probe = Servo(servo._requester, new)  # the same bus, another id
+    try:
+        await probe.status()
+    except BusTimeoutError:
+        await servo.set_id(new)
+        return
+    raise StateError(f"servo {servo.sid} cannot take id {new}: a device answers to it already")
+
+
+@app.command("zero-offset")
+def zero_offset(
+    raw: Annotated[
+        str,
+        typer.Argument(
+            help="Raw counts added to 512 for 0 rad, -512..511 (a negative one after --)."
+        ),
+    ],
+    sid: SidOption = _NECK,
+) -> None:
+    """Set the zero of a servo's angles on the running robot (tb_control's
+    set_servo_zero_offset); needs ohmni serve (it is the robot's setting, not the
+    servo's: for every run, set neck_zero_offset_raw in the config file).
+
+    Example: ohmni servo zero-offset --sid 3 -- -20
+    """
+    value = parse_int(raw, "RAW", -512, 511)
+    sid_value = _sid(sid)
+    via = daemon_for(None, False)
+    if via is None:
+        error_line(
+            "the zero offset is a setting of the running robot and no ohmni serve runs: "
+            "set neck_zero_offset_raw in the config file (or start ohmni serve)"
+        )
+        raise typer.Exit(1)
+    _via_daemon(via, sid_value, lambda s: s.set_zero_offset(value))
+    console.print(f"servo {sid_value}: zero offset {value}", highlight=False)
+
+
+@app.command("board-id")
+def board_id(
+    board: Annotated[str, typer.Argument(help="The drive board's id now: 0 (left), 1 (right).")],
+    new_id: Annotated[str, typer.Argument(help="Its new id, 0..253.")],
+    confirm: Annotated[
+        bool,
+        typer.Option(
+            "--confirm",
+            help="Do it: a board at another id than 0 or 1 takes no wheel command.",
+        ),
+    ] = False,
+    port: PortOption = None,
+    direct: DirectOption = False,
+) -> None:
+    """Give a drive board a new id (tb_control's reset_servo_id on a motor board; the
+    bytes are an assumption of the profile). The wheels are stopped first; refused
+    without --confirm.
+
+    Example: ohmni servo board-id 1 7 --confirm --port sim://
+    """
+    sid_value = parse_int(board, "BOARD", 0, _MAX_SID)
+    new = parse_int(new_id, "NEW_ID", 0, _MAX_SID)
+    via = daemon_for(port, direct)
+
+    async def main() -> None:
+        async with open_robot(resolve_port(port), via=via, control=True) as robot:
+            await robot.reset_board_id(sid_value, new, confirm=confirm)
+
+    run(main)
+    console.print(f"drive board {sid_value} now answers to id {new}", highlight=False)

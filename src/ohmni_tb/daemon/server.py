@@ -64,12 +64,10 @@ from ohmni_tb.robot.wire import (
     LeaseMessage,
     Limits,
     Motion,
-    MoveArgs,
     RequestError,
-    RestArgs,
     Result,
+    ServoCommand,
     Subscribe,
-    TorqueArgs,
     Unsubscribe,
     call_args,
     encode,
@@ -177,6 +175,10 @@ _MAX_CLIENTS_LIMIT = 10_000
 #: WebSocket close codes.
 _GOING_AWAY = 1001
 _POLICY_VIOLATION = 1008
+
+
+#: The servo handle's maintenance calls, which only a HerkuleX servo has.
+_HERKULEX_ONLY: Final = frozenset({"info", "write", "set_id", "set_zero_offset"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -564,11 +566,16 @@ class RobotServer:
         for a servo command."""
         robot = self._robot
         owner: object = robot
-        if isinstance(args, MoveArgs | TorqueArgs | RestArgs):
+        if isinstance(args, ServoCommand):
             if args.target != "neck":
                 owner = robot.servo(int(args.target))
             elif name == "torque" and robot.neck_kind == "worm":
                 raise StateError("the worm-gear neck has no torque modes: it holds without power")
+            elif name in _HERKULEX_ONLY and robot.neck_kind == "worm":
+                raise StateError(
+                    "the worm-gear neck is not a HerkuleX servo: it has no registers, id or "
+                    "zero offset to set"
+                )
             else:
                 owner = robot.neck
         method: Callable[..., Any] = getattr(owner, name)
@@ -616,6 +623,7 @@ class RobotServer:
         },
         "acquire": _acquire,
         "release": _release,
+        "port": lambda self, client, args: self._robot.port,
     }
 
     def _subscribe(self, client: _Client, message: Subscribe) -> dict[str, Any]:
@@ -663,7 +671,9 @@ class RobotServer:
 
 #: The commands whose effect ``stats`` shows (a rate, a stream on or off, the link): the
 #: shared figures are computed again after them.
-_CHANGES_STATS: Final = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
+_CHANGES_STATS: Final = frozenset(
+    {"set_rate", "enable_stream", "release_port", "reclaim_port", "connect", "disconnect"}
+)
 #: One of the server's own services: (server, client, args) → result data.
 _OwnCall = Callable[["RobotServer", "_Client", Any], Any]
 

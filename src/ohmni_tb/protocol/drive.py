@@ -45,6 +45,7 @@ __all__ = [
     "read_count",
     "read_firmware_tag",
     "read_motor_position",
+    "set_board_id",
     "set_torque",
     "wheel_command",
 ]
@@ -104,6 +105,11 @@ class DriveProfile:
         right_mirrored: The right wheel counts and is commanded mirrored (confirmed):
             :func:`wheel_command` negates the right PWM, and the simulated right motor is
             mounted mirrored.
+        id_eep_addr: EEP address of the board's bus id, one byte, read at power-up
+            (**assumed**: HerkuleX EEP 6; tb_control's ``reset_servo_id`` changes a motor
+            board's id, its bytes are not public).
+        id_ram_addr: RAM address of the id the board answers to now (**assumed**:
+            HerkuleX RAM 0).
 
     Raises:
         InvalidArgumentError: ``wheel_form`` is not a :class:`WheelJogForm`, or
@@ -118,6 +124,8 @@ class DriveProfile:
     torque_addr: int = 52
     wheel_form: WheelJogForm = WheelJogForm.S_JOG
     right_mirrored: bool = True
+    id_eep_addr: int = 6
+    id_ram_addr: int = 0
 
     def __post_init__(self) -> None:
         form: object = self.wheel_form  # typed, but a table edited by hand may hold anything
@@ -228,6 +236,26 @@ def wheel_command(left_pwm: int, right_pwm: int, profile: DriveProfile = DRIVE_P
     # Playtime 0: a jog in continuous rotation ignores it.
     cmd = Command(profile.wheel_form)
     return Packet(BROADCAST_ID, cmd, jog_data(cmd, tags))
+
+
+def set_board_id(
+    sid: int, new_sid: int, profile: DriveProfile = DRIVE_PROFILE
+) -> tuple[Packet, Packet]:
+    """The writes that give board ``sid`` the id ``new_sid``: EEP (kept over a power
+    cycle), then RAM (it answers to the new id at once). **Assumed** layout
+    (:attr:`DriveProfile.id_eep_addr`).
+
+    Raises:
+        OutOfRangeError: An id is not 0..253.
+    """
+    for name, value in (("sid", sid), ("new_sid", new_sid)):
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < BROADCAST_ID:
+            raise OutOfRangeError(name, value, 0, BROADCAST_ID - 1)
+    data = bytes((new_sid,))
+    return (
+        write_request(sid, profile.id_eep_addr, data, Memory.EEP),
+        write_request(sid, profile.id_ram_addr, data),
+    )
 
 
 def decode_wheel_command(packet: Packet, profile: DriveProfile = DRIVE_PROFILE) -> dict[int, int]:

@@ -186,6 +186,58 @@ class HerkulexHandle(NeckHandle, Protocol):
         """Torque off: the servo can be turned by hand and draws no holding current."""
         ...
 
+    # -- maintenance (tb_control's get_servo_info, servo_write_eep, reset_servo_id,
+    # set_servo_zero_offset); through the daemon all but info need the control lease.
+
+    async def info(self) -> dict[str, dict[str, int]]:
+        """Every register of the servo, ``{"eep": {name: value}, "ram": {...}}``
+        (tb_control's ``get_servo_info``). Read-only: no lease needed through the daemon.
+
+        Raises:
+            StateError: The port is released (:meth:`Robot.release_port`).
+            BusTimeoutError: The servo did not answer.
+        """
+        ...
+
+    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
+        """Write a RAM register (acts now); with ``persist`` its EEP copy too (survives a
+        reboot: tb_control's ``servo_write_eep``). Checked against the register map first.
+
+        Raises:
+            InvalidArgumentError: Unknown or read-only register, no EEP copy to persist,
+                or the id (:meth:`set_id` changes it); nothing sent.
+            OutOfRangeError: The value is outside the register's range; nothing sent.
+            StateError: The port is released; nothing sent.
+        """
+        ...
+
+    async def set_id(self, new_sid: int) -> None:
+        """Give the servo a new id, in EEP and RAM (tb_control's ``reset_servo_id``).
+
+        The robot follows: this handle and ``robot.servo(new_sid)`` speak to it, its
+        stream (``servo_neck``, ``servo_ext1``…) goes on from the new id without a missed
+        cycle, ``robot.servo(old)`` raises :class:`~ohmni_tb.errors.StateError` naming
+        the new id, and ``config.ext_servo_ids`` (or ``config.neck_id``) holds the new id.
+
+        Raises:
+            OutOfRangeError: ``new_sid`` is not 0..253; nothing sent.
+            StateError: Another device the robot knows has that id (a board, the neck, an
+                external servo), or the port is released; nothing sent.
+        """
+        ...
+
+    async def set_zero_offset(self, raw: int) -> None:
+        """Set :attr:`zero_offset_raw`, the raw counts added to 512 to define 0 rad
+        (tb_control's ``set_servo_zero_offset``): angles read and commanded from now on
+        use it (the neck's ``neck_zero_offset_raw`` setting follows). Nothing is sent to
+        the servo.
+
+        Raises:
+            InvalidArgumentError: Not an int.
+            OutOfRangeError: Outside −512..511.
+        """
+        ...
+
 
 class RobotStreams(abc.ABC):
     """The streams half of the Robot's contract (:class:`Robot` is the whole): the newest
@@ -656,6 +708,28 @@ class Robot(RobotStreams):
         """
 
     @abc.abstractmethod
+    async def reset_board_id(self, sid: int, new_sid: int, *, confirm: bool = False) -> None:
+        """Give drive board ``sid`` (0 left, 1 right) the bus id ``new_sid``, in EEP and RAM
+        (tb_control's ``reset_servo_id`` on a motor board, for new hardware).
+
+        The robot drives its wheels by ids 0 and 1: a board given another id no longer
+        takes the wheel command, and ``robot_state`` shows it absent until it is given
+        its id back (``reset_board_id(new_sid, sid, confirm=True)``: the robot remembers
+        where it sent it). So it is done only with ``confirm=True``, after the wheels are
+        stopped (confirmed by their counts). The id change's bytes are an assumption of
+        the profile (:class:`~ohmni_tb.protocol.drive.DriveProfile`). Through the daemon
+        it needs the control lease.
+
+        Raises:
+            InvalidArgumentError: ``sid`` is not a drive board's, or ``confirm`` is not
+                ``True``; nothing sent.
+            OutOfRangeError: An id is not 0..253; nothing sent.
+            StateError: Another device the robot knows answers to ``new_sid``, the board
+                does not answer, or the port is released; nothing sent.
+            StopNotConfirmedError: The wheels were not confirmed stopped; nothing sent.
+        """
+
+    @abc.abstractmethod
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """Set the light ring's colour (0..255 each).
 
@@ -713,6 +787,51 @@ class Robot(RobotStreams):
             StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
                 may be moving. The port was released all the same, as closing would
                 have closed it (the other program may be what is needed to stop it).
+        """
+
+    @property
+    @abc.abstractmethod
+    def port(self) -> str | None:
+        """The port open now: a serial device (``/dev/ttyUSB0``; ``auto`` as found),
+        ``sim://…`` or the URL it was opened with; ``None`` while disconnected, released
+        or closed. A remote robot's is its daemon's robot's, as last fetched (at
+        connecting, and after its own :meth:`connect` and :meth:`disconnect`)."""
+
+    @abc.abstractmethod
+    async def connect(self, port: str | None = None) -> None:
+        """Switch to ``port`` at run time (tb_control's ``connect`` service: the wrong port
+        of several serial devices, a robot on another adapter), or open the port again
+        after :meth:`disconnect` (``None``: the one it had).
+
+        The port open now is closed first as :meth:`release_port` closes it: the wheels
+        stopped and confirmed by their counts, the neck rested or freed
+        (``on_exit_neck``). Then ``port`` opens, a zero wheel command goes out first and
+        the streams restart; devices that do not answer there are asked again every few
+        seconds (``robot_state``: ``present``, ``absent``). :attr:`port` then says
+        ``port``, and ``robot_state`` says ``connected to …``. Through the daemon it
+        needs the control lease, and ``port`` is opened on the daemon's machine.
+
+        Raises:
+            InvalidArgumentError: ``port`` is not a port's name or URL.
+            StopNotConfirmedError: The wheels on the old port were not confirmed stopped:
+                it is closed all the same, and ``port`` is not opened (disconnected).
+            TransportError: ``port`` cannot be opened (another program holds it, no such
+                device): disconnected, :meth:`connect` again.
+            StateError: The robot is closed.
+        """
+
+    @abc.abstractmethod
+    async def disconnect(self) -> None:
+        """Close the port until :meth:`connect`, as :meth:`release_port` does (the wheels
+        stopped and confirmed first, the neck rested or freed); :attr:`port` is then
+        ``None`` and commands raise :class:`~ohmni_tb.errors.StateError` (disconnected).
+        Through the daemon it needs the control lease.
+
+        Raises:
+            StopNotConfirmedError: The wheel counts did not confirm the stop: the robot
+                may be moving (the port is closed all the same).
+            StateError: The robot is closed, or it cannot reopen its port (an injected
+                transport that cannot reopen).
         """
 
     @abc.abstractmethod

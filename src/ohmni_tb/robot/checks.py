@@ -5,22 +5,28 @@ each, so a bad value raises the same error with the same message either way
 
 from __future__ import annotations
 
-from ohmni_tb._checks import bounded, check_seconds, number
+from ohmni_tb._checks import bounded, check_seconds, integer, number
 from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.herkulex.registers import EEP, RAM, Register, resolve
+from ohmni_tb.protocol import BROADCAST_ID, Memory
 from ohmni_tb.protocol.drive import PWM_LIMIT
 from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
 
 __all__ = [
     "RELEASE_MAX_S",
     "RELEASE_MIN_S",
+    "check_board_id",
     "check_enabled",
     "check_gains",
+    "check_port_name",
     "check_pose",
     "check_pwm",
     "check_rate",
     "check_release",
+    "check_servo_id",
+    "check_servo_write",
     "check_stream",
 ]
 
@@ -115,3 +121,67 @@ def check_release(duration_s: float | None) -> float | None:
         return None
     check_seconds("duration_s", duration_s, RELEASE_MIN_S, RELEASE_MAX_S)
     return float(duration_s)
+
+
+def check_servo_write(sid: int, register: Register | str, value: int, persist: bool) -> None:
+    """A servo register write (``HerkulexHandle.write``).
+
+    Raises:
+        InvalidArgumentError: Unknown or read-only register, the id (``set_id`` changes
+            it), a value that is not an int, or ``persist`` of a register without an EEP
+            copy.
+        OutOfRangeError: The value is outside the register's range.
+    """
+    reg = resolve(register, Memory.RAM)
+    if reg.name == "id":
+        raise InvalidArgumentError(
+            f"servo {sid}'s id is changed with set_id({value!r}), which the robot follows; "
+            "nothing was sent"
+        )
+    reg.check(value)
+    if not isinstance(persist, bool):
+        raise InvalidArgumentError(f"persist must be True or False, not {persist!r}")
+    if persist and reg.name not in EEP:
+        raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
+
+
+def check_board_id(sid: int, new_sid: int, confirm: bool) -> None:
+    """A drive board's id change (``Robot.reset_board_id``).
+
+    Raises:
+        InvalidArgumentError: An id is not an int, or ``confirm`` is not ``True``.
+        OutOfRangeError: An id is not 0..253.
+    """
+    integer("sid", sid, 0, BROADCAST_ID - 1)
+    integer("new_sid", new_sid, 0, BROADCAST_ID - 1)
+    if confirm is not True:
+        raise InvalidArgumentError(
+            f"changing drive board {sid}'s id to {new_sid} takes its wheel off the robot's "
+            "control (the wheels are driven by ids 0 and 1) until it is changed back: pass "
+            "confirm=True to do it; nothing was sent"
+        )
+
+
+def check_servo_id(new_sid: int) -> int:
+    """A servo's new id (``HerkulexHandle.set_id``).
+
+    Raises:
+        InvalidArgumentError: Not an int.
+        OutOfRangeError: Not 0..253.
+    """
+    return RAM["id"].check(new_sid)
+
+
+def check_port_name(port: object) -> None:
+    """A port to connect to (``Robot.connect``): ``None``, or a serial device or URL.
+
+    Raises:
+        InvalidArgumentError: Anything else (a daemon's URL included).
+    """
+    if port is None:
+        return
+    if not isinstance(port, str) or not port.strip() or port.lower().startswith(("ws:", "wss:")):
+        raise InvalidArgumentError(
+            "port must be a serial device or URL (/dev/ttyUSB0, serial://…, sim://, auto), "
+            f"not {port!r}"
+        )

@@ -43,7 +43,7 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 from ohmni_tb._checks import number
-from ohmni_tb.bus import Bus
+from ohmni_tb.bus import Bus, Reopen
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.kinematics import LimitedTwist, Twist, WheelSpeeds
 from ohmni_tb.control.pid import PidGains
@@ -55,6 +55,7 @@ from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
     check_enabled,
     check_gains,
+    check_port_name,
     check_pose,
     check_pwm,
     check_rate,
@@ -67,7 +68,8 @@ from ohmni_tb.robot.feedback import Feedback
 from ohmni_tb.robot.guards import Guards
 from ohmni_tb.robot.link import LinkKeeper
 from ohmni_tb.robot.motion import MotionGoals, MotionResult
-from ohmni_tb.robot.samples import RobotStateSample
+from ohmni_tb.robot.renumber import Renumbering
+from ohmni_tb.robot.samples import Link, RobotStateSample
 from ohmni_tb.robot.state import RobotState
 from ohmni_tb.robot.stats import BusFigures, RobotStats
 from ohmni_tb.robot.wheels import WheelCounts
@@ -84,7 +86,6 @@ class LocalRobot(Robot):
 
     def __init__(self, bus: Bus, config: RobotConfig, *, sim: Any = None) -> None:
         self._bus = bus
-        self.config = config
         #: The simulated robot (ground truth) on ``sim://``, else ``None``.
         self.sim = sim
         self._loop = asyncio.get_running_loop()
@@ -96,8 +97,13 @@ class LocalRobot(Robot):
         self._feedback = Feedback(state, self._control, self._counts, Guards(state))
         self._discovery = Discovery(state, self._feedback.found)
         self._link = LinkKeeper(state, self._control, self._feedback, self._discovery)
+        self._renumbering = Renumbering(state, self._feedback, self._reconfigure)
+        self._discovery.renumber = self._renumbering.servo
+        self._discovery.zero_offset = self._zero_offset_set
+        self._discovery.moved = self._renumbering.moved
         # Motion goals: every other motion command preempts the one under way.
         self._motion = MotionGoals(self, check=self._control.check_can_drive)
+        self._port = config.port
         #: Why the stop on the way out was not confirmed, if it was not (also raised
         #: from ``async with`` when the block itself ended without an error).
         self.exit_error: StopNotConfirmedError | None = None
@@ -145,6 +151,8 @@ class LocalRobot(Robot):
         robot: LocalRobot | None = None
         try:
             robot = cls(bus, config, sim=transport.simulated)
+            asked = config.port if port is None else port if isinstance(port, str) else repr(port)
+            robot._port = _port_name(transport, asked)
             await robot._start()
         except BaseException:
             await bus.aclose(final=[wheel_command(0, 0)])
@@ -187,6 +195,24 @@ class LocalRobot(Robot):
         return self._state.closed
 
     @property
+    def config(self) -> RobotConfig:
+        """The settings the Robot runs with (the servo ids and the neck's zero offset follow
+        their changes at run time)."""
+        return self._state.config
+
+    @config.setter
+    def config(self, config: RobotConfig) -> None:
+        self._state.config = config
+
+    def _reconfigure(self, **changes: Any) -> None:
+        """The settings with ``changes`` (ids and offsets the Robot follows)."""
+        self._state.config = self._state.config.replace(**changes)
+
+    def _zero_offset_set(self, sid: int, raw: int) -> None:
+        if sid == self._state.config.neck_id:
+            self._reconfigure(neck_zero_offset_raw=raw)
+
+    @property
     def bus(self) -> Bus:
         """The bus the Robot schedules (for figures and raw access; mind the schedule)."""
         return self._bus
@@ -201,12 +227,45 @@ class LocalRobot(Robot):
         """Hand the port to another program (the contract: ohmni_tb.robot.api.Robot)."""
         duration_s = check_release(duration_s)
         self._state.check_open()
+        self._state.disconnected = False
         await self._link.release(duration_s, before=lambda: self._motion.preempt("release_port"))
 
     async def reclaim_port(self) -> None:
         """Take the port back (the contract: ohmni_tb.robot.api.Robot)."""
         self._state.check_open()
+        self._state.disconnected = False
         await self._link.reclaim()
+
+    # -- switching the port (public) ---------------------------------------------------
+
+    @property
+    def port(self) -> str | None:
+        """The port open now (the contract: ohmni_tb.robot.api.Robot)."""
+        state = self._state
+        if state.closed or state.link is Link.RELEASED:
+            return None
+        return self._port
+
+    async def connect(self, port: str | None = None) -> None:
+        """Open ``port`` in place of the one open now (the contract: ohmni_tb.robot.api.Robot)."""
+        self._state.check_open()
+        reopen = None
+        check_port_name(port)
+        if port is not None:
+            if port == self._port and self.port is not None:
+                return  # open already
+            reopen = _reopener(port)
+        name = port if port is not None else self._port
+        await self._link.connect(reopen, name, before=lambda: self._motion.preempt("connect"))
+        transport = self._bus.transport
+        if port is not None:
+            self._port = _port_name(transport, port)
+            self.sim = transport.simulated
+
+    async def disconnect(self) -> None:
+        """Close the port until :meth:`connect` (the contract: ohmni_tb.robot.api.Robot)."""
+        self._state.check_open()
+        await self._link.disconnect(before=lambda: self._motion.preempt("disconnect"))
 
     # -- streams (public) --------------------------------------------------------------------
 
@@ -355,6 +414,15 @@ class LocalRobot(Robot):
         """A HerkuleX servo's handle (:meth:`Robot.servo <ohmni_tb.robot.api.Robot.servo>`)."""
         return self._discovery.servo(sid)
 
+    async def reset_board_id(self, sid: int, new_sid: int, *, confirm: bool = False) -> None:
+        """A drive board's new id (the contract: ohmni_tb.robot.api.Robot)."""
+        self._state.check_open()
+        await self._renumbering.board(sid, new_sid, confirm=confirm, stop=self._board_stop)
+
+    def _board_stop(self) -> None:
+        self._motion.preempt("reset_board_id")
+        self._control.stop()
+
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """The light ring's colour (the contract: ohmni_tb.robot.api.Robot)."""
         packet = set_light_ring(hue, saturation, value)
@@ -373,6 +441,29 @@ class LocalRobot(Robot):
         from ohmni_tb.transport.ports import list_ports  # noqa: PLC0415  # slow: when asked
 
         return [port.as_dict() for port in list_ports()]
+
+
+def _port_name(transport: Transport, asked: str) -> str:
+    """What ``robot.port`` says: a serial port's device (``auto`` found), else the URL."""
+    if isinstance(transport, SerialTransport):
+        return transport.port
+    return asked
+
+
+def _reopener(url: str) -> Reopen:
+    """Opens ``url`` the first time, and that transport again after (a simulator's robot
+    stays the same, as a serial device does)."""
+    opened: Transport | None = None
+
+    async def reopen() -> Transport:
+        nonlocal opened
+        if opened is None or not opened.can_reopen:
+            opened = await open_transport(url)
+        else:
+            opened = await opened.reopen()
+        return opened
+
+    return reopen
 
 
 _coarse_timers_told = False

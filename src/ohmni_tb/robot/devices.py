@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, TypeVar
 
 from ohmni_tb._checks import check_seconds
@@ -31,6 +31,7 @@ from ohmni_tb.herkulex.servo import Servo
 from ohmni_tb.herkulex.units import check_zero_offset_raw
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
+from ohmni_tb.robot.checks import check_servo_write
 
 if TYPE_CHECKING:
     from ohmni_tb.robot.samples import ServoSample, WormNeckSample
@@ -142,6 +143,11 @@ class ServoHandle:
             port is released to another program).
         feedback: Subscribes to the servo's feedback stream, for ``move(wait=True)``
             (raises to refuse when there is none); ``None``: waiting is refused.
+        renumber: Changes the servo's id for :meth:`set_id` (the Robot's: it checks the
+            new id against the devices it knows and moves the servo's stream along);
+            ``None``: the servo is told directly.
+        on_zero_offset: Called with the id and the new zero offset (the Robot's: the
+            neck's setting follows).
     """
 
     def __init__(
@@ -156,7 +162,11 @@ class ServoHandle:
         on_command: Callable[[int], None] | None = None,
         check: Callable[[], None] | None = None,
         feedback: Callable[[int], Subscription[ServoSample]] | None = None,
+        renumber: Callable[[ServoHandle, int], Awaitable[None]] | None = None,
+        on_zero_offset: Callable[[int, int], None] | None = None,
     ) -> None:
+        self._renumber = renumber
+        self._on_zero_offset = on_zero_offset
         self.servo = Servo(
             _CommandRequester(bus, check),
             sid,
@@ -314,17 +324,39 @@ class ServoHandle:
             await self.free()
 
     async def info(self) -> dict[str, dict[str, int]]:
-        """Every EEP and RAM register's value."""
+        """Every EEP and RAM register's value (tb_control's ``get_servo_info``)."""
         return await self.servo.info()
 
     async def write(self, register: str, value: int, *, persist: bool = False) -> None:
-        """Write a register (to EEP as well with ``persist``); checked before sending."""
+        """Write a RAM register (to EEP as well with ``persist``); checked before sending.
+
+        Raises:
+            InvalidArgumentError: Unknown or read-only register, a bad value, or the id
+                (:meth:`set_id` changes it); nothing sent.
+            OutOfRangeError: The value is out of the register's range; nothing sent.
+        """
+        check_servo_write(self.sid, register, value, persist)
         await self.servo.write(register, value, persist=persist)
 
     async def set_id(self, new_sid: int) -> None:
-        """Give the servo a new id (in EEP); this handle then speaks to it."""
+        """Give the servo a new id (EEP and RAM); this handle then speaks to it, and the
+        Robot's stream and ``servo(new_sid)`` follow (``renumber``)."""
+        if self._renumber is not None:
+            await self._renumber(self, new_sid)
+            return
         await self.servo.set_id(new_sid)
         self.sid = self.servo.sid
+
+    async def set_zero_offset(self, raw: int) -> None:
+        """Set :attr:`zero_offset_raw` (tb_control's ``set_servo_zero_offset``); nothing is
+        sent to the servo.
+
+        Raises:
+            OutOfRangeError: Outside −512..511.
+        """
+        self.zero_offset_raw = raw
+        if self._on_zero_offset is not None:
+            self._on_zero_offset(self.sid, self.zero_offset_raw)
 
 
 class WormNeckHandle:

@@ -9,7 +9,7 @@ handle and its stream then (:meth:`Discovery.reprobe`).
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from ohmni_tb.bus import ReplyPacket
@@ -49,6 +49,12 @@ class Discovery:
         self._state = state
         self._found = found
         self._timer: asyncio.TimerHandle | None = None
+        #: Changes a servo's id, the Robot following (the façade's; see ServoHandle).
+        self.renumber: Callable[[ServoHandle, int], Awaitable[None]] | None = None
+        #: Called with a servo's id and its new zero offset (the façade's).
+        self.zero_offset: Callable[[int, int], None] | None = None
+        #: Old id → new id of the servos given another id.
+        self.moved: dict[int, int] = {}
 
     async def discover(self) -> None:
         """Ask every device the settings name (at open)."""
@@ -112,6 +118,12 @@ class Discovery:
         watch = servos.get(sid)
         if watch is None:
             found = ", ".join(map(str, sorted(servos))) or "none"
+            moved = self.moved.get(sid) if isinstance(sid, int) else None
+            if moved is not None and moved in servos:
+                raise StateError(
+                    f"no HerkuleX servo {sid!r} on this robot: it was given id {moved} "
+                    f"(robot.servo({moved})); found: {found}"
+                )
             raise StateError(f"no HerkuleX servo {sid!r} on this robot (found: {found})")
         return watch.handle
 
@@ -172,6 +184,8 @@ class Discovery:
             on_command=self._servo_commanded,
             check=state.check_port,
             feedback=lambda maxlen: self._feedback_subscription(stream, maxlen),
+            renumber=self.renumber,
+            on_zero_offset=self.zero_offset,
         )
         # The hold time counts from when this Robot found the servo: a neck some earlier
         # process left holding is rested neck_hold_s from now, not at the first sample

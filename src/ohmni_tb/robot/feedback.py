@@ -210,6 +210,25 @@ class Feedback:
             handle=lambda result: self._servo_result(sid, result),
         )
 
+    def renumber_servo(self, sid: int, stream: str, old: Periodic, running: bool) -> None:
+        """Read servo stream ``stream`` from id ``sid`` from now on, at the rate and phase
+        of its old reads ``old`` (stopped), running again if it was."""
+        topic = self._state.topics[stream]
+        enabled = topic.enabled
+        self._add(
+            stream,
+            1.0 / old.period_s,
+            phase_s=old.phase_s,
+            packets=[read_request(sid, FEEDBACK_ADDR, FEEDBACK_SIZE)],
+            handle=lambda result: self._servo_result(sid, result),
+        )
+        topic.enabled = enabled
+        new = self._state.periodic[stream]
+        if not running:
+            new.stop()
+        elif not new.running:
+            new.start(self._state.periodic["wheel_encoder"].next_due_s)
+
     def _add_worm_stream(self) -> None:
         self._add(
             "new_neck",

@@ -14,6 +14,7 @@ import contextlib
 import logging
 from collections.abc import Callable
 
+from ohmni_tb.bus import Reopen
 from ohmni_tb.errors import (
     BusClosedError,
     OhmniError,
@@ -208,7 +209,81 @@ class LinkKeeper:
             await asyncio.shield(first)
         state.check_open()
 
-    async def _release(self, duration_s: float | None) -> StopNotConfirmedError | None:
+    async def disconnect(self, *, before: Callable[[], None]) -> None:
+        """``Robot.disconnect``: close the port as a release does, until ``connect``."""
+        state = self._state
+        bus = state.bus
+        if not bus.can_reconnect:
+            raise StateError(
+                "this Robot cannot reopen its port, so it will not close it: it was opened "
+                "on an injected transport that cannot reopen; open it by URL"
+            )
+        error: StopNotConfirmedError | None = None
+        async with self._lock:
+            state.check_open()
+            if state.link is Link.RELEASED:
+                await state.cancel_tasks()  # a reclaim waiting for the port gives way
+                self._arm_reclaim(None)
+                if bus.connected:
+                    await bus.release()
+            else:
+                before()
+                error = await state.shielded(
+                    self._release(None, why="disconnected from the port"), "disconnect"
+                )
+            state.disconnected = True
+        if error is not None:
+            raise error
+
+    async def connect(
+        self, reopen: Reopen | None, name: str, *, before: Callable[[], None]
+    ) -> None:
+        """``Robot.connect``: open the port ``reopen`` opens (``None``: the one the Robot
+        had) in place of the one open now, which is closed first as a release closes it
+        (the wheels stopped and confirmed, the neck rested or freed). ``before`` is called
+        once it is sure to go ahead.
+
+        Raises:
+            StopNotConfirmedError: The old port's wheels were not confirmed stopped: not
+                connected (disconnected; the other port is not opened).
+            TransportError: The port cannot be opened: disconnected.
+        """
+        state = self._state
+        bus = state.bus
+        async with self._lock:
+            state.check_open()
+            if reopen is None and state.link is not Link.RELEASED:
+                return  # connected to it already
+            before()
+            previous = bus.reopen
+            if reopen is not None:
+                bus.reopen = reopen
+            try:
+                if state.link is not Link.RELEASED:
+                    error = await state.shielded(
+                        self._release(None, why="disconnected from the port"), "disconnect"
+                    )
+                    state.disconnected = True
+                    if error is not None:
+                        raise error
+                else:
+                    # A reclaim waiting for the port, or a timed one, gives way.
+                    await state.cancel_tasks()
+                    self._arm_reclaim(None)
+                await bus.reconnect(attempts=1)
+            except (TransportError, StopNotConfirmedError) as exc:
+                bus.reopen = previous
+                state.disconnected = True
+                state.publish(f"connecting to {name} failed: {exc}; disconnected")
+                raise
+            state.disconnected = False
+            await self._back(f"connected to {name}")
+            self._discovery.arm()
+        state.spawn(self._watch(), "link watcher")
+
+    async def _release(
+        self, duration_s: float | None, *, why: str | None = None
+    ) -> StopNotConfirmedError | None:
         """:meth:`release`'s work, under the port lock; the stop's error, if any."""
         state = self._state
         bus = state.bus
@@ -248,7 +323,8 @@ class LinkKeeper:
             state.releasing = None
         self._arm_reclaim(duration_s)
         unconfirmed = "" if error is None else f" (the wheel stop was not confirmed: {error})"
-        state.publish(f"port released to another program {_released_for(duration_s)}{unconfirmed}")
+        why = why or f"port released to another program {_released_for(duration_s)}"
+        state.publish(f"{why}{unconfirmed}")
         return error
 
     def _arm_reclaim(self, duration_s: float | None) -> None:

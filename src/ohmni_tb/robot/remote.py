@@ -64,15 +64,20 @@ from ohmni_tb.errors import (
     StateError,
     TransportClosedError,
 )
+from ohmni_tb.herkulex.units import check_zero_offset_raw
 from ohmni_tb.robot._connection import DEFAULT_TIMEOUT_S, DaemonConnection, open_websocket
 from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
+    check_board_id,
     check_enabled,
     check_gains,
+    check_port_name,
     check_pose,
     check_pwm,
     check_rate,
     check_release,
+    check_servo_id,
+    check_servo_write,
     check_stream,
 )
 from ohmni_tb.robot.devices import torque_mode
@@ -82,6 +87,8 @@ from ohmni_tb.robot.wire import (
     METHOD_SPECS,
     TOKEN_ENV,
     AcquireArgs,
+    BoardIdArgs,
+    ConnectArgs,
     DriveArgs,
     DriveDistanceArgs,
     DrivePwmArgs,
@@ -99,9 +106,13 @@ from ohmni_tb.robot.wire import (
     RestArgs,
     RotateArgs,
     SampleMessage,
+    ServoArgs,
+    ServoIdArgs,
+    ServoWriteArgs,
     StreamArgs,
     Subscribe,
     TorqueArgs,
+    ZeroOffsetArgs,
     goal_from_json,
     info_from_json,
     pid_from_json,
@@ -146,7 +157,9 @@ STATS_IDLE_REFRESH_S: Final = 5.0
 #: oldest: half a second of the 50 Hz streams and more (the read loop takes them at once).
 _MIRROR_QUEUE = 256
 #: The methods after which the figures and the schedule are fetched again.
-_CHANGES_SCHEDULE = frozenset({"set_rate", "enable_stream", "release_port", "reclaim_port"})
+_CHANGES_SCHEDULE = frozenset(
+    {"set_rate", "enable_stream", "release_port", "reclaim_port", "connect", "disconnect"}
+)
 
 _log = logging.getLogger("ohmni_tb.client")
 
@@ -170,6 +183,11 @@ class RemoteRobot(Robot):
         self._acquiring: asyncio.Future[Any] | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._refetches: set[asyncio.Task[Any]] = set()
+        self._port: str | None = None
+        #: The zero offsets of the external servos set through this robot, by id.
+        self._zero_offsets: dict[int, int] = {}
+        #: Old id → new id of the servos given another id through this robot.
+        self._moved: dict[int, int] = {}
         #: Samples the daemon dropped for this connection because it fell behind.
         self.lost_samples = 0
         connection.on_sample = self._on_sample
@@ -251,7 +269,9 @@ class RemoteRobot(Robot):
         connection = self._connection
         subscribed = [self._subscribe_daemon(name) for name in STREAM_NAMES]
         latest = [connection.call("latest", LatestArgs(topic=name)) for name in STREAM_NAMES]
-        *answers, _ = await asyncio.gather(*subscribed, *latest, self._figures.fetch())
+        *answers, _, self._port = await asyncio.gather(
+            *subscribed, *latest, self._figures.fetch(), connection.call("port")
+        )
         for name, data in zip(STREAM_NAMES, answers[len(STREAM_NAMES) :], strict=True):
             topic = self._topics[name]
             if data is not None and topic.latest is None:
@@ -493,6 +513,12 @@ class RemoteRobot(Robot):
         found = self._servo_ids()
         if sid not in found:
             shown = ", ".join(map(str, found)) or "none"
+            moved = self._moved.get(sid) if isinstance(sid, int) else None
+            if moved is not None and moved in found:
+                raise StateError(
+                    f"no HerkuleX servo {sid!r} on this robot: it was given id {moved} "
+                    f"(robot.servo({moved})); found: {shown}"
+                )
             raise StateError(f"no HerkuleX servo {sid!r} on this robot (found: {shown})")
         return self._servo_handle(sid, sid, neck=sid == self.config.neck_id)
 
@@ -517,7 +543,28 @@ class RemoteRobot(Robot):
                 rest_raw=config.neck_rest_raw,
                 zero_offset_raw=config.neck_zero_offset_raw,
             )
-        return RemoteServo(self, target, sid, 21, 1002)
+        return RemoteServo(
+            self, target, sid, 21, 1002, zero_offset_raw=self._zero_offsets.get(sid, 0)
+        )
+
+    async def _follow(self) -> None:
+        """The daemon's settings and state again, after a change its robot follows (a
+        servo's id, the neck's zero offset): ``servo(new_sid)`` works at once."""
+        self.config = await _fetch_config(self._connection)
+        data = await self._connection.call("latest", LatestArgs(topic="robot_state"))
+        if data is not None:
+            sample = sample_from_json("robot_state", data)
+            topic = self._topics["robot_state"]
+            latest = topic.latest
+            if latest is None or latest.stamp_s <= sample.stamp_s:
+                topic.latest = sample
+
+    async def reset_board_id(self, sid: int, new_sid: int, *, confirm: bool = False) -> None:
+        """:meth:`Robot.reset_board_id <ohmni_tb.robot.api.Robot.reset_board_id>`, by the
+        daemon's robot."""
+        check_board_id(sid, new_sid, confirm)
+        await self._call("reset_board_id", BoardIdArgs(sid=sid, new_sid=new_sid, confirm=confirm))
+        await self._follow()
 
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """:meth:`Robot.light_ring <ohmni_tb.robot.api.Robot.light_ring>`."""
@@ -537,6 +584,30 @@ class RemoteRobot(Robot):
     async def reclaim_port(self) -> None:
         """:meth:`Robot.reclaim_port <ohmni_tb.robot.api.Robot.reclaim_port>`."""
         await self._call("reclaim_port")
+        self._port = await self._connection.call("port")
+
+    @property
+    def port(self) -> str | None:
+        """The daemon's robot's port, as last fetched (:attr:`Robot.port
+        <ohmni_tb.robot.api.Robot.port>`)."""
+        return self._port
+
+    async def connect(self, port: str | None = None) -> None:
+        """:meth:`Robot.connect <ohmni_tb.robot.api.Robot.connect>`, by the daemon's robot
+        (``port`` is opened on the daemon's machine)."""
+        check_port_name(port)
+        try:
+            await self._call("connect", ConnectArgs(port=port))
+        finally:
+            self._port = await self._connection.call("port")
+
+    async def disconnect(self) -> None:
+        """:meth:`Robot.disconnect <ohmni_tb.robot.api.Robot.disconnect>`, by the daemon's
+        robot."""
+        try:
+            await self._call("disconnect")
+        finally:
+            self._port = await self._connection.call("port")
 
     # -- the command path --------------------------------------------------------------------
 
@@ -696,6 +767,48 @@ class RemoteServo:
     async def rest(self, *, free: bool = True) -> None:
         """Move to the rest position, then (by default) free it; returns when done."""
         await self._robot._call("rest", RestArgs(target=self.target, free=free))
+
+    async def info(self) -> dict[str, dict[str, int]]:
+        """:meth:`HerkulexHandle.info <ohmni_tb.robot.api.HerkulexHandle.info>`: read by
+        the daemon's robot (no lease needed)."""
+        data: dict[str, dict[str, int]] = await self._robot._call(
+            "servo_info", ServoArgs(target=self.target)
+        )
+        return data
+
+    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
+        """:meth:`HerkulexHandle.write <ohmni_tb.robot.api.HerkulexHandle.write>`, checked
+        and sent by the daemon's robot."""
+        check_servo_write(self.sid, register, value, persist)
+        args = ServoWriteArgs(target=self.target, reg=register, value=value, persist=persist)
+        await self._robot._call("servo_write", args)
+
+    async def set_id(self, new_sid: int) -> None:
+        """:meth:`HerkulexHandle.set_id <ohmni_tb.robot.api.HerkulexHandle.set_id>`: the
+        daemon's robot follows, and so does this handle and ``servo(new_sid)``."""
+        check_servo_id(new_sid)
+        await self._robot._call("servo_set_id", ServoIdArgs(target=self.target, new_sid=new_sid))
+        if self.target != "neck":
+            self.target = new_sid
+        old, self.sid = self.sid, new_sid
+        self._robot._moved[old] = new_sid
+        self._robot._moved.pop(new_sid, None)
+        offsets = self._robot._zero_offsets
+        if old in offsets:
+            offsets[new_sid] = offsets.pop(old)
+        await self._robot._follow()
+
+    async def set_zero_offset(self, raw: int) -> None:
+        """:meth:`HerkulexHandle.set_zero_offset
+        <ohmni_tb.robot.api.HerkulexHandle.set_zero_offset>`, in the daemon's robot."""
+        check_zero_offset_raw(raw)
+        await self._robot._call("servo_zero_offset", ZeroOffsetArgs(target=self.target, raw=raw))
+        self.zero_offset_raw = raw
+        robot = self._robot
+        if self.sid == robot.config.neck_id:
+            await robot._follow()
+        else:
+            robot._zero_offsets[self.sid] = raw
 
 
 class _Figures:

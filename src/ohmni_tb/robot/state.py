@@ -75,6 +75,8 @@ class RobotState:
     releasing: asyncio.Task[Any] | None = None
     #: The first attempt of a reclaim under way (done once it was tried).
     reclaim: asyncio.Future[None] | None = None
+    #: The port was closed by ``disconnect()`` (released, waiting for ``connect()``).
+    disconnected: bool = False
     #: Drive commands clamped into the limits, and wheel PWM the governor capped or cut.
     clamped: int = 0
     #: Every background task (the link watcher, reprobes, guards).
@@ -136,6 +138,8 @@ class RobotState:
             raise StateError("the port is being released to another program (release_port())")
         if self.link is not Link.RELEASED:
             return
+        if self.disconnected:
+            raise StateError("the robot is disconnected from its port; connect() first")
         if self.reclaim is not None and self.reclaim.done():
             raise StateError(
                 "the port is released and another program still holds it: the robot is "

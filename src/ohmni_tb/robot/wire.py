@@ -48,6 +48,7 @@ from ohmni_tb.errors import (
     PositionTimeoutError,
     RobotClosedError,
     StateError,
+    TransportError,
     WheelStallError,
 )
 from ohmni_tb.robot.samples import (
@@ -68,8 +69,10 @@ __all__ = [
     "TOKEN_ENV",
     "AcquireArgs",
     "BatchMessage",
+    "BoardIdArgs",
     "Call",
     "ClientMessage",
+    "ConnectArgs",
     "DriveArgs",
     "DriveDistanceArgs",
     "DrivePwmArgs",
@@ -97,10 +100,15 @@ __all__ = [
     "RotateArgs",
     "SampleMessage",
     "ServerMessage",
+    "ServoArgs",
+    "ServoCommand",
+    "ServoIdArgs",
+    "ServoWriteArgs",
     "StreamArgs",
     "Subscribe",
     "TorqueArgs",
     "Unsubscribe",
+    "ZeroOffsetArgs",
     "call_args",
     "encode",
     "goal_from_json",
@@ -342,6 +350,54 @@ class RestArgs(_ServoCommand):
     free: bool = True
 
 
+#: The arguments of every command to the neck or a servo (``target`` picks the handle).
+ServoCommand = _ServoCommand
+
+
+class ServoArgs(_ServoCommand):
+    """``servo_info``: every register of the neck or servo ``target``."""
+
+
+class ServoWriteArgs(_ServoCommand):
+    """``servo_write``: RAM register ``reg`` of ``target`` (``persist``: its EEP copy
+    too), checked against the register map before anything is sent."""
+
+    reg: str | int = Field(description="The register: its name (as in the register map).")
+    value: int
+    persist: bool = False
+
+    def call_kwargs(self) -> dict[str, Any]:
+        return {"register": self.reg, "value": self.value, "persist": self.persist}
+
+
+class ServoIdArgs(_ServoCommand):
+    """``servo_set_id``: give ``target`` the id ``new_sid`` (0..253); the robot follows."""
+
+    new_sid: int
+
+
+class ZeroOffsetArgs(_ServoCommand):
+    """``servo_zero_offset``: ``target``'s zero offset, raw counts (−512..511)."""
+
+    raw: int
+
+
+class BoardIdArgs(_Request):
+    """``reset_board_id``: give drive board ``sid`` (0, 1) the id ``new_sid``; refused
+    without ``confirm``."""
+
+    sid: int
+    new_sid: int
+    confirm: bool = False
+
+
+class ConnectArgs(_Request):
+    """``connect``: open ``port`` (a serial device or URL on the daemon's machine) in place
+    of the one open now; ``null``: the one it had, again."""
+
+    port: str | None = None
+
+
 class DriveDistanceArgs(_Request):
     """``drive_distance``: as :meth:`Robot.drive_distance` (``null``: its default)."""
 
@@ -440,6 +496,30 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     "torque": MethodSpec(TorqueArgs, True, "null", "torque", awaited=True),
     "rest": MethodSpec(
         RestArgs, True, "null (after the rest move, and the free)", "rest", awaited=True
+    ),
+    "servo_info": MethodSpec(
+        ServoArgs, False, "{eep: {register: value}, ram: {register: value}}", "info", awaited=True
+    ),
+    "servo_write": MethodSpec(ServoWriteArgs, True, "null", "write", awaited=True),
+    "servo_set_id": MethodSpec(
+        ServoIdArgs, True, "null (the robot's stream and handle follow)", "set_id", awaited=True
+    ),
+    "servo_zero_offset": MethodSpec(ZeroOffsetArgs, True, "null", "set_zero_offset", awaited=True),
+    "reset_board_id": MethodSpec(BoardIdArgs, True, "null", "reset_board_id", awaited=True),
+    "port": MethodSpec(NoArgs, False, "the port open now, or null (disconnected, released)"),
+    "connect": MethodSpec(
+        ConnectArgs,
+        True,
+        "null, once the port is open (robot_state: connected to …)",
+        "connect",
+        awaited=True,
+    ),
+    "disconnect": MethodSpec(
+        NoArgs,
+        True,
+        "null, once the wheels stopped and the port is closed",
+        "disconnect",
+        awaited=True,
     ),
     "release_port": MethodSpec(
         ReleasePortArgs,
@@ -648,7 +728,14 @@ class RequestError(Exception):
 
 #: The Robot's refusals a client raises as the Robot did (the class: the message alone).
 _RAISED: Final[dict[str, type[OhmniError]]] = {
-    cls.__name__: cls for cls in (InvalidArgumentError, StateError, ConfigError, RobotClosedError)
+    cls.__name__: cls
+    for cls in (
+        InvalidArgumentError,
+        StateError,
+        ConfigError,
+        RobotClosedError,
+        TransportError,  # the daemon's robot cannot open a port (connect)
+    )
 }
 
 

@@ -30,7 +30,7 @@ import math
 from dataclasses import dataclass
 
 from ohmni_tb.errors import MalformedReplyError
-from ohmni_tb.protocol import Packet
+from ohmni_tb.protocol import BROADCAST_ID, Packet
 from ohmni_tb.protocol.drive import (
     DRIVE_PROFILE,
     MOTOR_POSITION_MODULUS,
@@ -279,11 +279,19 @@ class SimDriveBoard(SimBoard):
         self.ram[p.torque_addr] = BoardRegister(1, self._torque_bytes, self._set_torque)
         # Polled by the vendor's driver; its meaning is unknown, so it reads as zero.
         self.ram[0x6B] = BoardRegister(1, lambda: b"\x00")
+        # The bus id (assumed HerkuleX-like, DriveProfile.id_eep_addr): the EEP copy is
+        # what the board takes at power-up, the RAM one what it answers to now.
+        self.boot_sid = side
+        self.eep[p.id_eep_addr] = BoardRegister(
+            1, lambda: bytes((self.boot_sid,)), self._set_boot_id
+        )
+        self.ram[p.id_ram_addr] = BoardRegister(1, lambda: bytes((self.sid,)), self._set_id)
 
     def advance(self, now_s: float) -> None:
         self.train.advance(now_s)
 
     def power_cycle(self, now_s: float) -> None:
+        self.sid = self.boot_sid
         wheel = self.train.wheels[self.side]
         wheel.duty = 0.0
         wheel.torque = DriveTorque.ON
@@ -297,7 +305,9 @@ class SimDriveBoard(SimBoard):
 
     def handle_jog(self, packet: Packet, now_s: float) -> None:
         try:
-            pwm = decode_wheel_command(packet, self.train.profile).get(self.side)
+            # The tag naming the id it answers to now (a board given another id no
+            # longer takes the wheel command of its old one).
+            pwm = decode_wheel_command(packet, self.train.profile).get(self.sid)
         except MalformedReplyError:
             # Not the wheel command the profile describes (or a broken one): a board
             # skips what it cannot read, as it does a jog for a servo.
@@ -314,6 +324,14 @@ class SimDriveBoard(SimBoard):
         )
         value = max(-32768, min(32767, round(ticks_per_s * 0.0112)))
         return value.to_bytes(2, "little", signed=True)
+
+    def _set_boot_id(self, data: bytes) -> None:
+        if data[0] < BROADCAST_ID:
+            self.boot_sid = data[0]
+
+    def _set_id(self, data: bytes) -> None:
+        if data[0] < BROADCAST_ID:
+            self.sid = data[0]
 
     def _torque_bytes(self) -> bytes:
         return bytes((int(self.train.wheels[self.side].torque),))
