@@ -51,6 +51,12 @@ async def drive_confirmed(robot: Robot) -> None:
     await robot.confirm()
 
 
+async def wheels_confirmed(robot: Robot) -> None:
+    """A drive_wheels command, and the daemon's answer to it."""
+    robot.drive_wheels(0.2, 0.2)
+    await robot.confirm()
+
+
 async def until(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
     """Wait for ``condition()``, looked at every 20 ms."""
     async with asyncio.timeout(timeout_s):
@@ -288,8 +294,7 @@ def test_drive_is_refused_while_a_wheel_controller_is_off(kind: str) -> None:
         with pytest.raises(StateError, match="the right wheel's controller is off"):
             await drive_confirmed(robot)
         with pytest.raises(StateError, match="the right wheel's controller is off"):
-            robot.drive_wheels(0.2, 0.2)
-            await robot.confirm()
+            await wheels_confirmed(robot)
         with pytest.raises(StateError, match="the right wheel's controller is off"):
             await robot.drive_distance(0.5)
         await asyncio.sleep(0.3)
