@@ -111,9 +111,9 @@ PUBLIC = {
         "MoveArgs", "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",
         "RequestError", "RestArgs", "Result", "RotateArgs", "SampleMessage",
         "ServerMessage", "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe",
-        "call_args", "encode", "goal_from_json", "goal_json", "info_from_json",
+        "WheelArgs", "WheelName", "call_args", "encode", "goal_from_json", "goal_json", "info_from_json",
         "json_schema", "parse_client_message", "parse_server_message", "pid_from_json",
-        "raised_error", "result_json", "sample_from_json", "sample_json",
+        "pid_state_from_json", "pid_state_json", "raised_error", "result_json", "sample_from_json", "sample_json",
         "schedule_from_json", "schema_text", "stats_from_json", "stats_json",
         "write_schema",
     ],
@@ -145,7 +145,8 @@ PUBLIC = {
          "channel_schema", "channels_of", "encoder_for", "json_schema_of",
     ],
     "ohmni_tb.foxglove.bridge": [
-         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "TELEOP_TOPICS", "FoxgloveBridge",
+         "DEFAULT_BACKLOG", "DEFAULT_HOST", "DEFAULT_PORT", "TELEOP_RAMPED", "TELEOP_TOPICS",
+         "FoxgloveBridge",
          "Teleop", "parse_twist",
     ],
     "ohmni_tb.foxglove.record": [
