@@ -52,6 +52,8 @@ TEXT_PARAMS = frozenset(
         "allow_origin",
         "token_file",
         "foxglove",
+        "wheel",
+        "stream",
     }
 )
 

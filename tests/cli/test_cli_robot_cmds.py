@@ -194,14 +194,14 @@ def test_light_without_the_core_board_is_an_error() -> None:
 
 
 def test_pid_get_defaults(config_home: Path, opened: Opened) -> None:
-    result = invoke("pid", "get", "--json")
+    result = invoke("pid", "get", "--config", "--json")
     assert result.code == 0, result.out
     assert json.loads(result.stdout) == {
         "file": None,
         "gains": DEFAULT_GAINS,
         "sources": dict.fromkeys(DEFAULT_GAINS, "default"),
     }
-    result = invoke("pid", "get")
+    result = invoke("pid", "get", "--config")
     assert result.code == 0, result.out
     text = words(result.out)
     assert "--kp kp 600 default" in text
@@ -213,7 +213,7 @@ def test_pid_get_defaults(config_home: Path, opened: Opened) -> None:
 def test_pid_set_writes_the_user_config_and_later_robots_use_it(
     config_home: Path, opened: Opened
 ) -> None:
-    result = invoke("pid", "set", "--kp", "650", "--ki", "250.5", "--kd", "1e-3")
+    result = invoke("pid", "set", "--config", "--kp", "650", "--ki", "250.5", "--kd", "1e-3")
     assert result.code == 0, result.out
     written = config_home / "ohmni" / "ohmni.toml"
     text = words(result.out)
@@ -226,7 +226,7 @@ def test_pid_set_writes_the_user_config_and_later_robots_use_it(
         "pid_kd": 0.001,
     }
     assert opened.urls == []  # no port opened
-    got = json.loads(invoke("pid", "get", "--json").stdout)
+    got = json.loads(invoke("pid", "get", "--config", "--json").stdout)
     assert got["gains"] == {**DEFAULT_GAINS, "kp": 650.0, "ki": 250.5, "kd": 0.001}
     assert got["sources"]["kp"] == str(written)
     assert got["sources"]["kff"] == "default"
@@ -238,7 +238,7 @@ def test_pid_set_writes_the_user_config_and_later_robots_use_it(
 
     assert asyncio.run(gains()) == PidGains(kp=650.0, ki=250.5, kd=0.001, kff=940.0, ff_offset=60)
     # A second set changes only what it names, and says what was there.
-    result = invoke("pid", "set", "--kp", "700", "--json")
+    result = invoke("pid", "set", "--config", "--kp", "700", "--json")
     assert result.code == 0, result.out
     report = json.loads(result.stdout)
     assert report == {
@@ -341,7 +341,7 @@ def test_pid_set_refuses_what_it_cannot_edit_safely(
 def test_pid_set_refuses_bad_gains(
     args: tuple[str, ...], named: str, config_home: Path, opened: Opened
 ) -> None:
-    result = invoke("pid", "set", *args)
+    result = invoke("pid", "set", "--config", *args)
     assert result.code == 2, result.out
     assert named in words(result.out)
     assert not (config_home / "ohmni" / "ohmni.toml").exists()
@@ -352,10 +352,10 @@ def test_pid_set_says_when_the_environment_wins(
     config_home: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("OHMNI_PID_KP", "700")
-    result = invoke("pid", "set", "--kp", "650")
+    result = invoke("pid", "set", "--config", "--kp", "650")
     assert result.code == 0, result.out
     assert "$OHMNI_PID_KP is set and overrides pid_kp from the file" in words(result.out)
-    got = json.loads(invoke("pid", "get", "--json").stdout)
+    got = json.loads(invoke("pid", "get", "--config", "--json").stdout)
     assert got["gains"]["kp"] == 700.0
     assert got["sources"]["kp"] == "$OHMNI_PID_KP"
 
@@ -366,15 +366,15 @@ def test_pid_set_writes_the_file_the_commands_read(
     # ./ohmni.toml comes before the user's file: that is the one to change.
     local = Path("ohmni.toml")
     local.write_text('port = "sim://"\n')
-    assert invoke("pid", "set", "--kd", "5").code == 0
+    assert invoke("pid", "set", "--config", "--kd", "5").code == 0
     assert tomllib.loads(local.read_text()) == {"port": "sim://", "pid_kd": 5.0}
     assert not (config_home / "ohmni").exists()
     # $OHMNI_CONFIG comes first of all, even before it exists.
     named = tmp_path / "named.toml"
     monkeypatch.setenv("OHMNI_CONFIG", str(named))
-    assert invoke("pid", "set", "--kd", "6").code == 0
+    assert invoke("pid", "set", "--config", "--kd", "6").code == 0
     assert tomllib.loads(named.read_text()) == {"pid_kd": 6.0}
-    assert json.loads(invoke("pid", "get", "--json").stdout)["gains"]["kd"] == 6.0
+    assert json.loads(invoke("pid", "get", "--config", "--json").stdout)["gains"]["kd"] == 6.0
 
 
 def test_pid_get_of_a_file(config_home: Path, tmp_path: Path) -> None:
@@ -395,6 +395,77 @@ def test_pid_get_of_a_file(config_home: Path, tmp_path: Path) -> None:
     assert result.out.startswith("error: pid_kp=-4 is out of range")
 
 
+@pytest.mark.usefixtures("virtual_time")
+def test_pid_get_and_set_act_on_the_running_robot_per_wheel(
+    config_home: Path, opened: Opened
+) -> None:
+    got = json.loads(invoke("pid", "get", *SIM, "--json").stdout)
+    assert got == {
+        "port": "sim://",
+        "wheels": {side: {**DEFAULT_GAINS, "enabled": True} for side in ("left", "right")},
+    }
+    result = invoke("pid", "set", "--kp", "700", "--wheel", "left", *SIM, "--json")
+    assert result.code == 0, result.out
+    report = json.loads(result.stdout)
+    assert report["set"] == {"kp": 700.0}
+    assert report["wheels"] == {"left": {**DEFAULT_GAINS, "kp": 700.0, "enabled": True}}
+    assert opened.urls == ["sim://", "sim://"]
+    assert not (config_home / "ohmni" / "ohmni.toml").exists()  # the robot's, not the file
+    result = invoke("pid", "set", "--kp", "700", "--wheel", "middle", *SIM)
+    assert result.code == 2
+    assert "--wheel must be left or right, not 'middle'" in words(result.out)
+    result = invoke("pid", "set", "--kp", "700", "--wheel", "left", "--config")
+    assert result.code == 2
+    assert "--wheel is for the running robot" in words(result.out)
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_pid_disable_shows_the_wheel_off_and_stream_disable_drops_it_from_the_schedule() -> None:
+    result = invoke("pid", "disable", "--wheel", "right", *SIM, "--json")
+    assert result.code == 0, result.out
+    wheels = json.loads(result.stdout)["wheels"]
+    assert (wheels["left"]["enabled"], wheels["right"]["enabled"]) == (True, False)
+    result = invoke("pid", "disable", *SIM)
+    assert result.code == 0, result.out
+    assert "enabled off off" in words(result.out)
+    assert "the change ended with it" in words(result.out)
+    result = invoke("stream", "disable", "tbcore_status", *SIM, "--json")
+    assert result.code == 0, result.out
+    report = json.loads(result.stdout)
+    assert report["enabled"] is False
+    assert "tbcore_status" not in report["scheduled"]
+    assert "servo_neck" in report["scheduled"]
+    result = invoke("stream", "enable", "odom", *SIM)
+    assert result.code == 2
+    assert "no stream 'odom': the streams are wheel_encoder" in words(result.out)
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_drive_pwm_and_wheels_move_the_robot_for_the_duration() -> None:
+    result = invoke("drive", "--pwm", "250", "250.4", "--duration", "0.5", *SIM, "--json")
+    assert result.code == 0, result.out
+    drove = json.loads(result.stdout)
+    assert drove["mode"] == "pwm"
+    assert drove["command"] == {"left_pwm": 250.0, "right_pwm": 250.4, "duration_s": 0.5}
+    assert drove["distance_m"] > 0.03
+    assert drove["stop"]["confirmed"]
+    result = invoke("drive", "--wheels", "0.2", "0.1", "--duration", "1", *SIM, "--json")
+    assert result.code == 0, result.out
+    drove = json.loads(result.stdout)
+    assert drove["mode"] == "wheels"
+    assert drove["heading_change_deg"] < -5  # the left wheel faster: a right turn
+    for args, named in (
+        (("--pwm", "1001", "0"), "--pwm L=1001 is out of range: allowed -1000..1000 PWM"),
+        (("--pwm", "0", "nan"), "--pwm R=nan is not a finite number"),
+        (("--wheels", "5", "0"), "--wheels L=5 is out of range"),
+        (("--pwm", "1", "1", "--linear", "0.2"), "--pwm does not combine with --linear"),
+        (("--pwm", "0", "0"), "--pwm 0 0 drives nowhere"),
+    ):
+        result = invoke("drive", *args, *SIM)
+        assert result.code == 2, (args, result.out)
+        assert named in words(result.out), args
+
+
 def test_gain_help_matches_the_config() -> None:
     for flag, field in robot_cmds.PID_FIELDS.items():
         extra = RobotConfig.model_fields[field].json_schema_extra
@@ -406,7 +477,18 @@ def test_gain_help_matches_the_config() -> None:
 
 
 @pytest.mark.parametrize(
-    "command", [("info",), ("ports",), ("light",), ("pid", "get"), ("pid", "set")]
+    "command",
+    [
+        ("info",),
+        ("ports",),
+        ("light",),
+        ("pid", "get"),
+        ("pid", "set"),
+        ("pid", "enable"),
+        ("pid", "disable"),
+        ("stream", "enable"),
+        ("stream", "disable"),
+    ],
 )
 def test_help_has_an_example(command: tuple[str, ...]) -> None:
     result = invoke(*command, "--help")

@@ -51,6 +51,12 @@ async def drive_confirmed(robot: Robot) -> None:
     await robot.confirm()
 
 
+async def wheels_confirmed(robot: Robot) -> None:
+    """A drive_wheels command, and the daemon's answer to it."""
+    robot.drive_wheels(0.2, 0.2)
+    await robot.confirm()
+
+
 async def until(condition: Callable[[], bool], timeout_s: float = 3.0) -> None:
     """Wait for ``condition()``, looked at every 20 ms."""
     async with asyncio.timeout(timeout_s):
@@ -258,6 +264,103 @@ def test_a_goal_preempted_raises_the_same_error_with_what_it_did(kind: str) -> N
     run(kind, check)
 
 
+def test_each_wheel_has_its_own_gains(kind: str) -> None:
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        shared = robot.get_pid()
+        assert robot.get_pid(wheel="left") == robot.get_pid(wheel="right") == shared
+        left = PidGains(kp=500.0, ki=200.0, kd=1.0, kff=900.0, ff_offset=50.0)
+        robot.set_pid(left, wheel="left")
+        await robot.confirm()
+        assert robot.get_pid(wheel="left") == left
+        assert robot.get_pid(wheel="right") == shared
+        with pytest.raises(StateError, match=r"the wheels' PID gains differ .*get_pid\(wheel="):
+            robot.get_pid()
+        # The robot still drives straight on them (the sim's wheels are alike).
+        await drive_for(robot, 1.0)
+        assert speed(truth) == pytest.approx(0.3, abs=0.03)
+        robot.set_pid(shared)  # both wheels again
+        await robot.confirm()
+        assert robot.get_pid() == shared
+
+    run(kind, check)
+
+
+def test_drive_is_refused_while_a_wheel_controller_is_off(kind: str) -> None:
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        assert robot.controllers_enabled() == {"left": True, "right": True}
+        robot.enable_controllers(False, wheel="right")
+        await robot.confirm()
+        assert robot.controllers_enabled() == {"left": True, "right": False}
+        with pytest.raises(StateError, match="the right wheel's controller is off"):
+            await drive_confirmed(robot)
+        with pytest.raises(StateError, match="the right wheel's controller is off"):
+            await wheels_confirmed(robot)
+        with pytest.raises(StateError, match="the right wheel's controller is off"):
+            await robot.drive_distance(0.5)
+        await asyncio.sleep(0.3)
+        assert truth.wheel_speeds_mps() == (0.0, 0.0)  # nothing moved
+        # Open loop still drives.
+        assert robot.drive_pwm(250.0, 250.0) == (250, 250)
+        await asyncio.sleep(0.3)
+        assert min(truth.wheel_speeds_mps()) > 0.05
+        robot.stop()
+        robot.enable_controllers(True)
+        await robot.confirm()
+        assert robot.controllers_enabled() == {"left": True, "right": True}
+        await drive_for(robot, 1.0)
+        assert speed(truth) == pytest.approx(0.3, abs=0.03)
+
+    run(kind, check)
+
+
+def test_turning_a_controller_off_stops_a_drive(kind: str) -> None:
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        await drive_for(robot, 0.6)
+        robot.enable_controllers(False, wheel="left")
+        await until(lambda: truth.wheel_speeds_mps() == (0.0, 0.0), 1.0)
+        robot.enable_controllers(True, wheel="left")
+        await robot.confirm()
+        await asyncio.sleep(0.3)
+        assert truth.wheel_speeds_mps() == (0.0, 0.0)  # the old target is not taken up again
+
+    run(kind, check)
+
+
+def test_drive_unramped_is_the_pure_velocity_command(kind: str) -> None:
+    async def after(robot: Robot, truth: SimRobot, *, ramped: bool) -> float:
+        robot.drive(0.5, 0.0, ramped=ramped)
+        await asyncio.sleep(0.3)
+        reached = speed(truth)
+        robot.stop()
+        await until(lambda: speed(truth) == 0.0, 2.0)
+        return reached
+
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        ramped = await after(robot, truth, ramped=True)
+        pure = await after(robot, truth, ramped=False)
+        assert ramped < 0.2  # the acceleration limit: 0.5 m/s² by default
+        assert pure > 0.4
+        # Still within the limits, and still under the watchdog.
+        assert robot.drive(5.0, 0.0, ramped=False).limited
+        await until(lambda: robot.state.watchdog_tripped, 1.5)
+        await until(lambda: speed(truth) == 0.0, 2.0)
+
+    run(kind, check)
+
+
+def test_drive_pwm_takes_floats_and_per_motor_enable_flags(kind: str) -> None:
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        assert robot.drive_pwm(300.4, 299.5, right_enabled=False) == (300, 0)
+        assert robot.drive_pwm(2.5, -0.5) == (2, 0)  # half to even
+        assert robot.drive_pwm(300.4, 299.5, right_enabled=False) == (300, 0)
+        await asyncio.sleep(0.4)
+        left, right = truth.wheel_speeds_mps()
+        assert left > 0.05
+        assert right == 0.0
+
+    run(kind, check)
+
+
 # -- bad input: the same error, word for word, on both --------------------------------------
 
 BAD_CALLS: list[tuple[str, Callable[[Robot], object]]] = [
@@ -265,7 +368,17 @@ BAD_CALLS: list[tuple[str, Callable[[Robot], object]]] = [
     ("drive text", lambda r: r.drive("fast", 0.0)),  # type: ignore[arg-type]  # on purpose
     ("drive_wheels inf", lambda r: r.drive_wheels(math.inf, 0.0)),
     ("pwm out of range", lambda r: r.drive_pwm(2000, 0)),
-    ("pwm not int", lambda r: r.drive_pwm(1.5, 0)),  # type: ignore[arg-type]  # on purpose
+    ("pwm not a number", lambda r: r.drive_pwm("1.5", 0)),  # type: ignore[arg-type]  # on purpose
+    ("pwm nan", lambda r: r.drive_pwm(math.nan, 0)),
+    (
+        "pwm of a disabled motor out of range",
+        lambda r: r.drive_pwm(0, -1000.5, right_enabled=False),
+    ),
+    ("pwm enable not bool", lambda r: r.drive_pwm(0, 0, left_enabled=1)),  # type: ignore[arg-type]  # on purpose
+    ("drive ramped not bool", lambda r: r.drive(0.1, 0.0, ramped="no")),  # type: ignore[arg-type]  # on purpose
+    ("pid of no wheel", lambda r: r.set_pid(PidGains(kp=1.0, ki=0.0, kd=0.0), wheel="middle")),  # type: ignore[arg-type]  # on purpose
+    ("get_pid of no wheel", lambda r: r.get_pid(wheel="both")),  # type: ignore[arg-type]  # on purpose
+    ("controllers of no wheel", lambda r: r.enable_controllers(False, wheel=0)),  # type: ignore[arg-type]  # on purpose
     ("pid out of range", lambda r: r.set_pid(PidGains(kp=1e9, ki=0.0, kd=0.0))),
     ("pid not gains", lambda r: r.set_pid({"kp": 1})),  # type: ignore[arg-type]  # on purpose
     ("pose too far", lambda r: r.reset_odometry(2e6, 0.0, 0.0)),

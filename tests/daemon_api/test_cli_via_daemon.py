@@ -177,3 +177,33 @@ def test_the_commands_look_for_the_daemon_where_it_listens_by_default() -> None:
     from ohmni_tb.daemon.server import DEFAULT_HOST, DEFAULT_PORT
 
     assert common._DEFAULT_DAEMON_URL == DEFAULT_URL == f"ws://{DEFAULT_HOST}:{DEFAULT_PORT}"
+
+
+def test_pid_and_stream_commands_change_the_daemons_robot_for_the_next_command(via: str) -> None:
+    result = invoke("pid", "set", "--kd", "2", "--wheel", "right", "--json")
+    assert result.code == 0, result.out
+    assert json.loads(result.stdout)["via_daemon"] is True
+    result = invoke("pid", "disable", "--wheel", "left")
+    assert result.code == 0, result.out
+    assert "for every client, until the daemon stops" in " ".join(result.out.split())
+    try:
+        state = json.loads(invoke("pid", "get", "--json").stdout)["wheels"]
+        assert (state["left"]["kd"], state["right"]["kd"]) == (0.0, 2.0)
+        assert (state["left"]["enabled"], state["right"]["enabled"]) == (False, True)
+        refused = invoke("drive", "--linear", "0.2", "--duration", "0.3", "--yes")
+        assert refused.code == 1
+        assert "the left wheel's controller is off" in refused.out
+        pwm = invoke("drive", "--pwm", "200", "200", "--duration", "0.3", "--yes", "--json")
+        assert pwm.code == 0, pwm.out
+        assert json.loads(pwm.stdout)["distance_m"] > 0.005
+    finally:
+        assert invoke("pid", "enable").code == 0
+        assert invoke("pid", "set", "--kd", "0", "--wheel", "right").code == 0
+    result = invoke("stream", "disable", "tbcore_status", "--json")
+    assert result.code == 0, result.out
+    try:
+        assert "tbcore_status" not in json.loads(result.stdout)["scheduled"]
+        status = json.loads(invoke("status", "--json").stdout)
+        assert status["bus"]["streams"]["tbcore_status"]["enabled"] is False
+    finally:
+        assert invoke("stream", "enable", "tbcore_status").code == 0

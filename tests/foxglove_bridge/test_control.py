@@ -199,3 +199,31 @@ async def test_a_refused_service_call_fails_with_the_reason_and_sends_nothing(
     finally:
         await client.close()
         await bridge.aclose()
+
+
+async def test_tb_cmd_vel_is_the_pure_command_and_cmd_vel_accel_the_ramped_one(
+    robot: Robot,
+) -> None:
+    got: list[tuple[float, float, bool]] = []
+    arrived = asyncio.Event()
+
+    def teleop(linear: float, angular: float, ramped: bool) -> None:
+        got.append((linear, angular, ramped))
+        if len(got) == 3:
+            arrived.set()
+
+    bridge = FoxgloveBridge(robot, port=0, teleop=teleop, token=TOKEN)
+    await bridge.start()
+    client = await FoxgloveClient.connect(bridge.url)
+    try:
+        assert await client.unlock(TOKEN) == {"unlocked": True}
+        for channel, topic in enumerate(("/tb_cmd_vel", "/cmd_vel_accel", "/cmd_vel"), 1):
+            await client.advertise_twist(channel, topic)
+        for channel, linear in ((1, 0.1), (2, 0.2), (3, 0.3)):
+            await client.send_twist(linear, channel_id=channel)
+        async with asyncio.timeout(5.0):
+            await arrived.wait()
+    finally:
+        await client.close()
+        await bridge.aclose()
+    assert sorted(got) == [(0.1, 0.0, False), (0.2, 0.0, True), (0.3, 0.0, True)]

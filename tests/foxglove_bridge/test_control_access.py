@@ -235,6 +235,8 @@ def test_the_warning_beyond_loopback_says_what_a_client_there_can_do(
 async def test_a_bridge_that_takes_control_needs_a_token() -> None:
     async with Robot.open("sim://") as robot:
         with pytest.raises(ConfigError, match="needs a token"):
-            FoxgloveBridge(robot, port=0, teleop=lambda linear, angular: None)
+            FoxgloveBridge(robot, port=0, teleop=lambda linear, angular, ramped: None)
         with pytest.raises(ConfigError, match="16"):
-            FoxgloveBridge(robot, port=0, teleop=lambda linear, angular: None, token="short")
+            FoxgloveBridge(
+                robot, port=0, teleop=lambda linear, angular, ramped: None, token="short"
+            )

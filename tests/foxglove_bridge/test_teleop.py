@@ -98,3 +98,26 @@ async def test_the_teleop_drives_again_after_the_daemon_closed_its_connection(
 def test_a_rate_beyond_what_the_daemon_takes_is_refused() -> None:
     with pytest.raises(OutOfRangeError, match=r"rate_hz=200 is out of range: allowed 1.0..50.0"):
         FoxgloveTeleop(None, rate_hz=200)  # type: ignore[arg-type]  # refused before use
+
+
+async def test_a_pure_twist_reaches_its_speed_at_once_a_ramped_one_ramps(robot: Robot) -> None:
+    assert robot.sim is not None
+
+    async def speed_after(ramped: bool) -> float:
+        for _ in range(3):
+            teleop(0.5, 0.0, ramped)
+            await asyncio.sleep(0.1)
+        left, right = robot.sim.wheel_speeds_mps()
+        robot.stop()
+        await asyncio.sleep(1.5)  # ramped down, standing
+        return float(left + right) / 2
+
+    async with (
+        RobotServer(robot, port=0) as server,
+        RobotClient.connect(server.url) as client,
+        FoxgloveTeleop(client) as teleop,
+    ):
+        ramped = await speed_after(True)
+        pure = await speed_after(False)
+    assert ramped < 0.2  # 0.5 m/s² by default
+    assert pure > 0.4

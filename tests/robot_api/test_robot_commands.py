@@ -176,7 +176,9 @@ def test_without_the_controllers_drive_does_not_move(monkeypatch: pytest.MonkeyP
             await asyncio.sleep(0.2)
             robot.enable_controllers(False)
             t0 = asyncio.get_running_loop().time()
-            await keep_driving(robot, 1.5, 0.3)
+            with pytest.raises(StateError, match="both wheels' controllers are off"):
+                robot.drive(0.3, 0.0)
+            await asyncio.sleep(0.5)
             assert set(tap.since(t0)) == {(0, 0)}
             assert robot.sim.wheel_speeds_mps() == (0.0, 0.0)
             assert robot.sim.pose.x == 0.0

@@ -852,7 +852,14 @@ def refused(id_: str, act: Act, error: type[Exception], *words: str, url: str = 
             "right PWM=-1001",
             "-1000..1000",
         ),
-        refused("drive_pwm-float", lambda r: r.drive_pwm(A_FLOAT, 0), InvalidArgumentError, "1.5"),
+        refused("drive_pwm-nan", lambda r: r.drive_pwm(math.nan, 0), InvalidArgumentError, "nan"),
+        refused(
+            "drive_pwm-1000.5",
+            lambda r: r.drive_pwm(1000.5, 0),
+            OutOfRangeError,
+            "PWM=1000.5",
+            "-1000..1000",
+        ),
         refused("neck-700", lambda r: r.neck.move(raw=700), OutOfRangeError, "=700", "280..650"),
         refused("neck-279", lambda r: r.neck.move(raw=279), OutOfRangeError, "=279", "280..650"),
         refused(

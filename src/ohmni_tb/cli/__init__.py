@@ -41,7 +41,16 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "Move the neck (HerkuleX or worm gear): up, down, center, rest, free, --raw, --deg.",
     ),
     "odom": ("ohmni_tb.cli.odom", "app", "Stream odometry lines; `ohmni odom reset`."),
-    "pid": ("ohmni_tb.cli.robot_cmds", "pid_app", "Read or set the wheel PID gains."),
+    "pid": (
+        "ohmni_tb.cli.robot_cmds",
+        "pid_app",
+        "The wheel PIDs: get or set their gains (per wheel), enable or disable them.",
+    ),
+    "stream": (
+        "ohmni_tb.cli.stream",
+        "app",
+        "Turn a stream of the running robot on or off: enable|disable NAME.",
+    ),
     "light": ("ohmni_tb.cli.robot_cmds", "light", "Set the light ring's colour: H S V."),
     "info": ("ohmni_tb.cli.robot_cmds", "info", "Firmware tags, servo models, neck kind."),
     "ports": (

@@ -9,6 +9,8 @@ Three ways to move, one at a time:
   goals, ``robot.drive_distance`` and ``robot.rotate`` (:mod:`ohmni_tb.robot.motion`).
 - ``--teleop``: the keyboard in the terminal; each key press sends one ``drive()``, and
   the watchdog stops the robot when no key repeats.
+- ``--pwm L R`` or ``--wheels L R [--duration S]``: open-loop PWM (``robot.drive_pwm``)
+  or each wheel's speed (``robot.drive_wheels``) for a time, held as ``--linear`` is.
 
 Every timed or goal drive ends with the stop confirmed by the wheel counts standing still
 (the rule of :mod:`ohmni_tb.safety`), then prints what the odometry measured. Every
@@ -94,11 +96,18 @@ _LOGGER = "ohmni_tb"
 class _Plan:
     """What to do, checked: one of the modes with its numbers."""
 
-    mode: str  # "duration", "distance", "turn" or "teleop"
+    mode: str  # "duration", "distance", "turn", "teleop", "pwm" or "wheels"
     linear_mps: float = 0.0
     angular_radps: float = 0.0
     duration_s: float = 0.0
     goal: float = 0.0  # metres for "distance", degrees for "turn"
+    left: float = 0.0  # "pwm": PWM; "wheels": m/s
+    right: float = 0.0
+
+    @property
+    def timed(self) -> bool:
+        """Held for a time, then stopped (not a goal, not the keyboard)."""
+        return self.mode in ("duration", "pwm", "wheels")
 
 
 def _fmt(value: float) -> str:
@@ -231,6 +240,53 @@ def _plan(
     return _Plan("duration", linear or 0.0, angular or 0.0, duration_s=seconds)
 
 
+def _wheel_plan(
+    config: RobotConfig,
+    *,
+    pwm: tuple[float, float] | None,
+    wheels: tuple[float, float] | None,
+    others: dict[str, object],
+    duration: float | None,
+) -> _Plan:
+    """``--pwm L R`` or ``--wheels L R``, with ``--duration`` alone, checked.
+
+    Raises:
+        typer.BadParameter: Names the option, its value and what is allowed.
+    """
+    from ohmni_tb.protocol.drive import PWM_LIMIT  # noqa: PLC0415
+
+    name, values = ("--pwm", pwm) if pwm is not None else ("--wheels", wheels)
+    assert values is not None
+    if pwm is not None and wheels is not None:
+        raise typer.BadParameter("--pwm and --wheels do not combine: give one of them")
+    extra = [option for option, value in others.items() if value]
+    if extra:
+        raise typer.BadParameter(
+            f"{name} does not combine with {extra[0]}: give {name} with --duration only"
+        )
+    for side, value in zip(("L", "R"), values, strict=True):
+        _finite(f"{name} {side}", value)
+        if pwm is not None:
+            _within(f"{name} {side}", value, -PWM_LIMIT, PWM_LIMIT, "PWM")
+        else:
+            top = config.max_wheel_mps
+            _within(f"{name} {side}", value, -top, top, "m/s", " (max_wheel_mps)")
+    if not any(values):
+        raise typer.BadParameter(f"{name} 0 0 drives nowhere: give a non-zero value")
+    seconds = DEFAULT_DURATION_S if duration is None else duration
+    _finite("--duration", seconds)
+    if not 0 < seconds <= MAX_DURATION_S:
+        raise typer.BadParameter(
+            f"--duration={_fmt(seconds)} is out of range: allowed >0..{MAX_DURATION_S:g} s"
+        )
+    return _Plan(
+        "pwm" if pwm is not None else "wheels",
+        duration_s=seconds,
+        left=float(values[0]),
+        right=float(values[1]),
+    )
+
+
 def _linear_speed(config: RobotConfig, linear: float | None) -> float:
     """The speed a goal or teleop drive uses: ``--linear``'s size, else the default
     within the config's limit."""
@@ -300,6 +356,25 @@ def drive(
             "speed, q quits.",
         ),
     ] = False,
+    pwm: Annotated[
+        tuple[float, float] | None,
+        typer.Option(
+            "--pwm",
+            help="Open loop: the left and right wheel's PWM, -1000..1000 each, forward "
+            "positive (robot.drive_pwm; fractions are rounded to whole steps), held for "
+            "--duration. The wheel PIDs step aside; the watchdog still applies.",
+            show_default=False,
+        ),
+    ] = None,
+    wheels: Annotated[
+        tuple[float, float] | None,
+        typer.Option(
+            "--wheels",
+            help="Each wheel's speed, m/s, forward positive (robot.drive_wheels: no ramp, "
+            "within max_wheel_mps), held for --duration.",
+            show_default=False,
+        ),
+    ] = None,
     port: PortOption = None,
     direct: DirectOption = False,
     yes: YesOption = False,
@@ -324,6 +399,10 @@ def drive(
     ohmni drive --turn -90 --angular 0.5 --port /dev/ttyUSB0 --yes
 
     ohmni drive --teleop --port sim://
+
+    ohmni drive --pwm 250 250 --duration 0.5 --port sim://
+
+    ohmni drive --wheels 0.2 0.1 --duration 2 --port sim://
     """
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
 
@@ -332,16 +411,31 @@ def drive(
     except OhmniError as exc:
         error_line(str(exc))
         raise typer.Exit(1) from exc
-    plan = _plan(
-        config,
-        linear=linear,
-        angular=angular,
-        duration=duration,
-        distance=distance,
-        turn=turn,
-        teleop=teleop,
-        as_json=as_json,
-    )
+    if pwm is not None or wheels is not None:
+        plan = _wheel_plan(
+            config,
+            pwm=pwm,
+            wheels=wheels,
+            others={
+                "--linear": linear is not None,
+                "--angular": angular is not None,
+                "--distance": distance is not None,
+                "--turn": turn is not None,
+                "--teleop": teleop,
+            },
+            duration=duration,
+        )
+    else:
+        plan = _plan(
+            config,
+            linear=linear,
+            angular=angular,
+            duration=duration,
+            distance=distance,
+            turn=turn,
+            teleop=teleop,
+            as_json=as_json,
+        )
     stdin_fd: int | None = None
     if plan.mode == "teleop":
         stdin_fd = _terminal_fd()
@@ -356,6 +450,8 @@ def drive(
         "distance": "ohmni drive --distance",
         "turn": "ohmni drive --turn",
         "teleop": "ohmni drive --teleop",
+        "pwm": "ohmni drive --pwm",
+        "wheels": "ohmni drive --wheels",
     }[plan.mode]
     confirm_motion(url, what, yes=yes)
     watch = RobotWarnings()
@@ -584,7 +680,7 @@ async def _stopped(robot: Robot) -> dict[str, Any]:
 
 async def _timed_or_goal(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     before = robot.stats()
-    if plan.mode == "duration":
+    if plan.timed:
         result = await _timed(robot, plan, quiet)
     else:
         result = await _to_goal(robot, plan, quiet)
@@ -605,10 +701,11 @@ def _losses(before: RobotStats, robot: Robot) -> dict[str, int]:
 async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     period = _command_period(robot)
+    command, call = _timed_command(plan)
     if not quiet:
         console.print(
-            f"drive: {plan.linear_mps:+.2f} m/s, {plan.angular_radps:+.2f} rad/s for "
-            f"{plan.duration_s:g} s (drive() re-sent every {period:g} s), then stop",
+            f"drive: {command} for {plan.duration_s:g} s ({call}() re-sent every "
+            f"{period:g} s), then stop",
             highlight=False,
             soft_wrap=True,
         )
@@ -617,7 +714,7 @@ async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     try:
         end = first + plan.duration_s
         while True:
-            robot.drive(plan.linear_mps, plan.angular_radps)
+            _send(robot, plan)
             left = end - loop.time()
             if left <= 0:
                 break
@@ -626,17 +723,38 @@ async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
         # Whatever happened above, Ctrl-C included: the target goes to zero now.
         robot.stop()
     stop = await _stopped(robot)
+    if plan.mode == "pwm":
+        sent: dict[str, Any] = {"left_pwm": plan.left, "right_pwm": plan.right}
+    elif plan.mode == "wheels":
+        sent = {"left_mps": plan.left, "right_mps": plan.right}
+    else:
+        sent = {"linear_mps": plan.linear_mps, "angular_radps": plan.angular_radps}
     return {
-        "mode": "duration",
-        "command": {
-            "linear_mps": plan.linear_mps,
-            "angular_radps": plan.angular_radps,
-            "duration_s": plan.duration_s,
-        },
+        "mode": plan.mode,
+        "command": {**sent, "duration_s": plan.duration_s},
         "goal": None,
         **_measured(start, _Snapshot.take(robot), first),
         "stop": stop,
     }
+
+
+def _timed_command(plan: _Plan) -> tuple[str, str]:
+    """What a timed drive sends, for people, and the Robot call that sends it."""
+    if plan.mode == "pwm":
+        return f"PWM left {plan.left:+g}, right {plan.right:+g} (open loop)", "drive_pwm"
+    if plan.mode == "wheels":
+        return f"left wheel {plan.left:+.2f} m/s, right {plan.right:+.2f} m/s", "drive_wheels"
+    return f"{plan.linear_mps:+.2f} m/s, {plan.angular_radps:+.2f} rad/s", "drive"
+
+
+def _send(robot: Robot, plan: _Plan) -> None:
+    """One command of a timed drive."""
+    if plan.mode == "pwm":
+        robot.drive_pwm(plan.left, plan.right)
+    elif plan.mode == "wheels":
+        robot.drive_wheels(plan.left, plan.right)
+    else:
+        robot.drive(plan.linear_mps, plan.angular_radps)
 
 
 def _goal_timeout(goal: float, speed: float, accel: float, decel: float) -> float:

@@ -1,9 +1,11 @@
 """``ohmni info``, ``ohmni ports``, ``ohmni light`` and ``ohmni pid``: small robot commands.
 
-``info`` and ``light`` open the :class:`~ohmni_tb.robot.Robot`; ``ports`` and ``pid``
-open no port at all: ``ports`` lists the machine's serial ports, and ``pid`` reads or
-writes the wheel PID gains in the config file, because the PID runs inside whichever
-process opens the port (``robot.get_pid()`` is the config's gains).
+``info``, ``light`` and ``pid`` open the :class:`~ohmni_tb.robot.Robot` (the daemon's
+when ``ohmni serve`` runs); ``ports`` opens no port at all. ``pid get/set`` act on the
+running robot's wheel PIDs (``robot.get_pid``, ``robot.set_pid``, per wheel with
+``--wheel``), ``pid enable/disable`` turn them on and off; with ``--config`` (or
+``--file``) ``pid get/set`` read or write the gains in the config file instead, which every
+Robot opened later starts with.
 """
 
 from __future__ import annotations
@@ -32,7 +34,9 @@ from ohmni_tb.cli.common import (
 )
 
 if TYPE_CHECKING:
+    from ohmni_tb.control.pid import PidGains
     from ohmni_tb.robot import Robot
+    from ohmni_tb.robot.checks import Wheel
 
 __all__ = [
     "PID_FIELDS",
@@ -274,8 +278,10 @@ def light(
 # -- pid --------------------------------------------------------------------------------
 
 pid_app = typer.Typer(
-    help="The wheel PID gains: they live in the config file, read by every command that "
-    "opens the port (the PID runs in that process).\n\nExample: ohmni pid set --kp 600 --ki 300",
+    help="The wheel PIDs of the running robot (the daemon's when ohmni serve runs, else "
+    "the port's): get and set their gains, per wheel with --wheel, enable or disable them. "
+    "--config: the gains in the config file instead, which every Robot opened later starts "
+    "with.\n\nExample: ohmni pid set --kp 600 --ki 300 --wheel left",
     no_args_is_help=True,
     add_completion=False,
 )
@@ -336,16 +342,54 @@ def _env_overrides(fields: list[str]) -> dict[str, str]:
     return found
 
 
+WheelOption = Annotated[
+    str | None,
+    typer.Option(
+        "--wheel",
+        help="left or right: that wheel's PID only. Default: both wheels.",
+        show_default=False,
+    ),
+]
+ConfigOption = Annotated[
+    bool,
+    typer.Option(
+        "--config",
+        help="The gains in the config file (what every Robot opened later starts with), "
+        "not the running robot's; no port is opened. Implied by --file.",
+    ),
+]
+
+
 @pid_app.command("get")
-def pid_get(file: FileOption = None, as_json: JsonOption = False) -> None:
-    """Print the wheel PID gains in force: what a Robot opened now runs (robot.get_pid()).
+def pid_get(
+    wheel: WheelOption = None,
+    config: ConfigOption = False,
+    file: FileOption = None,
+    port: PortOption = None,
+    direct: DirectOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Print the running robot's wheel PID gains (robot.get_pid), each wheel's, and
+    whether each PID runs.
 
-    From $OHMNI_PID_*, else the config file, else the defaults; each one's source is shown.
-
-    No port is opened.
+    Through the daemon when ohmni serve runs, else it opens the port. With --config (or
+    --file): the gains in the config file instead, from $OHMNI_PID_*, else the file, else
+    the defaults, each one's source shown, and no port is opened.
 
     Example: ohmni pid get --json
     """
+    if config or file is not None:
+        if wheel is not None:
+            raise typer.BadParameter(
+                "--wheel is for the running robot: the config file's gains are both wheels'"
+            )
+        _pid_get_file(file, as_json)
+        return
+    _pid_get_robot(_wheel_name(wheel), port, direct, as_json)
+
+
+def _pid_get_file(file: Path | None, as_json: bool) -> None:
+    """``ohmni pid get --config``: the gains in force by the config file."""
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415
     from ohmni_tb.config_file import read_settings  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
@@ -413,19 +457,33 @@ def pid_set(
     kd: Annotated[str | None, _gain_option("--kd")] = None,
     kff: Annotated[str | None, _gain_option("--kff")] = None,
     ff_offset: Annotated[str | None, _gain_option("--ff-offset")] = None,
+    wheel: WheelOption = None,
+    config: ConfigOption = False,
     file: FileOption = None,
+    port: PortOption = None,
+    direct: DirectOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Write wheel PID gains to the config file, for every later command to use.
+    """Set the running robot's wheel PID gains (robot.set_pid), bumplessly; --wheel for one.
 
-    Only the gains given change; the rest of the file stays as it is, comments too.
+    Only the gains given change. Through the daemon when ohmni serve runs (the daemon's
+    robot keeps them until it stops), else it opens the port (they last while this command
+    runs: use --config to keep them). With --config (or --file): write them to the config
+    file instead, for every Robot opened later; the rest of the file stays as it is,
+    comments too, and no port is opened.
 
-    Every value is range-checked first. No port is opened: a Robot reads its gains when it opens.
+    Every value is range-checked first.
 
     Example: ohmni pid set --kp 650 --ki 300 --kd 0
     """
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
+
+    which = _wheel_name(wheel)
+    if which is not None and (config or file is not None):
+        raise typer.BadParameter(
+            "--wheel is for the running robot: the config file's gains are both wheels'"
+        )
 
     given = {
         flag: text
@@ -449,6 +507,9 @@ def pid_set(
                 _fail(str(exc))  # another setting (from the environment) is invalid
             raise typer.BadParameter(f"{flag}: {lines[0].removesuffix(' (argument)')}") from None
         values[field] = number
+    if not (config or file is not None):
+        _pid_set_robot(values, which, port, direct, as_json)
+        return
     path = file if file is not None else _default_file()
     from ohmni_tb.config_file import write_settings  # noqa: PLC0415
 
@@ -490,6 +551,150 @@ def pid_set(
             "from the file",
             highlight=False,
         )
+
+
+def _wheel_name(wheel: str | None) -> Wheel | None:
+    """``--wheel``, checked: ``left``, ``right`` or not given (both)."""
+    if wheel is None:
+        return None
+    if wheel == "left":
+        return "left"
+    if wheel == "right":
+        return "right"
+    raise typer.BadParameter(f"--wheel must be left or right, not {wheel!r}")
+
+
+def _gains_dict(gains: PidGains) -> dict[str, float]:
+    return {name: float(getattr(gains, name)) for name in ("kp", "ki", "kd", "kff", "ff_offset")}
+
+
+async def _pid_state(robot: Robot, wheel: Wheel | None) -> dict[str, Any]:
+    """Each wheel's gains and whether its PID runs (only ``wheel``'s when given)."""
+    await robot.confirm()  # a remote robot's copy: after this command's own changes
+    enabled = robot.controllers_enabled()
+    wheels: tuple[Wheel, ...] = ("left", "right") if wheel is None else (wheel,)
+    return {
+        name: {**_gains_dict(robot.get_pid(wheel=name)), "enabled": enabled[name]}
+        for name in wheels
+    }
+
+
+def _robot_note(via: str | None) -> str:
+    if via is not None:
+        return f"the daemon's robot at {via}: for every client, until the daemon stops"
+    return "this command's own robot: the change ended with it (ohmni serve keeps one)"
+
+
+def _print_pid_state(url: str, state: dict[str, Any], note: str | None = None) -> None:
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title=f"wheel PIDs on {escape(url)}")
+    table.add_column("gain")
+    for name in state:
+        table.add_column(name, justify="right")
+    for gain in ("kp", "ki", "kd", "kff", "ff_offset", "enabled"):
+        cells = [
+            ("on" if state[name][gain] else "off")
+            if gain == "enabled"
+            else f"{state[name][gain]:g}"
+            for name in state
+        ]
+        table.add_row(gain, *cells)
+    console.print(table)
+    if note is not None:
+        console.print(note, highlight=False, soft_wrap=True)
+
+
+def _pid_get_robot(wheel: Wheel | None, port: str | None, direct: bool, as_json: bool) -> None:
+    async def main() -> tuple[str, dict[str, Any]]:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, **READ_ONLY) as robot:
+            return url, await _pid_state(robot, wheel)
+
+    url, state = run(main)
+    if as_json:
+        emit_json({"port": url, "wheels": state})
+        return
+    _print_pid_state(url, state)
+
+
+def _pid_set_robot(
+    values: dict[str, float], wheel: Wheel | None, port: str | None, direct: bool, as_json: bool
+) -> None:
+    import dataclasses  # noqa: PLC0415
+
+    changes = {field.removeprefix("pid_"): value for field, value in values.items()}
+
+    async def main() -> tuple[str, str | None, dict[str, Any]]:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, control=True, **READ_ONLY) as robot:
+            for name in ("left", "right") if wheel is None else (wheel,):
+                gains = dataclasses.replace(robot.get_pid(wheel=name), **changes)
+                robot.set_pid(gains, wheel=name)
+            await robot.confirm()
+            return url, via, await _pid_state(robot, wheel)
+
+    url, via, state = run(main)
+    if as_json:
+        emit_json({"port": url, "via_daemon": via is not None, "set": changes, "wheels": state})
+        return
+    _print_pid_state(url, state, f"set on {_robot_note(via)}")
+
+
+def _controllers(
+    enabled: bool, wheel: str | None, port: str | None, direct: bool, as_json: bool
+) -> None:
+    which = _wheel_name(wheel)
+
+    async def main() -> tuple[str, str | None, dict[str, Any]]:
+        via = daemon_for(port, direct)
+        url = via or resolve_port(port)
+        async with open_robot(url, via=via, control=True, **READ_ONLY) as robot:
+            robot.enable_controllers(enabled, wheel=which)
+            await robot.confirm()
+            return url, via, await _pid_state(robot, None)
+
+    url, via, state = run(main)
+    if as_json:
+        emit_json({"port": url, "via_daemon": via is not None, "wheels": state})
+        return
+    _print_pid_state(url, state, f"{'enabled' if enabled else 'disabled'} on {_robot_note(via)}")
+
+
+@pid_app.command("enable")
+def pid_enable(
+    wheel: WheelOption = None,
+    port: PortOption = None,
+    direct: DirectOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the wheel PIDs again (robot.enable_controllers(True)); --wheel for one.
+
+    Through the daemon when ohmni serve runs, else it opens the port.
+
+    Example: ohmni pid enable --wheel left
+    """
+    _controllers(True, wheel, port, direct, as_json)
+
+
+@pid_app.command("disable")
+def pid_disable(
+    wheel: WheelOption = None,
+    port: PortOption = None,
+    direct: DirectOption = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Stop the wheel PIDs (robot.enable_controllers(False)); --wheel for one.
+
+    While a wheel's PID is off the robot stands, drive commands are refused, and only
+    open-loop PWM (ohmni drive --pwm) moves the wheels. Through the daemon when ohmni serve
+    runs, else it opens the port.
+
+    Example: ohmni pid disable --wheel right
+    """
+    _controllers(False, wheel, port, direct, as_json)
 
 
 def _fail(message: str) -> NoReturn:

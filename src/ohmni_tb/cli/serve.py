@@ -82,7 +82,8 @@ def serve(
         typer.Option(
             "--foxglove-control",
             help="With --foxglove: the Foxglove Teleop panel drives the robot (Twist on "
-            "/tb_cmd_vel or /cmd_vel), the Parameters panel sets PID gains and stream rates, "
+            "/tb_cmd_vel: the pure velocity command; /cmd_vel_accel or /cmd_vel: "
+            "acceleration-limited), the Parameters panel sets PID gains and stream rates, "
             "and the reset_odom and neck_move services answer — for a client that first "
             'called /tb_control/unlock with {"token": ...} (the daemon\'s token; on loopback '
             "without one, the default token file's), through the daemon's control lease like "

@@ -73,6 +73,7 @@ from ohmni_tb.robot.wire import (
     encode,
     goal_json,
     parse_client_message,
+    pid_state_json,
     result_json,
     sample_json,
     stats_json,
@@ -624,6 +625,7 @@ class RobotServer:
         "acquire": _acquire,
         "release": _release,
         "port": lambda self, client, args: self._robot.port,
+        "pid_state": lambda self, client, args: _pid_state(self._robot),
     }
 
     def _subscribe(self, client: _Client, message: Subscribe) -> dict[str, Any]:
@@ -671,6 +673,16 @@ class RobotServer:
 
 #: The commands whose effect ``stats`` shows (a rate, a stream on or off, the link): the
 #: shared figures are computed again after them.
+def _pid_state(robot: Robot) -> dict[str, Any]:
+    """The ``pid_state`` service: both wheels' gains, and which PIDs run."""
+    enabled = robot.controllers_enabled()
+    return pid_state_json(
+        robot.get_pid(wheel="left"),
+        robot.get_pid(wheel="right"),
+        (enabled["left"], enabled["right"]),
+    )
+
+
 _CHANGES_STATS: Final = frozenset(
     {"set_rate", "enable_stream", "release_port", "reclaim_port", "connect", "disconnect"}
 )

@@ -67,6 +67,7 @@ __all__ = [
     "DEFAULT_BACKLOG",
     "DEFAULT_HOST",
     "DEFAULT_PORT",
+    "TELEOP_RAMPED",
     "TELEOP_TOPICS",
     "FoxgloveBridge",
     "Teleop",
@@ -76,10 +77,21 @@ __all__ = [
 _log = logging.getLogger("ohmni_tb.foxglove")
 _T = TypeVar("_T")
 
+#: Topics the Foxglove Teleop panel publishes ``geometry_msgs/Twist`` on (JSON), each with
+#: whether its Twists go through the acceleration limits (``Robot.drive``'s ``ramped``):
+#: tb_control's ``/tb_cmd_vel`` is the pure velocity command and ``/cmd_vel_accel`` the
+#: acceleration-limited one; the panel's default ``/cmd_vel`` is ramped, as a person's
+#: button presses want.
+TELEOP_RAMPED: Final[dict[str, bool]] = {
+    "/tb_cmd_vel": False,
+    "/cmd_vel_accel": True,
+    "/cmd_vel": True,
+}
 #: Topics the Foxglove Teleop panel publishes ``geometry_msgs/Twist`` on (JSON).
-TELEOP_TOPICS: Final = ("/tb_cmd_vel", "/cmd_vel")
-#: What the bridge calls, on the event loop, with each Twist: (linear m/s, angular rad/s).
-Teleop = Callable[[float, float], None]
+TELEOP_TOPICS: Final = tuple(TELEOP_RAMPED)
+#: What the bridge calls, on the event loop, with each Twist: (linear m/s, angular rad/s,
+#: ramped: :data:`TELEOP_RAMPED` of its topic).
+Teleop = Callable[[float, float, bool], None]
 
 
 def parse_twist(data: bytes) -> tuple[float, float]:
@@ -121,7 +133,8 @@ class _Listener(ServerListener):
         self._teleop = teleop
         self._control = control
         self._gate = gate
-        self._channels: set[tuple[int, int]] = set()
+        # The clients' Twist channels, each with whether its topic is ramped.
+        self._channels: dict[tuple[int, int], bool] = {}
         self._values: tuple[float, dict[str, float]] | None = None
         self._values_lock = threading.Lock()
         self.server: WebSocketServer | None = None
@@ -131,13 +144,14 @@ class _Listener(ServerListener):
             if channel.encoding != "json":
                 self._status(f"{channel.topic}: only JSON Twists are taken, not {channel.encoding}")
                 return
-            self._channels.add((client.id, channel.id))
+            self._channels[client.id, channel.id] = TELEOP_RAMPED[channel.topic]
 
     def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
-        self._channels.discard((client.id, client_channel_id))
+        self._channels.pop((client.id, client_channel_id), None)
 
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
-        if self._teleop is None or (client.id, client_channel_id) not in self._channels:
+        ramped = self._channels.get((client.id, client_channel_id))
+        if self._teleop is None or ramped is None:
             return
         gate = self._gate
         if gate is not None and not gate.allows(client.id):
@@ -149,7 +163,7 @@ class _Listener(ServerListener):
         except ValueError as exc:
             self._status(f"twist refused: {exc}")
             return
-        self._loop.call_soon_threadsafe(self._teleop, linear, angular)
+        self._loop.call_soon_threadsafe(self._teleop, linear, angular, ramped)
 
     def on_get_parameters(
         self, client: Client, param_names: list[str], request_id: str | None = None
@@ -350,7 +364,8 @@ class FoxgloveBridge(_Served):
         queue: Samples each stream's subscription holds before its oldest are dropped.
         teleop: Take ``geometry_msgs/Twist`` (JSON) that unlocked Foxglove clients
             publish on :data:`TELEOP_TOPICS` (the Teleop panel) and call this with
-            ``linear.x`` and ``angular.z`` on the event loop; ``None`` (default):
+            ``linear.x``, ``angular.z`` and whether the topic is ramped
+            (:data:`TELEOP_RAMPED`) on the event loop; ``None`` (default):
             read-only, clients may not publish. It is the caller's to decide what a Twist
             may move and how often (``ohmni serve --foxglove-control`` coalesces them and
             goes through the daemon's control lease:

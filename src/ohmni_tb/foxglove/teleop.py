@@ -74,7 +74,8 @@ class FoxgloveTeleop:
     """Twists driven through the daemon's control lease, coalesced (module docstring).
 
     An async context manager: its one task sends the Twists and gives the lease back.
-    Call it on the event loop with each Twist (``linear_mps``, ``angular_radps``): it
+    Call it on the event loop with each Twist (``linear_mps``, ``angular_radps``, and
+    ``ramped``: whether it goes through the acceleration limits, as ``Robot.drive``'s): it
     never waits.
 
     Args:
@@ -100,7 +101,7 @@ class FoxgloveTeleop:
         self._client = client
         self._period_s = 1.0 / rate_hz
         self._idle_s = idle_s
-        self._twist: tuple[float, float] | None = None
+        self._twist: tuple[float, float, bool] | None = None
         self._wake = asyncio.Event()
         self._idle_at: float | None = None
         self._retry_at = -float("inf")
@@ -109,11 +110,11 @@ class FoxgloveTeleop:
         self._runner: asyncio.Task[None] | None = None
         self._received = self._sent = self._coalesced = self._refused = 0
 
-    def __call__(self, linear_mps: float, angular_radps: float) -> None:
+    def __call__(self, linear_mps: float, angular_radps: float, ramped: bool = True) -> None:
         self._received += 1
         if self._twist is not None:
             self._coalesced += 1
-        self._twist = (linear_mps, angular_radps)
+        self._twist = (linear_mps, angular_radps, ramped)
         self._wake.set()
 
     async def hold(self) -> None:
@@ -193,14 +194,14 @@ class FoxgloveTeleop:
         self._idle_at = asyncio.get_running_loop().time() + self._idle_s
         self._wake.set()  # the idle wait is measured anew
 
-    async def _send(self, linear_mps: float, angular_radps: float) -> None:
+    async def _send(self, linear_mps: float, angular_radps: float, ramped: bool) -> None:
         loop = asyncio.get_running_loop()
         if not self._client.has_lease and loop.time() < self._retry_at:
             self._refused += 1
             return
         try:
             await self._take()
-            self._client.drive(linear_mps, angular_radps)
+            self._client.drive(linear_mps, angular_radps, ramped=ramped)
         except OhmniError as exc:
             self._refused += 1
             self._retry_at = loop.time() + _LEASE_RETRY_S

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.errors import MotionResult
     from ohmni_tb.herkulex import TorqueControl
+    from ohmni_tb.robot.checks import Wheel
     from ohmni_tb.robot.samples import (
         PidDebugSample,
         RobotStateSample,
@@ -471,18 +472,26 @@ class Robot(RobotStreams):
     # -- motion --------------------------------------------------------------------------------
 
     @abc.abstractmethod
-    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
+    def drive(
+        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+    ) -> LimitedTwist:
         """Set the body velocity target (m/s forward, rad/s counter-clockwise).
 
         Not a coroutine: the control tick drives toward the target, within the speed
-        limits (scaled keeping the curvature; the return value says by how much) and the
-        acceleration limits. The watchdog stops the wheels ``watchdog_s`` after the last
-        call: repeat it (at 5..20 Hz) to keep moving.
+        limits (scaled keeping the curvature; the return value says by how much). With
+        ``ramped`` (default; tb_control's ``/cmd_vel_accel``) the wheel setpoints get
+        there through the acceleration limits; ``ramped=False`` is the pure velocity
+        command (tb_control's ``/tb_cmd_vel``): the setpoints jump to the target at the
+        next control tick, and the wheel PIDs take it from there. Either way the watchdog
+        stops the wheels ``watchdog_s`` after the last call (repeat it at 5..20 Hz to keep
+        moving), and a stop, the watchdog's included, ramps down at the deceleration
+        limits.
 
         Raises:
-            InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, the port is released
-                (:meth:`release_port`), or the robot is closed.
+            InvalidArgumentError: A value is not a finite number, or ``ramped`` not a bool.
+            StateError: An emergency stop is latched, a wheel's controller is off
+                (:meth:`enable_controllers`), the port is released (:meth:`release_port`),
+                or the robot is closed.
         """
 
     @abc.abstractmethod
@@ -494,20 +503,36 @@ class Robot(RobotStreams):
 
         Raises:
             InvalidArgumentError: A value is not a finite number.
-            StateError: An emergency stop is latched, the port is released
-                (:meth:`release_port`), or the robot is closed.
+            StateError: An emergency stop is latched, a wheel's controller is off
+                (:meth:`enable_controllers`), the port is released (:meth:`release_port`),
+                or the robot is closed.
         """
 
     @abc.abstractmethod
-    def drive_pwm(self, left: int, right: int) -> None:
-        """Drive the wheels open loop with raw PWM −1000..1000 (the controllers step aside).
+    def drive_pwm(
+        self,
+        left: float,
+        right: float,
+        *,
+        left_enabled: bool = True,
+        right_enabled: bool = True,
+    ) -> tuple[int, int]:
+        """Drive the wheels open loop with PWM −1000..1000 (the controllers step aside),
+        as tb_control's ``/tb_cmd_motor_pwm`` takes it.
 
         Forward positive for both wheels (the right board's mirror is handled in the
-        packet). The watchdog still applies.
+        packet). A value may be a float: it is rounded once to the whole PWM step the
+        wire carries (:func:`round`: a half goes to the even step, 2.5 → 2). A motor
+        not enabled (tb_control's ``motor_1_enable`` false) gets PWM 0. The watchdog
+        and the speed governor still apply.
+
+        Returns:
+            The PWM sent for (left, right), before the governor.
 
         Raises:
-            InvalidArgumentError: Not ints.
-            OutOfRangeError: Outside −1000..1000; nothing changes.
+            InvalidArgumentError: A value is not a finite number, or a flag not a bool.
+            OutOfRangeError: A value outside −1000..1000 (a disabled motor's too);
+                nothing changes.
             StateError: An emergency stop is latched, the port is released
                 (:meth:`release_port`), or the robot is closed.
         """
@@ -544,29 +569,53 @@ class Robot(RobotStreams):
         """
 
     @abc.abstractmethod
-    def enable_controllers(self, enabled: bool = True) -> None:
-        """Run the wheel PIDs (default), or not: then only :meth:`drive_pwm` moves.
+    def enable_controllers(self, enabled: bool = True, wheel: Wheel | None = None) -> None:
+        """Run the wheel PIDs (default), or not: ``wheel`` ``"left"`` or ``"right"`` for
+        one of them, ``None`` for both (tb_control's ``enable_controllers``).
+
+        While a wheel's controller is off, :meth:`drive`, :meth:`drive_wheels` and the
+        motion goals are refused (:class:`~ohmni_tb.errors.StateError`) and only
+        :meth:`drive_pwm` moves the wheels. Turning one off ends a motion goal and drops
+        a :meth:`drive` or :meth:`drive_wheels` target: the robot stands until commanded
+        again.
 
         Raises:
-            InvalidArgumentError: ``enabled`` is not a bool.
+            InvalidArgumentError: ``enabled`` is not a bool, or ``wheel`` is not
+                ``"left"``, ``"right"`` or ``None``.
             RobotClosedError: The robot is closed.
         """
 
     @abc.abstractmethod
-    def get_pid(self) -> PidGains:
-        """The wheel PIDs' gains (both wheels share them). Not awaited (a remote robot's
-        copy is fetched at connecting, after its own :meth:`set_pid` and with the stats)."""
+    def controllers_enabled(self) -> dict[str, bool]:
+        """Whether each wheel's PID runs: ``{"left": bool, "right": bool}``. Not awaited
+        (a remote robot's copy is refreshed as :meth:`get_pid`'s)."""
 
     @abc.abstractmethod
-    def set_pid(self, gains: PidGains) -> None:
-        """Change the wheel PIDs' gains, bumplessly (the output does not jump).
+    def get_pid(self, wheel: Wheel | None = None) -> PidGains:
+        """A wheel PID's gains: ``wheel`` ``"left"`` or ``"right"``; ``None`` (default)
+        for the gains both wheels share.
+
+        Not awaited (a remote robot's copy is fetched at connecting, after its own
+        :meth:`set_pid` and with the stats).
+
+        Raises:
+            InvalidArgumentError: ``wheel`` is not ``"left"``, ``"right"`` or ``None``.
+            StateError: ``wheel`` is ``None`` and the two wheels' gains differ (after a
+                :meth:`set_pid` of one wheel): the message shows both; name a wheel.
+        """
+
+    @abc.abstractmethod
+    def set_pid(self, gains: PidGains, wheel: Wheel | None = None) -> None:
+        """Change a wheel PID's gains, bumplessly (the output does not jump): ``wheel``
+        ``"left"`` or ``"right"``, ``None`` (default) for both.
 
         Each gain has one allowed range, the same as the ``pid_*`` settings'
         (:data:`~ohmni_tb.control.defaults.WHEEL_GAIN_RANGES`). Whatever the gains, a
         wheel measured faster than ``max_wheel_mps`` gets no drive power.
 
         Raises:
-            InvalidArgumentError: Not a :class:`PidGains`.
+            InvalidArgumentError: Not a :class:`PidGains`, or ``wheel`` is not
+                ``"left"``, ``"right"`` or ``None``.
             OutOfRangeError: A gain is outside its range; nothing changes.
             RobotClosedError: The robot is closed.
         """

@@ -5,10 +5,13 @@ each, so a bad value raises the same error with the same message either way
 
 from __future__ import annotations
 
-from ohmni_tb._checks import bounded, check_seconds, integer, number
+import math
+from typing import Literal
+
+from ohmni_tb._checks import bounded, check_seconds, integer, number, show
 from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
 from ohmni_tb.herkulex.registers import EEP, RAM, Register, resolve
 from ohmni_tb.protocol import BROADCAST_ID, Memory
 from ohmni_tb.protocol.drive import PWM_LIMIT
@@ -17,17 +20,23 @@ from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
 __all__ = [
     "RELEASE_MAX_S",
     "RELEASE_MIN_S",
+    "WHEELS",
+    "Wheel",
     "check_board_id",
     "check_enabled",
     "check_gains",
     "check_port_name",
     "check_pose",
-    "check_pwm",
+    "check_ramped",
     "check_rate",
     "check_release",
     "check_servo_id",
     "check_servo_write",
     "check_stream",
+    "check_wheel",
+    "gains_of",
+    "pwm_command",
+    "wheel_index",
 ]
 
 #: A timed port release (``Robot.release_port``), seconds: long enough for the other
@@ -71,14 +80,52 @@ def check_rate(name: str, hz: float) -> float:
     return float(hz)
 
 
-def check_pwm(left: int, right: int) -> None:
-    """Raises InvalidArgumentError or OutOfRangeError: a PWM that is not an int in
-    −1000..1000."""
-    for name, value in (("left", left), ("right", right)):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise InvalidArgumentError(f"{name} PWM must be an int, not {value!r}")
+def pwm_command(
+    left: float, right: float, left_enabled: bool = True, right_enabled: bool = True
+) -> tuple[int, int]:
+    """The PWM ``Robot.drive_pwm`` puts on the wire: each value checked, then rounded to
+    the nearest whole step (:func:`round`: a half goes to the even step, 0.5 → 0,
+    1.5 → 2), and a motor that is not enabled gets 0 (tb_control's ``motor_1_enable``).
+
+    Raises:
+        InvalidArgumentError: A value is not a finite number, or a flag not a bool.
+        OutOfRangeError: A value is outside −1000..1000 (checked even for a disabled motor).
+    """
+    pwm = []
+    for name, value, enabled in (
+        ("left", left, left_enabled),
+        ("right", right, right_enabled),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise InvalidArgumentError(f"{name} PWM must be a number, not {show(value)}")
+        if not isinstance(enabled, bool):
+            raise InvalidArgumentError(f"{name}_enabled must be True or False, not {show(enabled)}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InvalidArgumentError(f"{name} PWM={value!r} is not a finite number")
         if not -PWM_LIMIT <= value <= PWM_LIMIT:
             raise OutOfRangeError(f"{name} PWM", value, -PWM_LIMIT, PWM_LIMIT)
+        pwm.append(round(value) if enabled else 0)
+    return pwm[0], pwm[1]
+
+
+#: A wheel by name (``Robot.set_pid``, ``get_pid``, ``enable_controllers``): ``None`` is both.
+Wheel = Literal["left", "right"]
+#: The wheels by name, in their index order (0 left, 1 right).
+WHEELS: tuple[Wheel, Wheel] = ("left", "right")
+
+
+def check_wheel(wheel: object) -> Wheel | None:
+    """``wheel`` for the per-wheel calls: ``"left"``, ``"right"`` or ``None`` (both).
+
+    Raises:
+        InvalidArgumentError: Anything else.
+    """
+    if wheel is None:
+        return None
+    for name in WHEELS:
+        if isinstance(wheel, str) and wheel == name:
+            return name
+    raise InvalidArgumentError(f"wheel must be 'left', 'right' or None (both), not {show(wheel)}")
 
 
 def check_gains(gains: object) -> PidGains:
@@ -185,3 +232,38 @@ def check_port_name(port: object) -> None:
             "port must be a serial device or URL (/dev/ttyUSB0, serial://…, sim://, auto), "
             f"not {port!r}"
         )
+
+
+def wheel_index(wheel: Wheel | None) -> int | None:
+    """A checked wheel's index (0 left, 1 right), ``None`` for both."""
+    return None if wheel is None else WHEELS.index(wheel)
+
+
+def gains_of(wheel: Wheel | None, left: PidGains, right: PidGains) -> PidGains:
+    """What ``Robot.get_pid(wheel)`` answers, from both wheels' gains: one wheel's, or
+    (``None``) the gains both wheels share.
+
+    Raises:
+        StateError: ``wheel`` is ``None`` and the wheels' gains differ (the message
+            shows both and says to name a wheel).
+    """
+    if wheel is not None:
+        return left if wheel == "left" else right
+    if left != right:
+        raise StateError(
+            f"the wheels' PID gains differ (left {_shown_gains(left)}; right "
+            f"{_shown_gains(right)}): ask get_pid(wheel='left') or get_pid(wheel='right')"
+        )
+    return left
+
+
+def check_ramped(ramped: object) -> None:
+    """Raises InvalidArgumentError: ``ramped`` (``Robot.drive``) is not a bool."""
+    if not isinstance(ramped, bool):
+        raise InvalidArgumentError(f"ramped must be True or False, not {show(ramped)}")
+
+
+def _shown_gains(gains: PidGains) -> str:
+    return ", ".join(
+        f"{name}={getattr(gains, name):g}" for name in ("kp", "ki", "kd", "kff", "ff_offset")
+    )

@@ -89,7 +89,10 @@ class ControlLoop:
         self._target = Twist()
         self._target_wheels = WheelSpeeds(0.0, 0.0)
         self._target_pwm = (0, 0)
-        self._controllers = config.controllers
+        # Each wheel's PID on or off (tb_control's enable_controllers, per wheel).
+        self._enabled = [config.controllers, config.controllers]
+        # Whether the twist target goes through the acceleration limiter (drive's ramped).
+        self._ramped = True
         self._pwm = (0, 0)
         self._last_step_s: float | None = None
         self._last_command_s = -math.inf
@@ -141,8 +144,25 @@ class ControlLoop:
         if self._state.estopped:
             raise StateError("an emergency stop is latched: call robot.clear_estop() first")
 
-    def drive(self, twist: Twist) -> LimitedTwist:
-        """Make ``twist``, within the speed limits, the target (``Robot.drive``)."""
+    def check_closed_loop(self, method: str) -> None:
+        """Refuse a closed-loop drive command (``drive``, ``drive_wheels``, a motion goal)
+        while a wheel's controller is off: that wheel would get no power, and the robot
+        would not go where it was told."""
+        off = [name for name, on in zip(("left", "right"), self._enabled, strict=True) if not on]
+        if off:
+            which = (
+                "both wheels' controllers are"
+                if len(off) == 2
+                else f"the {off[0]} wheel's controller is"
+            )
+            raise StateError(
+                f"{method} needs the wheel controllers, and {which} off: call "
+                "robot.enable_controllers(True) first (drive_pwm() drives without them)"
+            )
+
+    def drive(self, twist: Twist, *, ramped: bool = True) -> LimitedTwist:
+        """Make ``twist``, within the speed limits, the target (``Robot.drive``): through
+        the acceleration limiter, or (``ramped=False``) at once."""
         limited = limit_twist(twist, self._limits, self._drive)
         if limited.limited:
             self._state.clamped += 1
@@ -152,9 +172,10 @@ class ControlLoop:
                 twist.angular_radps,
                 limited.scale,
             )
-        changed = self._mode != "twist" or self._target != limited.twist
+        changed = self._mode != "twist" or self._target != limited.twist or self._ramped != ramped
         self._mode = "twist"
         self._target = limited.twist
+        self._ramped = ramped
         self._commanded(changed)
         return limited
 
@@ -207,20 +228,29 @@ class ControlLoop:
             self._state.estopped = False
             self._state.publish("emergency stop cleared")
 
-    def enable_controllers(self, enabled: bool) -> None:
-        """Run the wheel PIDs, or not (``Robot.enable_controllers``, checked there)."""
-        self._controllers = enabled
+    def enable_controllers(self, enabled: bool, index: int | None = None) -> None:
+        """Run wheel ``index``'s PID (0 left, 1 right; ``None``: both), or not
+        (``Robot.enable_controllers``, checked there). Turning one off drops a closed-loop
+        target: the robot stands until commanded again."""
+        for i in (0, 1) if index is None else (index,):
+            self._enabled[i] = enabled
+        if not enabled and self._mode != "pwm":
+            self.stop_targets()
         self._reset_pids()
 
-    @property
-    def gains(self) -> PidGains:
-        """The wheel PIDs' gains (both wheels share them)."""
-        return self._wheels[0].pid.gains
+    def controllers(self) -> tuple[bool, bool]:
+        """Whether each wheel's PID runs: (left, right)."""
+        return self._enabled[0], self._enabled[1]
 
-    def set_gains(self, gains: PidGains) -> None:
-        """Change both wheel PIDs' gains, bumplessly (``Robot.set_pid``, checked there)."""
-        for wheel in self._wheels:
-            wheel.pid.set_gains(gains)
+    def gains_of(self, index: int) -> PidGains:
+        """Wheel ``index``'s PID gains (0 left, 1 right)."""
+        return self._wheels[index].pid.gains
+
+    def set_gains(self, gains: PidGains, index: int | None = None) -> None:
+        """Change wheel ``index``'s PID gains (``None``: both), bumplessly
+        (``Robot.set_pid``, checked there)."""
+        for i in (0, 1) if index is None else (index,):
+            self._wheels[i].pid.set_gains(gains)
 
     def halt(self) -> None:
         """Drop the drive targets, the ramp and the PIDs' state (the link went)."""
@@ -242,6 +272,8 @@ class ControlLoop:
         self._target = Twist()
         self._target_wheels = WheelSpeeds(0.0, 0.0)
         self._target_pwm = (0, 0)
+        # A stop ramps down at the deceleration limits, whatever the last drive was.
+        self._ramped = True
         if self._mode == "pwm":
             self._mode = "twist"
 
@@ -283,7 +315,7 @@ class ControlLoop:
             self._reset_pids()
             self._pwm = (0, 0)
             return self._pwm
-        if self._mode == "pwm" or not self._controllers:
+        if self._mode == "pwm" or not all(self._enabled):
             self._limiter.reset()
             self._pwm = self._governed(*self._target_pwm) if self._mode == "pwm" else (0, 0)
             return self._pwm
@@ -291,6 +323,13 @@ class ControlLoop:
             wheels = self._target_wheels
             twist = self._drive.twist(wheels)
             self._limiter.reset(twist)
+        elif not self._ramped:
+            # The pure velocity command: the setpoints jump to the (limited) target.
+            twist = self._target
+            self._limiter.reset(twist)
+            wheels = saturate_wheel_speeds(
+                self._drive.wheel_speeds(twist), self._limits.max_wheel_mps
+            )
         else:
             twist = self._limiter.step(self._target, dt)
             wheels = saturate_wheel_speeds(

@@ -53,13 +53,19 @@ from ohmni_tb.protocol.core import set_light_ring
 from ohmni_tb.protocol.drive import wheel_command
 from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
+    WHEELS,
+    Wheel,
     check_enabled,
     check_gains,
     check_port_name,
     check_pose,
-    check_pwm,
+    check_ramped,
     check_rate,
     check_release,
+    check_wheel,
+    gains_of,
+    pwm_command,
+    wheel_index,
 )
 from ohmni_tb.robot.control_loop import ControlLoop
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
@@ -102,7 +108,7 @@ class LocalRobot(Robot):
         self._discovery.zero_offset = self._zero_offset_set
         self._discovery.moved = self._renumbering.moved
         # Motion goals: every other motion command preempts the one under way.
-        self._motion = MotionGoals(self, check=self._control.check_can_drive)
+        self._motion = MotionGoals(self, check=self._check_goal)
         self._port = config.port
         #: Why the stop on the way out was not confirmed, if it was not (also raised
         #: from ``async with`` when the block itself ended without an error).
@@ -299,26 +305,39 @@ class LocalRobot(Robot):
 
     # -- motion commands (public) ----------------------------------------------------------
 
-    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
+    def drive(
+        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+    ) -> LimitedTwist:
         """The body velocity target (:meth:`Robot.drive <ohmni_tb.robot.api.Robot.drive>`)."""
         twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
+        check_ramped(ramped)
         self._control.check_can_drive()
+        self._control.check_closed_loop("drive()")
         self._motion.preempt("drive")
-        return self._control.drive(twist)
+        return self._control.drive(twist, ramped=ramped)
 
     def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
         """Each wheel's speed target (the contract: ohmni_tb.robot.api.Robot)."""
         asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
         self._control.check_can_drive()
+        self._control.check_closed_loop("drive_wheels()")
         self._motion.preempt("drive_wheels")
         return self._control.drive_wheels(asked)
 
-    def drive_pwm(self, left: int, right: int) -> None:
+    def drive_pwm(
+        self,
+        left: float,
+        right: float,
+        *,
+        left_enabled: bool = True,
+        right_enabled: bool = True,
+    ) -> tuple[int, int]:
         """Open-loop PWM (:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>`)."""
-        check_pwm(left, right)
+        pwm = pwm_command(left, right, left_enabled, right_enabled)
         self._control.check_can_drive()
         self._motion.preempt("drive_pwm")
-        self._control.drive_pwm(left, right)
+        self._control.drive_pwm(*pwm)
+        return pwm
 
     def stop(self) -> None:
         """Target zero, the first braking command at once."""
@@ -337,22 +356,28 @@ class LocalRobot(Robot):
         self._state.check_open()
         self._control.clear_estop()
 
-    def enable_controllers(self, enabled: bool = True) -> None:
+    def enable_controllers(self, enabled: bool = True, wheel: Wheel | None = None) -> None:
         """The wheel PIDs on or off (the contract: ohmni_tb.robot.api.Robot)."""
         self._state.check_open()
         check_enabled(enabled)
+        index = wheel_index(check_wheel(wheel))
         if not enabled:
             self._motion.preempt("enable_controllers")
-        self._control.enable_controllers(enabled)
+        self._control.enable_controllers(enabled, index)
 
-    def get_pid(self) -> PidGains:
-        """The wheel PIDs' gains (both wheels share them)."""
-        return self._control.gains
+    def controllers_enabled(self) -> dict[str, bool]:
+        """Whether each wheel's PID runs (the contract: ohmni_tb.robot.api.Robot)."""
+        return dict(zip(WHEELS, self._control.controllers(), strict=True))
 
-    def set_pid(self, gains: PidGains) -> None:
+    def get_pid(self, wheel: Wheel | None = None) -> PidGains:
+        """The wheel PIDs' gains (the contract: ohmni_tb.robot.api.Robot)."""
+        return gains_of(check_wheel(wheel), self._control.gains_of(0), self._control.gains_of(1))
+
+    def set_pid(self, gains: PidGains, wheel: Wheel | None = None) -> None:
         """New wheel PID gains, bumplessly (the contract: ohmni_tb.robot.api.Robot)."""
         self._state.check_open()
-        self._control.set_gains(check_gains(gains))
+        checked = check_gains(gains)
+        self._control.set_gains(checked, wheel_index(check_wheel(wheel)))
 
     def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
         """Set the odometry pose (the contract: ohmni_tb.robot.api.Robot)."""
@@ -361,6 +386,11 @@ class LocalRobot(Robot):
         # A goal steering by the odometry cannot go on in a new frame.
         self._motion.preempt("reset_odometry", stop=True)
         self._counts.reset_odometry(*pose)
+
+    def _check_goal(self) -> None:
+        """A motion goal may start: the robot can drive, closed loop."""
+        self._control.check_can_drive()
+        self._control.check_closed_loop("a motion goal")
 
     # -- motion goals (public): ohmni_tb.robot.motion ---------------------------------------
 

@@ -68,17 +68,22 @@ from ohmni_tb.herkulex.units import check_zero_offset_raw
 from ohmni_tb.robot._connection import DEFAULT_TIMEOUT_S, DaemonConnection, open_websocket
 from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
+    WHEELS,
+    Wheel,
     check_board_id,
     check_enabled,
     check_gains,
     check_port_name,
     check_pose,
-    check_pwm,
+    check_ramped,
     check_rate,
     check_release,
     check_servo_id,
     check_servo_write,
     check_stream,
+    check_wheel,
+    gains_of,
+    pwm_command,
 )
 from ohmni_tb.robot.devices import torque_mode
 from ohmni_tb.robot.samples import STREAM_NAMES
@@ -115,7 +120,7 @@ from ohmni_tb.robot.wire import (
     ZeroOffsetArgs,
     goal_from_json,
     info_from_json,
-    pid_from_json,
+    pid_state_from_json,
     sample_from_json,
     schedule_from_json,
     stats_from_json,
@@ -372,12 +377,18 @@ class RemoteRobot(Robot):
 
     # -- motion ------------------------------------------------------------------------------
 
-    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> LimitedTwist:
+    def drive(
+        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+    ) -> LimitedTwist:
         """:meth:`Robot.drive <ohmni_tb.robot.api.Robot.drive>`, scaled here as the daemon's
         robot will scale it."""
         twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
+        check_ramped(ramped)
         self._command(
-            "drive", DriveArgs(linear_mps=twist.linear_mps, angular_radps=twist.angular_radps)
+            "drive",
+            DriveArgs(
+                linear_mps=twist.linear_mps, angular_radps=twist.angular_radps, ramped=ramped
+            ),
         )
         return limit_twist(twist, self._limits, self._drive)
 
@@ -389,10 +400,24 @@ class RemoteRobot(Robot):
         )
         return saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
 
-    def drive_pwm(self, left: int, right: int) -> None:
-        """:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>`."""
-        check_pwm(left, right)
-        self._command("drive_pwm", DrivePwmArgs(left=left, right=right))
+    def drive_pwm(
+        self,
+        left: float,
+        right: float,
+        *,
+        left_enabled: bool = True,
+        right_enabled: bool = True,
+    ) -> tuple[int, int]:
+        """:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>` (converted here as
+        the daemon's robot converts it)."""
+        pwm = pwm_command(left, right, left_enabled, right_enabled)
+        self._command(
+            "drive_pwm",
+            DrivePwmArgs(
+                left=left, right=right, left_enabled=left_enabled, right_enabled=right_enabled
+            ),
+        )
+        return pwm
 
     def stop(self) -> None:
         """:meth:`Robot.stop <ohmni_tb.robot.api.Robot.stop>` (while the connection is down
@@ -409,28 +434,52 @@ class RemoteRobot(Robot):
         """:meth:`Robot.clear_estop <ohmni_tb.robot.api.Robot.clear_estop>`."""
         self._command("clear_estop")
 
-    def enable_controllers(self, enabled: bool = True) -> None:
+    def enable_controllers(self, enabled: bool = True, wheel: Wheel | None = None) -> None:
         """:meth:`Robot.enable_controllers <ohmni_tb.robot.api.Robot.enable_controllers>`."""
         self._check_open()
         check_enabled(enabled)
-        self._command("enable_controllers", EnabledArgs(enabled=enabled))
+        checked = check_wheel(wheel)
+        future = self._command("enable_controllers", EnabledArgs(enabled=enabled, wheel=checked))
+        future.add_done_callback(lambda done: self._enabled_done(done, enabled, checked))
 
-    def get_pid(self) -> PidGains:
+    def controllers_enabled(self) -> dict[str, bool]:
+        """Whether each of the daemon's wheel PIDs runs, as last fetched or set."""
+        return dict(zip(WHEELS, self._figures.read().enabled, strict=True))
+
+    def get_pid(self, wheel: Wheel | None = None) -> PidGains:
         """The daemon's wheel PID gains, as last fetched or set."""
-        return self._figures.read().pid
+        left, right = self._figures.read().pid
+        return gains_of(check_wheel(wheel), left, right)
 
-    def set_pid(self, gains: PidGains) -> None:
+    def set_pid(self, gains: PidGains, wheel: Wheel | None = None) -> None:
         """:meth:`Robot.set_pid <ohmni_tb.robot.api.Robot.set_pid>`."""
         self._check_open()
         checked = check_gains(gains)
-        future = self._command("set_pid", PidArgs.of(checked))
+        which = check_wheel(wheel)
+        future = self._command("set_pid", PidArgs.of(checked, which))
         future.add_done_callback(
-            lambda done: self._set_pid_done(done, checked),
+            lambda done: self._set_pid_done(done, checked, which),
         )
 
-    def _set_pid_done(self, future: asyncio.Future[Any], gains: PidGains) -> None:
+    def _set_pid_done(
+        self, future: asyncio.Future[Any], gains: PidGains, wheel: Wheel | None
+    ) -> None:
         if not future.cancelled() and future.exception() is None:
-            self._figures.pid = gains
+            left, right = self._figures.pid
+            self._figures.pid = (
+                gains if wheel != "right" else left,
+                gains if wheel != "left" else right,
+            )
+
+    def _enabled_done(
+        self, future: asyncio.Future[Any], enabled: bool, wheel: Wheel | None
+    ) -> None:
+        if not future.cancelled() and future.exception() is None:
+            left, right = self._figures.enabled
+            self._figures.enabled = (
+                enabled if wheel != "right" else left,
+                enabled if wheel != "left" else right,
+            )
 
     def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
         """:meth:`Robot.reset_odometry <ohmni_tb.robot.api.Robot.reset_odometry>`."""
@@ -817,7 +866,9 @@ class _Figures:
     while they are read, else every :data:`STATS_IDLE_REFRESH_S`."""
 
     stats: RobotStats
-    pid: PidGains
+    #: Each wheel's gains (left, right), and whether each wheel's PID runs.
+    pid: tuple[PidGains, PidGains]
+    enabled: tuple[bool, bool]
 
     def __init__(self, connection: DaemonConnection) -> None:
         self._connection = connection
@@ -834,11 +885,15 @@ class _Figures:
         schedule, stats, pid = await asyncio.gather(
             self._connection.call("schedule"),
             self._connection.call("stats"),
-            self._connection.call("get_pid"),
+            self._connection.call("pid_state"),
         )
         self.schedule = schedule_from_json(schedule)
         self.stats = stats_from_json(stats)
-        self.pid = pid_from_json(pid)
+        self._take_pid(pid)
+
+    def _take_pid(self, data: Any) -> None:
+        left, right, self.enabled = pid_state_from_json(data)
+        self.pid = (left, right)
 
     async def refresh_loop(self) -> None:
         """The figures and the gains again every :data:`STATS_REFRESH_S` while read, else
@@ -855,12 +910,12 @@ class _Figures:
             fetched_s = now
             try:
                 stats, pid = await asyncio.gather(
-                    connection.call("stats"), connection.call("get_pid")
+                    connection.call("stats"), connection.call("pid_state")
                 )
             except OhmniError:
                 continue  # the connection's trouble: the next call says
             self.stats = stats_from_json(stats)
-            self.pid = pid_from_json(pid)
+            self._take_pid(pid)
 
 
 class _Mirror(Topic[Any]):

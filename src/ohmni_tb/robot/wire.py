@@ -108,6 +108,8 @@ __all__ = [
     "Subscribe",
     "TorqueArgs",
     "Unsubscribe",
+    "WheelArgs",
+    "WheelName",
     "ZeroOffsetArgs",
     "call_args",
     "encode",
@@ -118,6 +120,8 @@ __all__ = [
     "parse_client_message",
     "parse_server_message",
     "pid_from_json",
+    "pid_state_from_json",
+    "pid_state_json",
     "raised_error",
     "result_json",
     "sample_from_json",
@@ -215,11 +219,17 @@ class AcquireArgs(_Request):
     steal: bool = False
 
 
+#: A wheel by name, or ``null`` for both (``set_pid``, ``get_pid``, ``enable_controllers``).
+WheelName = Literal["left", "right"] | None
+
+
 class DriveArgs(_Request):
-    """``drive``: body velocity target, as :meth:`Robot.drive`."""
+    """``drive``: body velocity target, as :meth:`Robot.drive` (``ramped`` false: the
+    pure velocity command, no acceleration limit)."""
 
     linear_mps: Number
     angular_radps: Number = 0.0
+    ramped: bool = True
 
 
 class DriveWheelsArgs(_Request):
@@ -230,16 +240,26 @@ class DriveWheelsArgs(_Request):
 
 
 class DrivePwmArgs(_Request):
-    """``drive_pwm``: open-loop PWM −1000..1000, as :meth:`Robot.drive_pwm`."""
+    """``drive_pwm``: open-loop PWM −1000..1000 (numbers, rounded to whole steps), and
+    whether each motor is enabled (a disabled one gets 0), as :meth:`Robot.drive_pwm`."""
 
-    left: int
-    right: int
+    left: Number
+    right: Number
+    left_enabled: bool = True
+    right_enabled: bool = True
 
 
 class EnabledArgs(_Request):
-    """``enable_controllers``: on or off."""
+    """``enable_controllers``: on or off, for one ``wheel`` or (``null``) both."""
 
     enabled: bool = True
+    wheel: WheelName = None
+
+
+class WheelArgs(_Request):
+    """``get_pid``: one ``wheel``'s gains, or (``null``) the gains both share."""
+
+    wheel: WheelName = None
 
 
 class PidArgs(_Request):
@@ -251,14 +271,25 @@ class PidArgs(_Request):
     kd: Number
     kff: Number = 0.0
     ff_offset: Number = 0.0
+    wheel: WheelName = None
 
     def call_kwargs(self) -> dict[str, Any]:
-        return {"gains": PidGains(self.kp, self.ki, self.kd, self.kff, self.ff_offset)}
+        return {
+            "gains": PidGains(self.kp, self.ki, self.kd, self.kff, self.ff_offset),
+            "wheel": self.wheel,
+        }
 
     @classmethod
-    def of(cls, gains: PidGains) -> PidArgs:
-        """The arguments that set ``gains``."""
-        return cls(kp=gains.kp, ki=gains.ki, kd=gains.kd, kff=gains.kff, ff_offset=gains.ff_offset)
+    def of(cls, gains: PidGains, wheel: Literal["left", "right"] | None = None) -> PidArgs:
+        """The arguments that set ``gains`` (for ``wheel``, or both)."""
+        return cls(
+            kp=gains.kp,
+            ki=gains.ki,
+            kd=gains.kd,
+            kff=gains.kff,
+            ff_offset=gains.ff_offset,
+            wheel=wheel,
+        )
 
 
 class PoseArgs(_Request):
@@ -462,7 +493,18 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     ),
     "latest": MethodSpec(LatestArgs, False, "the topic's sample (see samples), or null", "latest"),
     "schedule": MethodSpec(NoArgs, False, "[[stream, hz, phase_s, line_time_s], ...]", "schedule"),
-    "get_pid": MethodSpec(NoArgs, False, "{kp, ki, kd, kff, ff_offset}", "get_pid"),
+    "get_pid": MethodSpec(
+        WheelArgs,
+        False,
+        "{kp, ki, kd, kff, ff_offset}: the wheel's, or the gains both share (an error "
+        "when they differ)",
+        "get_pid",
+    ),
+    "pid_state": MethodSpec(
+        NoArgs,
+        False,
+        "{left: {kp, ki, kd, kff, ff_offset}, right: {…}, enabled: {left: bool, right: bool}}",
+    ),
     "config": MethodSpec(NoArgs, False, "the daemon's RobotConfig: every setting by name"),
     "lease": MethodSpec(NoArgs, False, "{holder: peer or null, you: bool}"),
     # The lease itself.
@@ -478,7 +520,7 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     "drive_wheels": MethodSpec(
         DriveWheelsArgs, True, "{left_mps, right_mps} driven", "drive_wheels"
     ),
-    "drive_pwm": MethodSpec(DrivePwmArgs, True, "null", "drive_pwm"),
+    "drive_pwm": MethodSpec(DrivePwmArgs, True, "[left, right]: the PWM sent", "drive_pwm"),
     "clear_estop": MethodSpec(NoArgs, True, "null", "clear_estop"),
     "enable_controllers": MethodSpec(EnabledArgs, True, "null", "enable_controllers"),
     "set_pid": MethodSpec(PidArgs, True, "null", "set_pid"),
@@ -886,6 +928,25 @@ def pid_from_json(data: Any) -> PidGains:
     return PidGains(**data)
 
 
+def pid_state_json(left: PidGains, right: PidGains, enabled: tuple[bool, bool]) -> dict[str, Any]:
+    """``pid_state``'s data: each wheel's gains, and whether each wheel's PID runs."""
+    return {
+        "left": _gains_json(left),
+        "right": _gains_json(right),
+        "enabled": {"left": enabled[0], "right": enabled[1]},
+    }
+
+
+def pid_state_from_json(data: Any) -> tuple[PidGains, PidGains, tuple[bool, bool]]:
+    """``pid_state``'s data as (left gains, right gains, (left on, right on))."""
+    enabled = data["enabled"]
+    return (
+        PidGains(**data["left"]),
+        PidGains(**data["right"]),
+        (bool(enabled["left"]), bool(enabled["right"])),
+    )
+
+
 def schedule_from_json(data: Any) -> list[tuple[str, float, float, float]]:
     """``schedule``'s data as :meth:`Robot.schedule`'s rows."""
     return [(str(name), float(hz), float(phase), float(cost)) for name, hz, phase, cost in data]
@@ -1004,6 +1065,7 @@ _RESULTS: dict[str, Any] = {
         "scale": limited.scale,
     },
     "drive_wheels": lambda wheels: {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps},
+    "drive_pwm": list,
     "drive_distance": goal_json,
     "rotate": goal_json,
     "go_to": goal_json,
