@@ -15,7 +15,13 @@ import pytest
 
 from ohmni_tb import Robot
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import MotionPreemptedError, OhmniError, RobotClosedError, StateError
+from ohmni_tb.errors import (
+    MotionPreemptedError,
+    OhmniError,
+    OutOfRangeError,
+    RobotClosedError,
+    StateError,
+)
 from ohmni_tb.herkulex import parse_reply, ram_read
 from ohmni_tb.robot import SampleStream, ServoSample
 from ohmni_tb.sim.clock import run_virtual
@@ -185,6 +191,32 @@ def test_the_neck_moves_to_its_target(kind: str) -> None:
     assert isinstance(arrived, ServoSample)
     assert abs(arrived.position_raw - 400) <= 5
     assert abs(true_raw - 400) <= 5
+
+
+def test_the_longest_playtime_is_taken_and_one_beyond_it_refused(kind: str) -> None:
+    # One playtime range everywhere: 0..2.8448 s (254 ticks of 11.2 ms), both ends in.
+    async def check(robot: Robot, truth: SimRobot) -> tuple[float, int, str]:
+        loop = asyncio.get_running_loop()
+        await robot.neck.move(600, playtime_s=0.3, wait=True)
+        start_s = loop.time()
+        arrived = await robot.neck.move(400, playtime_s=2.8448, wait=True)
+        took_s = loop.time() - start_s
+        assert isinstance(arrived, ServoSample)
+        with pytest.raises(OutOfRangeError) as refused:
+            await robot.neck.move(600, playtime_s=2.85)
+        await asyncio.sleep(0.5)
+        neck = truth.neck
+        assert isinstance(neck, SimServo)
+        reply = neck.handle(ram_read(neck.sid, "calibrated_position"), truth.sync())
+        assert reply is not None
+        return took_s, parse_reply(reply).value("calibrated_position"), str(refused.value)
+
+    took_s, true_raw, message = run(kind, check)
+    # The servo took the whole 254 ticks (2.8448 s) to get there, not a clamped or
+    # shortened playtime; the read-back comes within a poll or two after.
+    assert 2.8448 <= took_s <= 2.8448 + 0.2
+    assert "playtime_s=2.85 is out of range: allowed 0.0..2.8448 s" in message
+    assert abs(true_raw - 400) <= 5  # the refused move sent nothing
 
 
 def test_a_closed_robot_refuses_every_call_with_one_error(kind: str) -> None:

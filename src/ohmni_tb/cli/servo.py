@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any, TypeVar
 
@@ -28,11 +27,10 @@ from ohmni_tb.herkulex.registers import Register, RegisterMap
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import (
     MAX_PLAYTIME_S,
-    MAX_PLAYTIME_TICKS,
     POSITION_MAX_RAW,
-    TICK_S,
     angle_deg_from_raw,
     playtime_s_from_ticks,
+    playtime_ticks_from_s,
 )
 from ohmni_tb.protocol import Memory, flag_names
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
@@ -53,8 +51,6 @@ _NECK = str(int(DeviceId.HERKULEX_NECK))
 _SCAN_TIMEOUT_S = 0.01
 #: The largest servo id (0xFE is broadcast).
 _MAX_SID = 0xFD
-#: Playtimes from here up would round to 255 ticks, past the largest the servo takes.
-_PLAYTIME_LIMIT_S = (MAX_PLAYTIME_TICKS + 0.5) * TICK_S
 
 
 def _sid(text: str) -> int:
@@ -116,19 +112,19 @@ def _factory(name: str) -> int:
 
 
 def _playtime_ticks(playtime: float) -> int:
-    """``--playtime`` in 11.2 ms ticks, the unit the servo is sent.
+    """``--playtime`` in 11.2 ms ticks, the unit the servo is sent: the one range and
+    rounding of every playtime (:func:`~ohmni_tb.herkulex.units.playtime_ticks_from_s`).
 
     Raises:
-        typer.BadParameter: Not a number that rounds into 0..254 ticks (NaN, infinite,
-            negative or too long).
+        typer.BadParameter: Outside 0..2.8448 s, NaN or infinite.
     """
-    # NaN fails both comparisons; -0.0 is 0.
-    if not (math.isfinite(playtime) and 0.0 <= playtime < _PLAYTIME_LIMIT_S):
+    try:
+        return playtime_ticks_from_s(playtime)
+    except InvalidArgumentError:
         raise typer.BadParameter(
-            f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:.4f} s "
-            f"(11.2 ms steps)"
-        )
-    return min(round(playtime / TICK_S), MAX_PLAYTIME_TICKS)
+            f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:g} s "
+            f"(sent in whole 11.2 ms ticks)"
+        ) from None
 
 
 def _register(name: str, table: RegisterMap) -> Register:
@@ -328,7 +324,8 @@ def move(
         float,
         typer.Option(
             "--playtime",
-            help=f"Seconds to get there, 0..{MAX_PLAYTIME_S:.4f} in 11.2 ms steps.",
+            help=f"Seconds to get there, 0..{MAX_PLAYTIME_S:g}, sent in whole 11.2 ms ticks "
+            "(the nearest).",
         ),
     ] = 1.0,
     min_raw: Annotated[

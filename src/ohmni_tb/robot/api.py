@@ -134,8 +134,9 @@ class NeckHandle(Protocol):
             InvalidArgumentError: Neither or both of ``raw`` and ``rad``, not numbers, an
                 argument the worm-gear neck does not take, or ``timeout_s`` without
                 ``wait``.
-            OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside 0..2.84 s
-                or a timeout outside 0..600 s; nothing sent.
+            OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside
+                0..2.8448 s (it goes to the nearest 11.2 ms tick) or a timeout outside
+                0..600 s; nothing sent.
             StateError: The port is released (:meth:`Robot.release_port`), or ``wait``
                 and the feedback stream is off; nothing sent.
             PositionError: ``wait``, and the worm gear stalled.
