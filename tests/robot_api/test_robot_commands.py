@@ -18,8 +18,8 @@ import pytest
 
 from ohmni_tb import Robot
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import OutOfRangeError, StateError
-from ohmni_tb.herkulex import TorqueControl
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
+from ohmni_tb.herkulex import TorqueControl, eep_read, parse_reply, ram_read
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.drive import decode_wheel_command
 from ohmni_tb.robot import PidDebugSample, ServoHandle, ServoSample, WormNeckSample
@@ -457,3 +457,33 @@ def test_a_number_too_large_for_a_float_is_refused_by_name() -> None:
                 robot.reset_odometry(0.0, 10**400)
 
     virtual(main)
+
+
+def test_a_servo_register_is_written_by_address_eep_or_ram() -> None:
+    async def main() -> tuple[int, int, int]:
+        async with Robot.open("sim://") as robot:
+            servo = robot.servo(11)
+            assert isinstance(servo, ServoHandle)  # a local robot's handle
+            sim_servo = robot.sim.ext_servos[0]
+            # tb_control's servo_write_eep: EEP 30 (position_kp) by its address.
+            await servo.write(30, 200, memory="eep")
+            with pytest.raises(InvalidArgumentError, match=r"31 \(it is byte 2 of position_kp"):
+                await servo.write(31, 1, memory="eep")
+            with pytest.raises(OutOfRangeError, match=r"position_kp=40000"):
+                await servo.write(30, 40_000, memory="eep")
+            await servo.write(0x35, 1)  # RAM 53: led_control
+            now = robot.sim.sync()
+            eep = sim_servo.handle(eep_read(11, "position_kp"), now)
+            ram = sim_servo.handle(ram_read(11, "position_kp"), now)
+            led = sim_servo.handle(ram_read(11, "led_control"), now)
+            assert eep is not None
+            assert ram is not None
+            assert led is not None
+            return (
+                parse_reply(eep).value("position_kp"),
+                parse_reply(ram).value("position_kp"),
+                parse_reply(led).value("led_control"),
+            )
+
+    # The EEP copy took it (it acts after a reboot); RAM still runs the factory gain.
+    assert virtual(main) == (200, 440, 1)

@@ -128,11 +128,20 @@ def _playtime_ticks(playtime: float) -> int:
 
 
 def _register(name: str, table: RegisterMap) -> Register:
-    """The register ``name`` of ``table`` (RAM or EEP).
+    """The register ``name`` of ``table`` (RAM or EEP): a name, or the address of its
+    first byte (decimal or 0x..).
 
     Raises:
-        typer.BadParameter: No such register; the message lists the known ones.
+        typer.BadParameter: No such register, or no register at that address; the
+            message lists the known ones or says why (reserved, inside a 2-byte
+            register, out of the memory).
     """
+    if name[:1].isdigit():
+        address = parse_int(name, "REGISTER")
+        try:
+            return table.by_addr(address)
+        except InvalidArgumentError as exc:
+            raise typer.BadParameter(f"REGISTER: {exc}") from None
     if name not in table:
         known = ", ".join(reg.name for reg in table)
         raise typer.BadParameter(
@@ -257,16 +266,18 @@ def info(
 
 @app.command()
 def read(
-    register: Annotated[str, typer.Argument(help="Register name, e.g. temperature.")],
+    register: Annotated[
+        str, typer.Argument(help="Register name (e.g. temperature) or address (0x.. accepted).")
+    ],
     port: PortOption = None,
     sid: SidOption = _NECK,
     eep: Annotated[bool, typer.Option("--eep", help="Read the EEP copy.")] = False,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
 ) -> None:
-    """Read one register by name.
+    """Read one register by name or address (of RAM, or EEP with --eep).
 
-    Example: ohmni servo read temperature --sid 3 --port sim://
+    Example: ohmni servo read temperature --sid 3 --port sim:// ; ohmni servo read 30 --eep
     """
     memory = Memory.EEP if eep else Memory.RAM
     reg = _register(register, EEP if eep else RAM)
@@ -280,22 +291,48 @@ def read(
 
 @app.command()
 def write(
-    register: Annotated[str, typer.Argument(help="RAM register name, e.g. led_control.")],
+    register: Annotated[
+        str,
+        typer.Argument(
+            help="Register name (e.g. led_control) or address (0x.. accepted), of RAM, or "
+            "of EEP with --eep."
+        ),
+    ],
     value: Annotated[str, typer.Argument(help="Value (decimal or 0x..).")],
     port: PortOption = None,
     sid: SidOption = _NECK,
     persist: Annotated[
         bool, typer.Option("--persist", help="Also write the EEP copy (survives reboot).")
     ] = False,
+    eep: Annotated[
+        bool,
+        typer.Option(
+            "--eep",
+            help="Write the EEP register alone (acts after a reboot; tb_control's "
+            "servo_write_eep): REGISTER names or addresses an EEP register.",
+        ),
+    ] = False,
     timeout: TimeoutOption = 0.05,
 ) -> None:
-    """Write one RAM register (and its EEP copy with --persist). Range-checked first.
+    """Write one RAM register (and its EEP copy with --persist), or with --eep one EEP
+    register. Checked against the register map first: the register (or the address of
+    its first byte) exists in that memory and is writable, the value is in its range;
+    else exit 2 and nothing is sent.
 
-    Example: ohmni servo write led_control 1 --sid 3 --port sim://
+    Examples: ohmni servo write led_control 1 --sid 3 --port sim:// ;
+    ohmni servo write 30 200 --eep --sid 3 --port sim://  (EEP 30 = position_kp)
     """
-    reg = _register(register, RAM)
+    if eep and persist:
+        raise typer.BadParameter(
+            "--persist writes the EEP copy of a RAM register; --eep writes EEP alone: "
+            "give one of them"
+        )
+    table = EEP if eep else RAM
+    reg = _register(register, table)
     if reg.read_only:
-        raise typer.BadParameter(f"REGISTER: {reg.name} is read-only")
+        raise typer.BadParameter(
+            f"REGISTER: {table.memory.name} {reg.addr} ({reg.name}) is read-only"
+        )
     number = parse_int(value, "VALUE")
     regs = [reg]
     if persist:
@@ -309,8 +346,15 @@ def write(
         except InvalidArgumentError as exc:  # OutOfRangeError too: names the register
             raise typer.BadParameter(f"VALUE={number}: {exc}") from None
     sid_value = _sid(sid)
-    _with_servo(port, sid_value, timeout, lambda s: s.write(reg, number, persist=persist))
-    console.print(f"{reg.name} ← {number}" + (" (RAM and EEP)" if persist else ""))
+
+    async def action(servo: Servo) -> int:
+        await servo.write(reg, number, persist=persist, memory=table.memory)
+        return await servo.read(reg, table.memory)
+
+    read_back = _with_servo(port, sid_value, timeout, action)
+    where = f"EEP {reg.addr}" if eep else f"RAM {reg.addr}"
+    also = " (and its EEP copy)" if persist else " (acts after a reboot)" if eep else ""
+    console.print(f"{where} {reg.name} ← {number}{also}; reads back {read_back}", highlight=False)
 
 
 @app.command()

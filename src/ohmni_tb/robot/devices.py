@@ -28,7 +28,7 @@ from ohmni_tb.errors import (
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.herkulex.servo import Servo
 from ohmni_tb.herkulex.units import check_playtime_s, check_zero_offset_raw
-from ohmni_tb.protocol import Packet
+from ohmni_tb.protocol import Memory, Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
 
 if TYPE_CHECKING:
@@ -303,9 +303,29 @@ class ServoHandle:
         """Every EEP and RAM register's value."""
         return await self.servo.info()
 
-    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
-        """Write a register (to EEP as well with ``persist``); checked before sending."""
-        await self.servo.write(register, value, persist=persist)
+    async def write(
+        self,
+        register: str | int,
+        value: int,
+        *,
+        persist: bool = False,
+        memory: Memory | str = Memory.RAM,
+    ) -> None:
+        """Write a register by name or address: RAM (acts now; with ``persist`` the EEP
+        copy too), or with ``memory="eep"`` the EEP register alone (acts after a reboot:
+        tb_control's ``servo_write_eep``, e.g. ``write(30, 200, memory="eep")``).
+
+        Checked against the register map before anything is sent: the address names a
+        register of that memory, it is writable, the value is in its range.
+
+        Raises:
+            InvalidArgumentError: Unknown register or memory, no register at that address,
+                a read-only one, a bad value, or ``persist`` with an EEP write; nothing
+                sent.
+            OutOfRangeError: The value is out of the register's range; nothing sent.
+            StateError: The Robot's port is released; nothing sent.
+        """
+        await self.servo.write(register, value, persist=persist, memory=memory)
 
     async def set_id(self, new_sid: int) -> None:
         """Give the servo a new id (in EEP); this handle then speaks to it."""
