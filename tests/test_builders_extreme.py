@@ -28,7 +28,17 @@ from hypothesis import strategies as st
 from ohmni_tb.control import calibration, encoder, kinematics, limiter, odometry, pid
 from ohmni_tb.errors import OhmniError
 from ohmni_tb.herkulex import commands, registers, servo, units
-from ohmni_tb.protocol import Command, Packet, core, drive, encode_packet, jog, messages, worm_neck
+from ohmni_tb.protocol import (
+    Command,
+    Memory,
+    Packet,
+    core,
+    drive,
+    encode_packet,
+    jog,
+    messages,
+    worm_neck,
+)
 
 MODULES = (
     units,
@@ -148,6 +158,7 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "units.playtime_s_from_ticks": (1, units.playtime_s_from_ticks),
     "units.playtime_sent_s": (1, units.playtime_sent_s),
     "units.playtime_ticks_from_s": (1, units.playtime_ticks_from_s),
+    "units.check_playtime_s": (1, units.check_playtime_s),
     "units.pos_raw_from_deg": (
         4,
         lambda a, b, c, d: units.pos_raw_from_deg(a, zero_offset_raw=b, min_raw=c, max_raw=d),
@@ -185,6 +196,7 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "registers.Register.check": (1, registers.RAM["max_pwm"].check),
     "registers.Register.encode": (1, registers.RAM["pwm_offset"].encode),
     "registers.RegisterMap.by_addr": (1, registers.RAM.by_addr),
+    "registers.resolve": (1, lambda a: registers.resolve(a, Memory.EEP)),
     "registers.RegisterMap.writable": (2, registers.RAM.writable),
     # herkulex.servo (the synchronous half; the moves go through Servo.target)
     "servo.Servo": (
@@ -362,6 +374,7 @@ NOT_FUZZED: dict[str, str] = {
     "servo.Requester.ack_policy": "a protocol for carriers, implemented elsewhere",
     "servo.Requester.set_ack_policy": "a protocol for carriers, implemented elsewhere",
     "servo.Servo.write": "async; its value is checked by Register.check, fuzzed",
+    "servo.Servo.read": "async; its address is checked by registers.resolve, fuzzed",
     "servo.Servo.note_status": "async-loop bound; tested in tests/herkulex",
     "servo.Servo.move_to": "async; checks through Servo.target and the playtime converters",
     "servo.Servo.spin": "async; checks through JogTarget, fuzzed",

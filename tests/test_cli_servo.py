@@ -119,6 +119,39 @@ def test_write_checks_the_range_before_sending() -> None:
     assert "read-only" in out
 
 
+def test_write_takes_an_address_and_eep_alone(wire: Wire) -> None:
+    # tb_control's servo_write_eep: EEP 30 (position_kp) by its address.
+    code, out = invoke("servo", "write", "30", "200", "--eep", *SIM)
+    assert code == 0, out
+    assert "EEP 30 position_kp ← 200 (acts after a reboot); reads back 200" in words(out)
+    writes = [data for _, cmd, data in wire.packets() if cmd == Command.EEP_WRITE]
+    assert writes == [bytes((30, 2, 200, 0))]
+    assert not [data for _, cmd, data in wire.packets() if cmd == Command.RAM_WRITE]
+    # A RAM address: RAM 0x35 is led_control.
+    code, out = invoke("servo", "write", "0x35", "1", *SIM)
+    assert code == 0, out
+    assert "RAM 53 led_control ← 1; reads back 1" in words(out)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["31", "1", "--eep"], "no EEP register starts at address 31 (it is byte 2 of position_kp"),
+        (["99", "1"], "no RAM register starts at address 99 (the RAM addresses are 0..73)"),
+        (["0", "1", "--eep"], "EEP 0 (model_no1) is read-only"),
+        (["30", "40000", "--eep"], "VALUE=40000 is out of range for position_kp: allowed 0..32767"),
+        (["30", "1", "--eep", "--persist"], "give one of them"),
+    ],
+)
+def test_a_bad_write_by_address_exits_2_with_nothing_sent(
+    wire: Wire, args: list[str], message: str
+) -> None:
+    code, out = invoke("servo", "write", *args, *SIM)
+    assert code == 2, out
+    assert message in words(out)
+    assert wire.opened == []
+
+
 def test_move_needs_torque_and_respects_the_range() -> None:
     code, out = invoke("servo", "move", "400", *SIM)
     assert code == 1
@@ -235,18 +268,20 @@ def test_move_checks_every_argument_before_the_torque_goes_on(wire: Wire) -> Non
 
 def test_a_valid_move_writes_what_the_spy_sees(wire: Wire) -> None:
     # The spy itself works: a good move puts the torque write and the jog on the wire.
-    code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime", "2.85")
+    code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime", "2.84")
     assert code == 0, out
     cmds = [cmd for _, cmd, _ in wire.packets()]
     assert Command.RAM_WRITE in cmds
     (jog,) = [data for _, cmd, data in wire.packets() if cmd == Command.S_JOG]
-    # 2.85 s is sent as 254 ticks of 11.2 ms = 2.8448 s, and that is what is printed.
+    # 2.84 s is sent as 254 ticks of 11.2 ms = 2.8448 s, and that is what is printed.
     assert jog[0] == 254
     assert "over 2.8448 s (254 ticks)" in out
-    assert "2.85" not in out
+    assert "2.84 " not in out
 
 
-@pytest.mark.parametrize("playtime", ["1e308", "-1e308", "inf", "nan", "-0.001", "2.86"])
+@pytest.mark.parametrize(
+    "playtime", ["1e308", "-1e308", "inf", "nan", "-0.001", "2.86", "2.85", "2.8449"]
+)
 def test_playtimes_that_cannot_be_sent_are_bad_arguments(wire: Wire, playtime: str) -> None:
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", f"--playtime={playtime}")
     assert code == 2, out

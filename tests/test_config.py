@@ -36,7 +36,9 @@ FIELDS = [
     "watchdog_s", "stale_ticks", "implausible_mps", "thermal_guard", "thermal_limit_raw",
     "neck_hold_s", "on_exit_neck", "stop_timeout_s",
     "neck", "neck_id", "neck_min_raw", "neck_max_raw", "neck_rest_raw",
-    "neck_zero_offset_raw", "worm_min_raw", "worm_max_raw", "ext_servo_ids",
+    "neck_zero_offset_raw", "neck_kp", "neck_ki", "neck_kd", "neck_min_voltage_raw",
+    "neck_max_voltage_raw", "neck_overload_pwm", "neck_max_pwm", "neck_use_eeprom",
+    "worm_min_raw", "worm_max_raw", "ext_servo_ids",
     "wheel_hz", "servo_hz", "core_hz", "new_neck_hz", "state_hz", "pid_debug",
     "frame_id_odom", "frame_id_baselink", "enable_broadcast_transform",
 ]  # fmt: skip

@@ -67,6 +67,7 @@ from ohmni_tb.control.kinematics import DiffDrive, VelocityLimits
 from ohmni_tb.control.limiter import AccelLimits, TwistLimiter
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import ConfigError
+from ohmni_tb.herkulex.registers import RAM as SERVO_RAM
 from ohmni_tb.protocol.connection import DEFAULT_TIMEOUT_S
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, NECK_RAW_RANGE, DeviceId
 from ohmni_tb.protocol.worm_neck import WORM_MAX, WORM_MIN
@@ -155,6 +156,18 @@ def _setting(
         le=high,
         json_schema_extra={"allowed": allowed, "off_below": low if off else None},
     )
+
+
+def _servo_default(name: str) -> int:
+    """A HerkuleX RAM register's factory value, from the register map."""
+    default = SERVO_RAM[name].default
+    assert default is not None, name  # the settings the neck gets all have one
+    return default
+
+
+def _servo_range(name: str) -> tuple[int, int]:
+    """The values a HerkuleX RAM register takes, from the register map."""
+    return SERVO_RAM[name].low, SERVO_RAM[name].high
 
 
 class RobotConfig(BaseSettings):
@@ -361,10 +374,17 @@ class RobotConfig(BaseSettings):
         0,
         _RAW_MAX,
         "raw",
-        "Lowest HerkuleX neck position, raw; below neck_max_raw.",
+        "Lowest HerkuleX neck position, raw; below neck_max_raw. Also written to the "
+        "servo's own min_position (RAM 20), so the servo holds it too (tb_control "
+        "~servo_neck_min_pos).",
     )
     neck_max_raw: int = _setting(
-        NECK_RAW_RANGE[1], 0, _RAW_MAX, "raw", "Highest HerkuleX neck position, raw."
+        NECK_RAW_RANGE[1],
+        0,
+        _RAW_MAX,
+        "raw",
+        "Highest HerkuleX neck position, raw. Also written to the servo's own max_position "
+        "(RAM 22) (tb_control ~servo_neck_max_pos).",
     )
     neck_rest_raw: int = _setting(
         465,
@@ -379,6 +399,67 @@ class RobotConfig(BaseSettings):
         511,
         "raw",
         "Offset of the level-head position from the neck servo's nominal zero, raw.",
+    )
+    # The neck servo's own settings: written to its RAM when the Robot opens, when the
+    # neck is found late or comes back after a silence (a reboot, a power cut, a lost
+    # link), and read back; tb_control's ~servo_neck_* parameters.
+    neck_kp: int = _setting(
+        _servo_default("position_kp"),
+        *_servo_range("position_kp"),
+        "",
+        "Position P gain of the HerkuleX neck servo, written to its position_kp (RAM 24) "
+        "(tb_control ~servo_neck_kp).",
+    )
+    neck_ki: int = _setting(
+        _servo_default("position_ki"),
+        *_servo_range("position_ki"),
+        "",
+        "Position I gain of the neck servo, written to its position_ki (RAM 28) "
+        "(tb_control ~servo_neck_ki).",
+    )
+    neck_kd: int = _setting(
+        _servo_default("position_kd"),
+        *_servo_range("position_kd"),
+        "",
+        "Position D gain of the neck servo, written to its position_kd (RAM 26) "
+        "(tb_control ~servo_neck_kd).",
+    )
+    neck_min_voltage_raw: int = _setting(
+        _servo_default("min_voltage"),
+        *_servo_range("min_voltage"),
+        "raw",
+        "Lowest supply the neck servo accepts, 0.074 V a count (91 = 6.7 V), written to "
+        "its min_voltage (RAM 6); below neck_max_voltage_raw. Outside the two the servo "
+        "reports an input-voltage error and releases its torque (tb_control "
+        "~servo_neck_v_min).",
+    )
+    neck_max_voltage_raw: int = _setting(
+        _servo_default("max_voltage"),
+        *_servo_range("max_voltage"),
+        "raw",
+        "Highest supply the neck servo accepts, 0.074 V a count (137 = 10.1 V), written "
+        "to its max_voltage (RAM 7) (tb_control ~servo_neck_v_max).",
+    )
+    neck_overload_pwm: int = _setting(
+        _servo_default("overload_pwm_threshold"),
+        *_servo_range("overload_pwm_threshold"),
+        "",
+        "PWM above which the neck servo counts an overload, written to its "
+        "overload_pwm_threshold (RAM 18) (tb_control ~servo_neck_overload_pwm).",
+    )
+    neck_max_pwm: int = _setting(
+        _servo_default("max_pwm"),
+        *_servo_range("max_pwm"),
+        "",
+        "Largest PWM the neck servo drives its motor with (1023 = full), written to its "
+        "max_pwm (RAM 16) (tb_control ~servo_neck_max_pwm).",
+    )
+    neck_use_eeprom: bool = Field(
+        default=False,
+        description="Write the neck servo's settings (neck_min_raw, neck_max_raw, neck_kp, "
+        "neck_ki, neck_kd, the voltages and PWMs) to its EEP too, so it powers up with "
+        "them; EEP is written only where it differs (tb_control ~servo_neck_use_eeprom). "
+        "Off: RAM only.",
     )
     worm_min_raw: int = _setting(
         WORM_MIN,
@@ -665,6 +746,15 @@ class RobotConfig(BaseSettings):
                     "neck_rest_raw",
                     f"neck_rest_raw={rest} is outside the neck's range: allowed "
                     f"neck_min_raw..neck_max_raw = {low}..{high}",
+                )
+            )
+        if not self.neck_min_voltage_raw < self.neck_max_voltage_raw:
+            problems.append(
+                (
+                    "neck_min_voltage_raw",
+                    f"neck_min_voltage_raw={self.neck_min_voltage_raw} must be below "
+                    f"neck_max_voltage_raw={self.neck_max_voltage_raw}: the servo would "
+                    "report an input-voltage error at every supply and release its torque",
                 )
             )
         if not self.worm_min_raw < self.worm_max_raw:

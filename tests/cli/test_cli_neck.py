@@ -133,6 +133,19 @@ def test_raw_and_deg_targets(opened: Opened) -> None:
     assert abs(truth(opened)[0] - 481) <= TOLERANCE_RAW
 
 
+def test_the_longest_playtime_is_taken_as_the_servo_command_takes_it(opened: Opened) -> None:
+    # 254 ticks of 11.2 ms: the longest playtime, as neck.move() and `ohmni servo move`.
+    data = run_json("--raw", "400", *SIM, "--playtime", "2.8448")
+    assert data["playtime_s"] == 2.8448
+    assert abs(truth(opened)[0] - 400) <= TOLERANCE_RAW
+    # 2.84 s goes to the nearest tick, 254: the same seconds are printed.
+    data = run_json("--raw", "600", *SIM, "--playtime", "2.84")
+    assert data["playtime_s"] == 2.8448
+    result = invoke("neck", "--raw", "400", *SIM, "--playtime", "2.85")
+    assert result.code == 2
+    assert "--playtime=2.85 is out of range: allowed 0..2.8448 s" in words(result.out)
+
+
 def test_rest_moves_to_the_rest_position_then_frees(opened: Opened) -> None:
     data = run_json("rest", *SIM)
     assert data["action"] == "rest"
@@ -226,8 +239,8 @@ def test_the_worm_gear_neck_refuses_what_only_a_herkulex_takes(opened: Opened) -
         (["--raw", "4OO"], "--raw must be an integer (decimal or 0x..), not '4OO'"),
         (["--deg", "90"], "--deg=90.0 is out of range: allowed -75.40..+44.85° (raw 280..650)"),
         (["--deg", "nan"], "--deg=nan is not a finite number"),
-        (["up", "--playtime", "inf"], "--playtime=inf is out of range: allowed 0..2.84 s"),
-        (["up", "--playtime", "3"], "--playtime=3.0 is out of range: allowed 0..2.84 s"),
+        (["up", "--playtime", "inf"], "--playtime=inf is out of range: allowed 0..2.8448 s"),
+        (["up", "--playtime", "3"], "--playtime=3.0 is out of range: allowed 0..2.8448 s"),
         (["rest", "--playtime", "1"], "--playtime is for moves"),
         (["up", "--raw", "400"], "give one target, not 2: POSITION 'up', --raw=400"),
         (["--raw", "400", "--deg", "1"], "give one target, not 2"),

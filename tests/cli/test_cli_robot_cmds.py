@@ -50,7 +50,15 @@ def config_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 def test_info_json_names_every_device() -> None:
     result = invoke("info", *SIM, "--json")
     assert result.code == 0, result.out
-    assert json.loads(result.stdout) == {
+    found = json.loads(result.stdout)
+    settings = found.pop("neck_settings")
+    # The HerkuleX neck's own settings, as the servo read them back after the Robot
+    # wrote them at open (the config's defaults).
+    assert (settings["sid"], settings["memory"], settings["ok"]) == (3, "ram", True)
+    assert settings["read_back"]["min_position"] == 280
+    assert settings["read_back"]["max_position"] == 650
+    assert settings["read_back"] == settings["wanted"]
+    assert found == {
         "port": "sim://",
         "firmware": {
             "left_drive": "sim-drive-1.0",
@@ -78,6 +86,20 @@ def test_info_worm_neck_and_a_silent_servo() -> None:
     assert found["firmware"]["worm_neck"] == "sim-worm-1.0"
     assert found["servos"] == [{"sid": 11, "role": "ext1", "model": "DRS_0101"}]
     assert found["absent"] == [12]
+    assert found["neck_settings"] is None  # no HerkuleX neck
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_info_shows_the_neck_settings_the_config_asked_for(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("OHMNI_NECK_MIN_RAW", "300")
+    monkeypatch.setenv("OHMNI_NECK_KP", "250")
+    result = invoke("info", *SIM)
+    assert result.code == 0, result.out
+    assert "neck servo 3: settings in RAM as set: position 300..650, kp/ki/kd 250/0/8000" in (
+        words(result.out)
+    )
 
 
 @pytest.mark.usefixtures("virtual_time")
@@ -89,6 +111,7 @@ def test_info_table() -> None:
     assert "12 ext2 external HerkuleX servo (assumed id) no answer" in text
     assert "20 core core board: battery, dock, light ring firmware sim-core-1.0" in text
     assert "neck: herkulex" in text
+    assert "neck servo 3: settings in RAM as set: position 280..650, kp/ki/kd 440/0/8000" in text
 
 
 # -- ports ------------------------------------------------------------------------------------

@@ -15,12 +15,18 @@ import pytest
 
 from ohmni_tb import Robot
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import MotionPreemptedError, OhmniError, RobotClosedError, StateError
-from ohmni_tb.herkulex import parse_reply, ram_read
+from ohmni_tb.errors import (
+    MotionPreemptedError,
+    OhmniError,
+    OutOfRangeError,
+    RobotClosedError,
+    StateError,
+)
+from ohmni_tb.herkulex import parse_reply, ram_read, reboot
 from ohmni_tb.robot import SampleStream, ServoSample
 from ohmni_tb.sim.clock import run_virtual
 from ohmni_tb.sim.robot import SimRobot
-from ohmni_tb.sim.servo import SimServo
+from ohmni_tb.sim.servo import RESTART_S, SimServo
 
 from .conftest import opened, run
 
@@ -191,6 +197,85 @@ def test_the_neck_moves_to_its_target(kind: str) -> None:
     assert isinstance(arrived, ServoSample)
     assert abs(arrived.position_raw - 400) <= 5
     assert abs(true_raw - 400) <= 5
+
+
+def test_the_longest_playtime_is_taken_and_one_beyond_it_refused(kind: str) -> None:
+    # One playtime range everywhere: 0..2.8448 s (254 ticks of 11.2 ms), both ends in.
+    async def check(robot: Robot, truth: SimRobot) -> tuple[float, int, str]:
+        loop = asyncio.get_running_loop()
+        await robot.neck.move(600, playtime_s=0.3, wait=True)
+        start_s = loop.time()
+        arrived = await robot.neck.move(400, playtime_s=2.8448, wait=True)
+        took_s = loop.time() - start_s
+        assert isinstance(arrived, ServoSample)
+        with pytest.raises(OutOfRangeError) as refused:
+            await robot.neck.move(600, playtime_s=2.85)
+        await asyncio.sleep(0.5)
+        neck = truth.neck
+        assert isinstance(neck, SimServo)
+        reply = neck.handle(ram_read(neck.sid, "calibrated_position"), truth.sync())
+        assert reply is not None
+        return took_s, parse_reply(reply).value("calibrated_position"), str(refused.value)
+
+    took_s, true_raw, message = run(kind, check)
+    # The servo took the whole 254 ticks (2.8448 s) to get there, not a clamped or
+    # shortened playtime; the read-back comes within a poll or two after.
+    assert 2.8448 <= took_s <= 2.8448 + 0.2
+    assert "playtime_s=2.85 is out of range: allowed 0.0..2.8448 s" in message
+    assert abs(true_raw - 400) <= 5  # the refused move sent nothing
+
+
+#: tb_control's ~servo_neck_* parameters, as RobotConfig takes them, and the servo's
+#: registers they must end up in.
+NECK_SETTINGS = {
+    "neck_min_raw": ("min_position", 300),
+    "neck_max_raw": ("max_position", 600),
+    "neck_kp": ("position_kp", 300),
+    "neck_ki": ("position_ki", 5),
+    "neck_kd": ("position_kd", 4000),
+    "neck_min_voltage_raw": ("min_voltage", 80),
+    "neck_max_voltage_raw": ("max_voltage", 130),
+    "neck_overload_pwm": ("overload_pwm_threshold", 900),
+    "neck_max_pwm": ("max_pwm", 1000),
+}
+
+
+def servo_ram(truth: SimRobot) -> dict[str, int]:
+    """The simulated neck's settings registers, asked of it, not over the wire."""
+    neck = truth.neck
+    assert isinstance(neck, SimServo)
+    values = {}
+    for register, _ in NECK_SETTINGS.values():
+        reply = neck.handle(ram_read(neck.sid, register), truth.sync())
+        assert reply is not None, "the neck answers"
+        values[register] = parse_reply(reply).value(register)
+    return values
+
+
+def test_the_neck_servo_gets_its_settings_at_open_and_again_after_a_reboot(kind: str) -> None:
+    wanted = dict(NECK_SETTINGS.values())
+
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        assert servo_ram(truth) == wanted
+        first = (await robot.info())["neck_settings"]
+        assert (first["sid"], first["memory"], first["ok"]) == (3, "ram", True)
+        assert first["read_back"] == wanted
+        # The servo restarts (a brownout, someone's REBOOT): RAM is EEP's again.
+        neck = truth.neck
+        assert isinstance(neck, SimServo)
+        neck.handle(reboot(neck.sid), truth.sync())
+        await asyncio.sleep(RESTART_S + 0.05)
+        assert servo_ram(truth)["min_position"] == 21  # the factory value, for now
+        await asyncio.sleep(0.5)
+        assert servo_ram(truth) == wanted
+        again = (await robot.info())["neck_settings"]
+        assert again["loads"] == first["loads"] + 1
+        assert "silence" in again["why"]
+        assert again["ok"]
+        assert not [fault for fault in robot.state.faults if fault.startswith("neck_settings")]
+
+    settings = {name: value for name, (_, value) in NECK_SETTINGS.items()}
+    run(kind, check, **settings)
 
 
 def test_a_closed_robot_refuses_every_call_with_one_error(kind: str) -> None:

@@ -78,8 +78,8 @@ def test_negative_playtimes_are_refused_even_when_they_round_to_zero() -> None:
 
 
 def test_the_playtime_sent_is_reportable() -> None:
-    assert units.playtime_ticks_from_s(2.85) == 254
-    assert units.playtime_sent_s(2.85) == 2.8448
+    assert units.playtime_ticks_from_s(2.84) == 254
+    assert units.playtime_sent_s(2.84) == 2.8448
     assert units.playtime_s_from_ticks(254) == 2.8448
     assert units.playtime_sent_s(0.5) == 0.504
 

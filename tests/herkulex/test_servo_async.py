@@ -8,7 +8,12 @@ from collections.abc import Awaitable, Callable
 import pytest
 
 from ohmni_tb.bus import Bus
-from ohmni_tb.errors import BusTimeoutError, DeviceStatusError, OutOfRangeError
+from ohmni_tb.errors import (
+    BusTimeoutError,
+    DeviceStatusError,
+    InvalidArgumentError,
+    OutOfRangeError,
+)
 from ohmni_tb.herkulex import (
     EEP,
     RAM,
@@ -214,6 +219,55 @@ def test_persist_survives_a_reboot_and_plain_ram_does_not() -> None:
         await servo.reboot(settle_s=RESTART_S + 0.05)
         assert await servo.read("acceleration_ratio") == 10
         assert await servo.read("inposition_margin") == 3
+
+    on_sim(body)
+
+
+def test_an_eep_register_is_written_by_its_address_as_servo_write_eep_does() -> None:
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 12)
+        # EEP 30 is position_kp (RAM 24): the EEP write acts after a reboot only.
+        await servo.write(30, 200, memory="eep")
+        assert await servo.read(30, "eep") == 200
+        assert await servo.read("position_kp") == 440
+        await servo.reboot(settle_s=RESTART_S + 0.05)
+        assert await servo.read("position_kp") == 200
+        # A RAM address works the same way: RAM 24 is position_kp.
+        await servo.write(24, 300)
+        assert await servo.read("position_kp") == 300
+
+    on_sim(body)
+
+
+#: A write a servo must refuse before sending: (register, value, memory, persist).
+_Write = tuple[int, int, str, bool]
+
+
+@pytest.mark.parametrize(
+    ("write", "error", "message"),
+    [
+        ((31, 1, "eep", False), InvalidArgumentError, r"EEP .* 31 \(it is byte 2 of position_kp"),
+        ((10, 1, "eep", False), InvalidArgumentError, r"address 10 \(reserved"),
+        ((54, 1, "eep", False), InvalidArgumentError, r"54 \(the EEP addresses are 0\.\.53\)"),
+        ((0, 1, "eep", False), InvalidArgumentError, r"EEP 0 \(model_no1\) is read-only"),
+        ((30, 0x8000, "eep", False), OutOfRangeError, r"position_kp=32768 .* 0\.\.32767"),
+        ((54, 1, "ram", False), InvalidArgumentError, r"RAM 54 \(voltage\) is read-only"),
+        ((30, 1, "eep", True), InvalidArgumentError, "persistent already"),
+        ((30, 1, "flash", False), InvalidArgumentError, "memory must be RAM or EEP"),
+        ((True, 1, "ram", False), InvalidArgumentError, "a name or an address, not bool"),
+    ],
+)
+def test_a_bad_write_by_address_is_one_clear_error_and_sends_nothing(
+    write: _Write, error: type[Exception], message: str
+) -> None:
+    register, value, memory, persist = write
+
+    async def body(bus: Bus, _: SimTransport) -> None:
+        servo = Servo(bus, 12)
+        before = bus.stats.bytes_out
+        with pytest.raises(error, match=message):
+            await servo.write(register, value, memory=memory, persist=persist)
+        assert bus.stats.bytes_out == before
 
     on_sim(body)
 

@@ -96,3 +96,21 @@ def test_playtime() -> None:
 def test_nan_and_inf_are_refused(convert: object, bad: float) -> None:
     with pytest.raises(InvalidArgumentError, match="finite"):
         convert(bad)  # type: ignore[operator]
+
+
+def test_one_playtime_range_and_one_rounding() -> None:
+    # 0..2.8448 s (254 ticks), both ends included; seconds go to the nearest tick.
+    assert units.check_playtime_s(2.8448) == 2.8448
+    assert units.playtime_ticks_from_s(2.8448) == 254
+    assert units.playtime_ticks_from_s(2.84) == 254  # 253.57 ticks: the nearest is 254
+    assert units.playtime_ticks_from_s(2.8336) == 253
+    assert units.playtime_ticks_from_s(0) == 0
+    for seconds in (2.8449, 2.85, 2.86, 10**400):
+        with pytest.raises(OutOfRangeError, match=r"allowed 0\.0\.\.2\.8448 s"):
+            units.playtime_ticks_from_s(seconds)
+    with pytest.raises(
+        InvalidArgumentError, match=r"not a finite number: allowed 0\.0\.\.2\.8448 s"
+    ):
+        units.playtime_ticks_from_s(math.nan)
+    with pytest.raises(InvalidArgumentError, match="playtime_s must be a number"):
+        units.check_playtime_s(True)

@@ -18,11 +18,20 @@ import pytest
 
 from ohmni_tb import Robot
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import OutOfRangeError, StateError
-from ohmni_tb.herkulex import TorqueControl
+from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
+from ohmni_tb.herkulex import (
+    JogTarget,
+    StatusError,
+    TorqueControl,
+    eep_read,
+    parse_reply,
+    ram_read,
+    s_jog,
+)
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.drive import decode_wheel_command
-from ohmni_tb.robot import PidDebugSample, ServoHandle, ServoSample, WormNeckSample
+from ohmni_tb.robot import LocalRobot, PidDebugSample, ServoHandle, ServoSample, WormNeckSample
+from ohmni_tb.robot.discovery import REPROBE_S
 from ohmni_tb.sim.clock import run_virtual
 
 T = TypeVar("T")
@@ -459,3 +468,98 @@ def test_a_number_too_large_for_a_float_is_refused_by_name() -> None:
                 robot.reset_odometry(0.0, 10**400)
 
     virtual(main)
+
+
+def test_a_servo_register_is_written_by_address_eep_or_ram() -> None:
+    async def main() -> tuple[int, int, int]:
+        async with Robot.open("sim://") as robot:
+            servo = robot.servo(11)
+            assert isinstance(servo, ServoHandle)  # a local robot's handle
+            sim_servo = robot.sim.ext_servos[0]
+            # tb_control's servo_write_eep: EEP 30 (position_kp) by its address.
+            await servo.write(30, 200, memory="eep")
+            with pytest.raises(InvalidArgumentError, match=r"31 \(it is byte 2 of position_kp"):
+                await servo.write(31, 1, memory="eep")
+            with pytest.raises(OutOfRangeError, match=r"position_kp=40000"):
+                await servo.write(30, 40_000, memory="eep")
+            await servo.write(0x35, 1)  # RAM 53: led_control
+            now = robot.sim.sync()
+            eep = sim_servo.handle(eep_read(11, "position_kp"), now)
+            ram = sim_servo.handle(ram_read(11, "position_kp"), now)
+            led = sim_servo.handle(ram_read(11, "led_control"), now)
+            assert eep is not None
+            assert ram is not None
+            assert led is not None
+            return (
+                parse_reply(eep).value("position_kp"),
+                parse_reply(ram).value("position_kp"),
+                parse_reply(led).value("led_control"),
+            )
+
+    # The EEP copy took it (it acts after a reboot); RAM still runs the factory gain.
+    assert virtual(main) == (200, 440, 1)
+
+
+def _neck_register(robot: LocalRobot, name: str, memory: str = "ram") -> int:
+    """A register of the simulated neck, asked of it, not over the wire."""
+    neck = robot.sim.neck
+    build = eep_read if memory == "eep" else ram_read
+    reply = neck.handle(build(neck.sid, name), robot.sim.sync())
+    assert reply is not None, "the neck answers"
+    return parse_reply(reply).value(name)
+
+
+def test_the_servo_holds_its_own_limits_when_the_host_does_not() -> None:
+    async def main() -> tuple[int, StatusError]:
+        async with LocalRobot.open("sim://", neck_min_raw=300, neck_max_raw=600) as robot:
+            neck = robot.neck
+            assert isinstance(neck, ServoHandle)
+            await neck.move(400, playtime_s=0.2, wait=True)
+            # A program bypassing the Robot's checks jogs the neck to 250 on the bus.
+            await robot.bus.request(s_jog(0, JogTarget(3, 250)), expect_reply=False)
+            await asyncio.sleep(1.0)
+            sample = robot.latest("servo_neck")
+            assert sample is not None
+            return sample.position_raw, sample.status_error
+
+    position, errors = virtual(main)
+    assert position == 300  # the servo stopped at its own min_position
+    assert errors & StatusError.POSITION_LIMIT
+
+
+def test_use_eeprom_makes_the_servo_power_up_with_the_settings() -> None:
+    async def main() -> tuple[tuple[int, int], int, list[str]]:
+        settings: dict[str, Any] = {"neck_min_raw": 300, "neck_kp": 250, "neck_use_eeprom": True}
+        async with LocalRobot.open("sim://", **settings) as robot:
+            report = (await robot.info())["neck_settings"]
+            assert (report["memory"], report["ok"]) == ("eep", True)
+            # A power cut too short to miss a read: the servo comes up from its EEP.
+            robot.sim.neck.power_cycle(robot.sim.sync())
+            after_power = (
+                _neck_register(robot, "min_position"),
+                _neck_register(robot, "position_kp"),
+            )
+            return after_power, _neck_register(robot, "position_kp", "eep"), report["eep_written"]
+
+    after_power, eep_kp, written = virtual(main)
+    assert after_power == (300, 250)
+    assert eep_kp == 250
+    # Only the EEP registers that differed from the settings were written (EEP wears).
+    assert sorted(written) == ["max_position", "min_position", "position_kp"]
+
+
+def test_a_neck_found_late_gets_its_settings_then() -> None:
+    async def main() -> tuple[int, int, str]:
+        async with LocalRobot.open("sim://?silent=3", neck_min_raw=300) as robot:
+            assert robot.neck_kind == "none"
+            assert (await robot.info())["neck_settings"] is None
+            line = robot.bus.transport.line  # type: ignore[attr-defined]  # sim://
+            line.faults.silent.discard(3)
+            before = _neck_register(robot, "min_position")
+            await asyncio.sleep(REPROBE_S + 1.0)
+            report = (await robot.info())["neck_settings"]
+            return before, _neck_register(robot, "min_position"), report["why"]
+
+    before, after, why = virtual(main)
+    assert (before, after) == (21, 300)
+    assert why == "the neck answered"

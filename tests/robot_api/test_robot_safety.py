@@ -867,14 +867,14 @@ def refused(id_: str, act: Act, error: type[Exception], *words: str, url: str = 
             lambda r: r.neck.move(raw=400, playtime_s=-1),
             OutOfRangeError,
             "playtime_s=-1",
-            "0.0..2.84",
+            "0.0..2.8448 s",
         ),
         refused(
             "neck-playtime-nan",
             lambda r: r.neck.move(raw=400, playtime_s=math.nan),
-            OutOfRangeError,
+            InvalidArgumentError,
             "playtime_s=nan",
-            "0.0..2.84",
+            "0.0..2.8448 s",
         ),
         refused(
             "worm-beyond-down",

@@ -582,3 +582,21 @@ def test_power_cycle_clears_faults_and_reloads_eep(neck: Bench) -> None:
     assert neck.status().status_error == StatusError.NONE
     assert neck.ram("max_position") == 1002
     assert neck.ram("calibrated_position") == 280  # the horn did not move
+
+
+def test_a_lower_max_pwm_makes_the_fastest_move_slower(neck: Bench) -> None:
+    # 280 → 650 at playtime 0 (as fast as it can): at full PWM the no-load speed sets the
+    # time; at max PWM 511 (half the drive) it takes about twice as long.
+    neck.torque_on()
+    neck.send(i_jog(JogTarget(NECK, 650, playtime_ticks=0)), 0.0)
+    full_s = next(t / 100 for t in range(1, 300) if neck.ram("calibrated_position", t / 100) == 650)
+    neck.send(ram_write(NECK, "max_pwm", 511))
+    neck.send(i_jog(JogTarget(NECK, 280, playtime_ticks=0)), 4.0)
+    half_s = next(
+        t / 100 - 4.0 for t in range(401, 900) if neck.ram("calibrated_position", t / 100) == 280
+    )
+    assert half_s == pytest.approx(2 * full_s, rel=0.1)
+    # No drive at all: a move does not start.
+    neck.send(ram_write(NECK, "max_pwm", 0))
+    neck.send(i_jog(JogTarget(NECK, 650, playtime_ticks=0)), 10.0)
+    assert neck.ram("calibrated_position", 12.0) == 280

@@ -41,6 +41,7 @@ from ohmni_tb.cli.common import (
     run,
 )
 from ohmni_tb.errors import InvalidArgumentError, OhmniError
+from ohmni_tb.herkulex.units import MAX_PLAYTIME_S, check_playtime_s
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
@@ -59,8 +60,6 @@ T = TypeVar("T", "ServoSample", "WormNeckSample")
 #: The named positions a move takes; ``rest`` and ``free`` are not moves to a position.
 NAMED = ("up", "down", "center")
 ACTIONS = (*NAMED, "rest", "free")
-#: The longest playtime the neck handle takes, seconds (254 ticks of 11.2 ms).
-MAX_PLAYTIME_S = 2.84
 DEFAULT_PLAYTIME_S = 1.0
 #: How long the worm gear may take to get there (the handle's default, WORM_TIMEOUT_S of
 #: ohmni_tb.robot.devices).
@@ -176,7 +175,7 @@ def _check_arguments(
 
     Raises:
         typer.BadParameter: Several targets, an unknown position, a number that is not
-            one, or a playtime outside 0..2.84 s.
+            one, or a playtime outside 0..2.8448 s.
     """
     given = []
     if position is not None:
@@ -193,11 +192,15 @@ def _check_arguments(
         shown = repr(position) if len(position) <= 40 else f"{position[:20]!r}…"
         raise typer.BadParameter(f"POSITION must be up, down, center, rest or free, not {shown}")
     if playtime is not None:
-        # NaN fails both comparisons; -0.0 is 0.
-        if not (math.isfinite(playtime) and 0.0 <= playtime <= MAX_PLAYTIME_S):
+        # The handle's own range and rounding (ohmni_tb.herkulex.units), checked here
+        # so that a bad one is refused before the port opens.
+        try:
+            check_playtime_s(playtime)
+        except InvalidArgumentError:
             raise typer.BadParameter(
-                f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S} s"
-            )
+                f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:g} s "
+                f"(sent in whole 11.2 ms ticks)"
+            ) from None
         if position in ("rest", "free") or (position is None and raw is None and deg is None):
             what = position or "reading the position"
             raise typer.BadParameter(

@@ -73,7 +73,8 @@ async def device_info(robot: Robot) -> dict[str, Any]:
     Returns:
         ``firmware`` (``left_drive``, ``right_drive``, ``core``, ``worm_neck``: the tag or
         ``None``), ``neck_kind``, ``servos`` (``sid``, ``role``, ``model``), ``present``,
-        ``absent``.
+        ``absent``, ``neck_settings`` (what the last load of the HerkuleX neck's own
+        settings read back, or ``None``).
     """
     from ohmni_tb.errors import OhmniError, StateError  # noqa: PLC0415
     from ohmni_tb.protocol import Memory  # noqa: PLC0415
@@ -107,6 +108,7 @@ async def device_info(robot: Robot) -> dict[str, Any]:
         ],
         "present": list(found["present"]),
         "absent": list(found["absent"]),
+        "neck_settings": found.get("neck_settings"),
     }
 
 
@@ -181,6 +183,24 @@ def _print_info(found: Mapping[str, Any]) -> None:
         table.add_row(str(sid), name, "" if entry is None else escape(entry.description), answer)
     console.print(table)
     console.print(f"neck: {found['neck_kind']}", highlight=False)
+    settings = found.get("neck_settings")
+    if settings is not None:
+        console.print(_settings_line(settings), highlight=False)
+
+
+def _settings_line(report: Mapping[str, Any]) -> str:
+    """One line on the neck servo's own settings: what the last load read back (the
+    rest of it is in --json)."""
+    sid, memory = report["sid"], "RAM and EEP" if report["memory"] == "eep" else "RAM"
+    got: Mapping[str, int] | None = report["read_back"]
+    if got is None:
+        return f"neck servo {sid}: settings not loaded: {report['error']}"
+    verdict = "as set" if report["ok"] else "NOT as set"
+    return (
+        f"neck servo {sid}: settings in {memory} {verdict}: position "
+        f"{got['min_position']}..{got['max_position']}, kp/ki/kd "
+        f"{got['position_kp']}/{got['position_ki']}/{got['position_kd']}"
+    )
 
 
 # -- ports ------------------------------------------------------------------------------

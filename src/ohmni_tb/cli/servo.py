@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any, TypeVar
 
@@ -32,11 +31,10 @@ from ohmni_tb.herkulex.registers import Register, RegisterMap
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import (
     MAX_PLAYTIME_S,
-    MAX_PLAYTIME_TICKS,
     POSITION_MAX_RAW,
-    TICK_S,
     angle_deg_from_raw,
     playtime_s_from_ticks,
+    playtime_ticks_from_s,
 )
 from ohmni_tb.protocol import Memory, flag_names
 from ohmni_tb.protocol.devices import NECK_RAW_RANGE, DeviceId, device_name
@@ -58,8 +56,6 @@ _NECK = str(int(DeviceId.HERKULEX_NECK))
 _SCAN_TIMEOUT_S = 0.01
 #: The largest servo id (0xFE is broadcast).
 _MAX_SID = 0xFD
-#: Playtimes from here up would round to 255 ticks, past the largest the servo takes.
-_PLAYTIME_LIMIT_S = (MAX_PLAYTIME_TICKS + 0.5) * TICK_S
 
 
 def _sid(text: str) -> int:
@@ -143,27 +139,36 @@ def _factory(name: str) -> int:
 
 
 def _playtime_ticks(playtime: float) -> int:
-    """``--playtime`` in 11.2 ms ticks, the unit the servo is sent.
+    """``--playtime`` in 11.2 ms ticks, the unit the servo is sent: the one range and
+    rounding of every playtime (:func:`~ohmni_tb.herkulex.units.playtime_ticks_from_s`).
 
     Raises:
-        typer.BadParameter: Not a number that rounds into 0..254 ticks (NaN, infinite,
-            negative or too long).
+        typer.BadParameter: Outside 0..2.8448 s, NaN or infinite.
     """
-    # NaN fails both comparisons; -0.0 is 0.
-    if not (math.isfinite(playtime) and 0.0 <= playtime < _PLAYTIME_LIMIT_S):
+    try:
+        return playtime_ticks_from_s(playtime)
+    except InvalidArgumentError:
         raise typer.BadParameter(
-            f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:.4f} s "
-            f"(11.2 ms steps)"
-        )
-    return min(round(playtime / TICK_S), MAX_PLAYTIME_TICKS)
+            f"--playtime={playtime!r} is out of range: allowed 0..{MAX_PLAYTIME_S:g} s "
+            f"(sent in whole 11.2 ms ticks)"
+        ) from None
 
 
 def _register(name: str, table: RegisterMap) -> Register:
-    """The register ``name`` of ``table`` (RAM or EEP).
+    """The register ``name`` of ``table`` (RAM or EEP): a name, or the address of its
+    first byte (decimal or 0x..).
 
     Raises:
-        typer.BadParameter: No such register; the message lists the known ones.
+        typer.BadParameter: No such register, or no register at that address; the
+            message lists the known ones or says why (reserved, inside a 2-byte
+            register, out of the memory).
     """
+    if name[:1].isdigit():
+        address = parse_int(name, "REGISTER")
+        try:
+            return table.by_addr(address)
+        except InvalidArgumentError as exc:
+            raise typer.BadParameter(f"REGISTER: {exc}") from None
     if name not in table:
         known = ", ".join(reg.name for reg in table)
         raise typer.BadParameter(
@@ -293,16 +298,18 @@ def info(
 
 @app.command()
 def read(
-    register: Annotated[str, typer.Argument(help="Register name, e.g. temperature.")],
+    register: Annotated[
+        str, typer.Argument(help="Register name (e.g. temperature) or address (0x.. accepted).")
+    ],
     port: PortOption = None,
     sid: SidOption = _NECK,
     eep: Annotated[bool, typer.Option("--eep", help="Read the EEP copy.")] = False,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
 ) -> None:
-    """Read one register by name.
+    """Read one register by name or address (of RAM, or EEP with --eep).
 
-    Example: ohmni servo read temperature --sid 3 --port sim://
+    Example: ohmni servo read temperature --sid 3 --port sim:// ; ohmni servo read 30 --eep
     """
     memory = Memory.EEP if eep else Memory.RAM
     reg = _register(register, EEP if eep else RAM)
@@ -316,24 +323,50 @@ def read(
 
 @app.command()
 def write(
-    register: Annotated[str, typer.Argument(help="RAM register name, e.g. led_control.")],
+    register: Annotated[
+        str,
+        typer.Argument(
+            help="Register name (e.g. led_control) or address (0x.. accepted), of RAM, or "
+            "of EEP with --eep."
+        ),
+    ],
     value: Annotated[str, typer.Argument(help="Value (decimal or 0x..).")],
     port: PortOption = None,
     sid: SidOption = _NECK,
     persist: Annotated[
         bool, typer.Option("--persist", help="Also write the EEP copy (survives reboot).")
     ] = False,
+    eep: Annotated[
+        bool,
+        typer.Option(
+            "--eep",
+            help="Write the EEP register alone (acts after a reboot; tb_control's "
+            "servo_write_eep): REGISTER names or addresses an EEP register.",
+        ),
+    ] = False,
     timeout: TimeoutOption = 0.05,
     direct: DirectOption = False,
 ) -> None:
-    """Write one RAM register (and its EEP copy with --persist). Range-checked first;
-    through ohmni serve when it runs (it needs the control lease there).
+    """Write one RAM register (and its EEP copy with --persist), or with --eep one EEP
+    register. Checked against the register map first: the register (or the address of
+    its first byte) exists in that memory and is writable, the value is in its range;
+    else exit 2 and nothing is sent. Through ohmni serve when it runs (it needs the
+    control lease there).
 
-    Example: ohmni servo write led_control 1 --sid 3 --port sim://
+    Examples: ohmni servo write led_control 1 --sid 3 --port sim:// ;
+    ohmni servo write 30 200 --eep --sid 3 --port sim://  (EEP 30 = position_kp)
     """
-    reg = _register(register, RAM)
+    if eep and persist:
+        raise typer.BadParameter(
+            "--persist writes the EEP copy of a RAM register; --eep writes EEP alone: "
+            "give one of them"
+        )
+    table = EEP if eep else RAM
+    reg = _register(register, table)
     if reg.read_only:
-        raise typer.BadParameter(f"REGISTER: {reg.name} is read-only")
+        raise typer.BadParameter(
+            f"REGISTER: {table.memory.name} {reg.addr} ({reg.name}) is read-only"
+        )
     number = parse_int(value, "VALUE")
     regs = [reg]
     if persist:
@@ -347,14 +380,25 @@ def write(
         except InvalidArgumentError as exc:  # OutOfRangeError too: names the register
             raise typer.BadParameter(f"VALUE={number}: {exc}") from None
     sid_value = _sid(sid)
+    memory = table.memory
     via = daemon_for(port, direct)
     if via is not None:
-        _via_daemon(via, sid_value, lambda s: s.write(reg.name, number, persist=persist))
+
+        async def remote(handle: HerkulexHandle) -> int:
+            await handle.write(reg.name, number, persist=persist, memory=memory)
+            return (await handle.info())[memory.value][reg.name]
+
+        read_back = _via_daemon(via, sid_value, remote)
     else:
-        _with_servo(
-            port, sid_value, timeout, lambda s: s.write(reg, number, persist=persist), direct=True
-        )
-    console.print(f"{reg.name} ← {number}" + (" (RAM and EEP)" if persist else ""))
+
+        async def action(servo: Servo) -> int:
+            await servo.write(reg, number, persist=persist, memory=memory)
+            return await servo.read(reg, memory)
+
+        read_back = _with_servo(port, sid_value, timeout, action, direct=True)
+    where = f"EEP {reg.addr}" if eep else f"RAM {reg.addr}"
+    also = " (and its EEP copy)" if persist else " (acts after a reboot)" if eep else ""
+    console.print(f"{where} {reg.name} ← {number}{also}; reads back {read_back}", highlight=False)
 
 
 @app.command()
@@ -368,7 +412,8 @@ def move(
         float,
         typer.Option(
             "--playtime",
-            help=f"Seconds to get there, 0..{MAX_PLAYTIME_S:.4f} in 11.2 ms steps.",
+            help=f"Seconds to get there, 0..{MAX_PLAYTIME_S:g}, sent in whole 11.2 ms ticks "
+            "(the nearest).",
         ),
     ] = 1.0,
     min_raw: Annotated[

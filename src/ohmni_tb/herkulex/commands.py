@@ -248,13 +248,13 @@ def decode_jog(packet: Packet) -> tuple[JogTarget, ...]:
 
 
 def ram_read(
-    sid: int, register: Register | str, *, through: Register | str | None = None
+    sid: int, register: Register | str | int, *, through: Register | str | int | None = None
 ) -> Packet:
     """Build a RAM_READ of one register, or of every byte from it through ``through``.
 
     Args:
         sid: The servo (0..0xFD). Broadcast is refused: every servo would answer at once.
-        register: The first register (an object from :data:`RAM` or its name).
+        register: The first register (an object from :data:`RAM`, its name or address).
         through: The last register to include, for a block read in one transaction.
 
     Raises:
@@ -266,18 +266,18 @@ def ram_read(
 
 
 def eep_read(
-    sid: int, register: Register | str, *, through: Register | str | None = None
+    sid: int, register: Register | str | int, *, through: Register | str | int | None = None
 ) -> Packet:
     """Build an EEP_READ; see :func:`ram_read`."""
     return _read(Memory.EEP, sid, register, through)
 
 
-def ram_write(sid: int, register: Register | str, value: int) -> Packet:
+def ram_write(sid: int, register: Register | str | int, value: int) -> Packet:
     """Build a RAM_WRITE of one register (acts at once).
 
     Args:
         sid: The servo (0..0xFD), or 0xFE for every servo.
-        register: A register object from :data:`RAM` or its name.
+        register: A register object from :data:`RAM`, its name, or its address.
         value: The value, checked against the register's range.
 
     Raises:
@@ -288,12 +288,12 @@ def ram_write(sid: int, register: Register | str, value: int) -> Packet:
     return ram_write_many(sid, {register: value})
 
 
-def eep_write(sid: int, register: Register | str, value: int) -> Packet:
+def eep_write(sid: int, register: Register | str | int, value: int) -> Packet:
     """Build an EEP_WRITE of one register (acts after REBOOT); see :func:`ram_write`."""
     return eep_write_many(sid, {register: value})
 
 
-def ram_write_many(sid: int, values: Mapping[Register | str, int]) -> Packet:
+def ram_write_many(sid: int, values: Mapping[Register | str | int, int]) -> Packet:
     """Build one RAM_WRITE of several adjacent registers (e.g. Kp and Kd together).
 
     Raises:
@@ -304,7 +304,7 @@ def ram_write_many(sid: int, values: Mapping[Register | str, int]) -> Packet:
     return _write(Memory.RAM, sid, values)
 
 
-def eep_write_many(sid: int, values: Mapping[Register | str, int]) -> Packet:
+def eep_write_many(sid: int, values: Mapping[Register | str | int, int]) -> Packet:
     """Build one EEP_WRITE of several adjacent registers; see :func:`ram_write_many`."""
     return _write(Memory.EEP, sid, values)
 
@@ -466,7 +466,10 @@ def _jog_sid(targets: tuple[JogTarget, ...], max_targets: int) -> int:
 
 
 def _read(
-    memory: Memory, sid: int, register: Register | str, through: Register | str | None
+    memory: Memory,
+    sid: int,
+    register: Register | str | int,
+    through: Register | str | int | None,
 ) -> Packet:
     first = resolve(register, memory)
     last = first if through is None else resolve(through, memory)
@@ -475,7 +478,7 @@ def _read(
     return read_request(sid, first.addr, last.end - first.addr, memory)
 
 
-def _write(memory: Memory, sid: int, values: Mapping[Register | str, int]) -> Packet:
+def _write(memory: Memory, sid: int, values: Mapping[Register | str | int, int]) -> Packet:
     regs = sorted(((resolve(r, memory), v) for r, v in values.items()), key=lambda rv: rv[0].addr)
     if not regs:
         raise InvalidArgumentError("nothing to write")

@@ -45,6 +45,7 @@ __all__ = [
     "ServoFeedback",
     "TorqueControl",
     "decode_feedback",
+    "memory_of",
     "model_from_bytes",
     "resolve",
 ]
@@ -241,15 +242,34 @@ class RegisterMap:
         """The register whose first byte is at ``addr``.
 
         Raises:
-            InvalidArgumentError: No register starts there (reserved, the second byte of
-                a 2-byte register, or past the end of the memory).
+            InvalidArgumentError: ``addr`` is not an int, or no register starts there
+                (reserved, the second byte of a 2-byte register, or past the end of the
+                memory); the message says which.
         """
-        try:
-            return self._by_addr[addr]
-        except (KeyError, TypeError):  # TypeError: an unhashable address
+        if isinstance(addr, bool) or not isinstance(addr, int):
+            raise InvalidArgumentError(
+                f"a {self.memory.name} address must be an int, not {type(addr).__name__} "
+                f"{show(addr)}"
+            )
+        found = self._by_addr.get(addr)
+        if found is None:
             raise InvalidArgumentError(
                 f"no {self.memory.name} register starts at address {show(addr)}"
-            ) from None
+                f"{self._why_none_at(addr)}"
+            )
+        return found
+
+    def _why_none_at(self, addr: int) -> str:
+        """Why no register starts at ``addr``, for the error: inside one, reserved, or out."""
+        if not 0 <= addr < self.size:
+            return f" (the {self.memory.name} addresses are 0..{self.size - 1})"
+        for reg in self:
+            if reg.addr < addr < reg.end:
+                return (
+                    f" (it is byte {addr - reg.addr + 1} of {reg.name}, "
+                    f"{self.memory.name} {reg.addr}..{reg.end - 1})"
+                )
+        return " (reserved on these models)"
 
     def writable(self, addr: int, length: int) -> bool:
         """Whether every byte of ``addr..addr+length-1`` exists and may be written.
@@ -268,18 +288,37 @@ class RegisterMap:
         return not any(r.read_only and r.addr < addr + length and addr < r.end for r in self)
 
 
-def resolve(register: Register | str, memory: Memory) -> Register:
-    """Return the ``memory`` register named by ``register`` (an object or a name).
+def memory_of(memory: Memory | str) -> Memory:
+    """``memory`` as a :class:`~ohmni_tb.protocol.Memory`: the enum, or ``"ram"``/``"eep"``.
 
     Raises:
-        InvalidArgumentError: Unknown name, or a register object of the other memory.
+        InvalidArgumentError: Anything else.
+    """
+    if isinstance(memory, Memory):
+        return memory
+    if isinstance(memory, str) and memory.lower() in ("ram", "eep"):
+        return Memory(memory.lower())
+    raise InvalidArgumentError(f"memory must be RAM or EEP ('ram', 'eep'), not {show(memory)}")
+
+
+def resolve(register: Register | str | int, memory: Memory) -> Register:
+    """Return the ``memory`` register named by ``register``: an object, a name, or the
+    address of its first byte (``resolve(30, Memory.EEP)`` is the EEP ``position_kp``,
+    as tb_control's ``servo_write_eep`` names it).
+
+    Raises:
+        InvalidArgumentError: Unknown name, no register at that address (the message
+            says why: reserved, inside a 2-byte register, out of the memory), or a
+            register object of the other memory.
     """
     table = RAM if memory is Memory.RAM else EEP
     if isinstance(register, str):
         return table.by_name(register)
+    if isinstance(register, int) and not isinstance(register, bool):
+        return table.by_addr(register)
     if not isinstance(register, Register):
         raise InvalidArgumentError(
-            f"register must be a Register or a name, not {type(register).__name__}"
+            f"register must be a Register, a name or an address, not {type(register).__name__}"
         )
     if register.memory is not memory:
         raise InvalidArgumentError(

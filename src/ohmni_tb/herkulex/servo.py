@@ -62,7 +62,16 @@ from ohmni_tb.herkulex.commands import (
     s_jog,
     stat,
 )
-from ohmni_tb.herkulex.registers import EEP, RAM, Led, Model, Register, TorqueControl, resolve
+from ohmni_tb.herkulex.registers import (
+    EEP,
+    RAM,
+    Led,
+    Model,
+    Register,
+    TorqueControl,
+    memory_of,
+    resolve,
+)
 from ohmni_tb.herkulex.units import (
     POSITION_MAX_RAW,
     angle_rad_from_raw,
@@ -235,24 +244,61 @@ class Servo:
 
     # -- registers -------------------------------------------------------------------
 
-    async def read(self, register: Register | str, memory: Memory = Memory.RAM) -> int:
+    async def read(self, register: Register | str | int, memory: Memory | str = Memory.RAM) -> int:
         """Read one register's value.
 
+        Args:
+            register: The register: an object, its name, or its address in ``memory``.
+            memory: RAM (the live value) or EEP (the power-up one); ``"ram"``/``"eep"``.
+
         Raises:
-            InvalidArgumentError: Unknown register.
+            InvalidArgumentError: Unknown register or memory, or no register at that
+                address; nothing sent.
             BusTimeoutError: No reply.
         """
+        memory = memory_of(memory)
         reg = resolve(register, memory)
         packet = ram_read(self.sid, reg) if memory is Memory.RAM else eep_read(self.sid, reg)
         return (await self._read(packet)).value(reg)
 
-    async def write(self, register: Register | str, value: int, *, persist: bool = False) -> None:
-        """Write a RAM register (acts now); with ``persist``, the EEP copy too (survives reboot).
+    async def write(
+        self,
+        register: Register | str | int,
+        value: int,
+        *,
+        persist: bool = False,
+        memory: Memory | str = Memory.RAM,
+    ) -> None:
+        """Write a RAM register (acts now); with ``persist``, the EEP copy too (survives
+        reboot). With ``memory=EEP``, write the EEP register alone: it acts after a
+        reboot (tb_control's ``servo_write_eep``).
+
+        Every write is checked against the register map before anything is sent: the
+        register exists in that memory (a name, or the address of its first byte), it is
+        writable, and the value is in its range.
+
+        Args:
+            register: The register: an object, its name, or its address in ``memory``
+                (``write(30, 200, memory="eep")`` is EEP 30, ``position_kp``).
+            value: The value, checked against the register's range.
+            persist: A RAM write: write the EEP copy too.
+            memory: RAM or EEP (``"ram"``/``"eep"``).
 
         Raises:
-            InvalidArgumentError: Unknown or read-only register, or a bad value; nothing sent.
+            InvalidArgumentError: Unknown register or memory, no register at that address,
+                a read-only register, a bad value, or ``persist`` with an EEP write;
+                nothing sent.
             OutOfRangeError: The value is out of the register's range; nothing sent.
         """
+        memory = memory_of(memory)
+        if memory is Memory.EEP:
+            if persist:
+                raise InvalidArgumentError(
+                    "persist=True also writes the EEP copy of a RAM register; an EEP "
+                    "write is persistent already: give one of them"
+                )
+            await self._send(eep_write(self.sid, resolve(register, Memory.EEP), value))
+            return
         reg = resolve(register, Memory.RAM)
         packets = [ram_write(self.sid, reg, value)]
         if persist:

@@ -7,7 +7,10 @@ DRS-0101 and DRS-0201 alike:
   ``angle_deg = (pos_raw - 512 - zero_offset_raw) * 0.325``;
 * speed: one count of differential position (RAM 62) = 29.09 °/s;
 * voltage: 0.074 V a count (RAM 54, and the min/max voltage settings);
-* playtime: ticks of 11.2 ms, 0..254.
+* playtime: ticks of 11.2 ms, 0..254 (0..2.8448 s). Seconds go to the *nearest* tick
+  (:func:`playtime_ticks_from_s`: 2.84 s is 253.57 ticks, sent as 254 = 2.8448 s), and
+  every caller — ``neck.move``, ``ohmni neck``, ``ohmni servo move``, the daemon and
+  Foxglove — takes the same range, 0..2.8448 s (:func:`check_playtime_s`).
 
 Temperature (RAM 55) is a non-linear raw ADC value whose full table is not available, so
 no conversion is offered: compare it with the servo's own max-temperature register.
@@ -22,7 +25,7 @@ import math
 from typing import Final
 
 from ohmni_tb._checks import FLOAT_MAX as _FLOAT_MAX
-from ohmni_tb._checks import finite, finite_result, integer
+from ohmni_tb._checks import finite, finite_result, integer, show
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError
 
 __all__ = [
@@ -37,6 +40,7 @@ __all__ = [
     "VOLT_PER_COUNT",
     "angle_deg_from_raw",
     "angle_rad_from_raw",
+    "check_playtime_s",
     "check_playtime_ticks",
     "check_zero_offset_raw",
     "playtime_s_from_ticks",
@@ -204,24 +208,47 @@ def voltage_raw_from_v(voltage_v: float) -> int:
     return round(counts)
 
 
+def check_playtime_s(playtime_s: float) -> float:
+    """Return ``playtime_s`` as a float if it is a playtime a HerkuleX servo takes.
+
+    The one range of every playtime in seconds: 0..2.8448 s (254 ticks of 11.2 ms,
+    tb_control's ``playtime`` 1 = 11.2 ms … 254 = 2.844 s), both ends included. A longer
+    one is refused, never clamped to 254 ticks nor wrapped to 8 bits.
+
+    Raises:
+        InvalidArgumentError: ``playtime_s`` is not a number (a bool is not one), NaN
+            or infinite.
+        OutOfRangeError: Negative, or longer than 2.8448 s.
+    """
+    if isinstance(playtime_s, bool) or not isinstance(playtime_s, int | float):
+        raise InvalidArgumentError(
+            f"playtime_s must be a number of seconds, not {type(playtime_s).__name__} "
+            f"{show(playtime_s)}"
+        )
+    if isinstance(playtime_s, float) and not math.isfinite(playtime_s):
+        raise InvalidArgumentError(
+            f"playtime_s={playtime_s!r} is not a finite number: allowed 0.0..{MAX_PLAYTIME_S} s"
+        )
+    # An int too large for a float compares exactly.
+    if not 0.0 <= playtime_s <= MAX_PLAYTIME_S:
+        raise OutOfRangeError("playtime_s", playtime_s, 0.0, MAX_PLAYTIME_S, "s")
+    return float(playtime_s)
+
+
 def playtime_ticks_from_s(playtime_s: float) -> int:
     """Convert a playtime in seconds to the nearest whole number of 11.2 ms ticks.
 
-    The seconds actually sent are :func:`playtime_s_from_ticks` of the result, or
-    :func:`playtime_sent_s` in one call (2.85 s is sent as 254 ticks, 2.8448 s).
+    The one conversion of every caller: 2.84 s is 253.57 ticks, sent as 254; 0.5 s is
+    44.6, sent as 45. The seconds actually sent are :func:`playtime_s_from_ticks` of the
+    result, or :func:`playtime_sent_s` in one call.
 
     Raises:
         InvalidArgumentError: ``playtime_s`` is not a number, NaN or infinite.
-        OutOfRangeError: The playtime is negative or rounds above 254 ticks (2.8448 s);
-            it is never wrapped to 8 bits nor clamped.
+        OutOfRangeError: The playtime is outside 0..2.8448 s (:func:`check_playtime_s`).
     """
-    seconds = finite("playtime_s", playtime_s, "s")
-    ticks = seconds / TICK_S
-    # A negative playtime is refused even where it would round to 0 ticks; compared
-    # before rounding, so a huge value never becomes a huge int.
-    if not 0.0 <= ticks <= MAX_PLAYTIME_TICKS + 0.5 or round(ticks) > MAX_PLAYTIME_TICKS:
-        raise OutOfRangeError("playtime_s", playtime_s, 0.0, MAX_PLAYTIME_S, "s")
-    return round(ticks)
+    ticks = round(check_playtime_s(playtime_s) / TICK_S)
+    # 2.8448 / 0.0112 is 254 within float noise; the range check makes it at most 254.
+    return min(ticks, MAX_PLAYTIME_TICKS)
 
 
 def playtime_s_from_ticks(playtime_ticks: int) -> float:
@@ -239,7 +266,7 @@ def playtime_s_from_ticks(playtime_ticks: int) -> float:
 def playtime_sent_s(playtime_s: float) -> float:
     """The playtime actually sent for ``playtime_s``: rounded to whole 11.2 ms ticks.
 
-    ``playtime_sent_s(2.85)`` is 2.8448 (254 ticks), ``playtime_sent_s(0.5)`` 0.504
+    ``playtime_sent_s(2.84)`` is 2.8448 (254 ticks), ``playtime_sent_s(0.5)`` 0.504
     (45 ticks); show this, not the request, when telling a user what was sent.
 
     Raises:

@@ -25,6 +25,7 @@ from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, TypeVar, overload
 
 from ohmni_tb.errors import ConfigError
+from ohmni_tb.protocol import Memory
 from ohmni_tb.robot.streams import DEFAULT_QUEUE_SIZE
 
 if TYPE_CHECKING:
@@ -135,8 +136,9 @@ class NeckHandle(Protocol):
             InvalidArgumentError: Neither or both of ``raw`` and ``rad``, not numbers, an
                 argument the worm-gear neck does not take, or ``timeout_s`` without
                 ``wait``.
-            OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside 0..2.84 s
-                or a timeout outside 0..600 s; nothing sent.
+            OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside
+                0..2.8448 s (it goes to the nearest 11.2 ms tick) or a timeout outside
+                0..600 s; nothing sent.
             StateError: The port is released (:meth:`Robot.release_port`), or ``wait``
                 and the feedback stream is off; nothing sent.
             PositionError: ``wait``, and the worm gear stalled.
@@ -200,13 +202,24 @@ class HerkulexHandle(NeckHandle, Protocol):
         """
         ...
 
-    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
-        """Write a RAM register (acts now); with ``persist`` its EEP copy too (survives a
-        reboot: tb_control's ``servo_write_eep``). Checked against the register map first.
+    async def write(
+        self,
+        register: str | int,
+        value: int,
+        *,
+        persist: bool = False,
+        memory: Memory | str = Memory.RAM,
+    ) -> None:
+        """Write a register by name or address: RAM (acts now; with ``persist`` its EEP
+        copy too, which survives a reboot), or with ``memory="eep"`` the EEP register
+        alone (acts after a reboot: tb_control's ``servo_write_eep``, e.g.
+        ``write(30, 200, memory="eep")``, EEP 30 being ``position_kp``). Checked against
+        the register map first.
 
         Raises:
-            InvalidArgumentError: Unknown or read-only register, no EEP copy to persist,
-                or the id (:meth:`set_id` changes it); nothing sent.
+            InvalidArgumentError: Unknown register or memory, no register at that address,
+                a read-only one, ``persist`` with an EEP write or of a register with no EEP
+                copy, or the id (:meth:`set_id` changes it); nothing sent.
             OutOfRangeError: The value is outside the register's range; nothing sent.
             StateError: The port is released; nothing sent.
         """

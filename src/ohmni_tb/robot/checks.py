@@ -12,7 +12,7 @@ from ohmni_tb._checks import bounded, check_seconds, integer, number, show
 from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
-from ohmni_tb.herkulex.registers import EEP, RAM, Register, resolve
+from ohmni_tb.herkulex.registers import EEP, RAM, Register, memory_of, resolve
 from ohmni_tb.protocol import BROADCAST_ID, Memory
 from ohmni_tb.protocol.drive import PWM_LIMIT
 from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
@@ -170,16 +170,25 @@ def check_release(duration_s: float | None) -> float | None:
     return float(duration_s)
 
 
-def check_servo_write(sid: int, register: Register | str, value: int, persist: bool) -> None:
-    """A servo register write (``HerkulexHandle.write``).
+def check_servo_write(
+    sid: int,
+    register: Register | str | int,
+    value: int,
+    persist: bool,
+    memory: Memory | str = Memory.RAM,
+) -> None:
+    """A servo register write (``HerkulexHandle.write``), by name or address, to RAM (with
+    ``persist`` its EEP copy too) or to EEP alone.
 
     Raises:
-        InvalidArgumentError: Unknown or read-only register, the id (``set_id`` changes
-            it), a value that is not an int, or ``persist`` of a register without an EEP
+        InvalidArgumentError: Unknown register or memory, no register at that address, a
+            read-only one, the id (``set_id`` changes it), a value that is not an int,
+            ``persist`` with an EEP write, or ``persist`` of a register without an EEP
             copy.
         OutOfRangeError: The value is outside the register's range.
     """
-    reg = resolve(register, Memory.RAM)
+    memory = memory_of(memory)
+    reg = resolve(register, memory)
     if reg.name == "id":
         raise InvalidArgumentError(
             f"servo {sid}'s id is changed with set_id({value!r}), which the robot follows; "
@@ -188,6 +197,11 @@ def check_servo_write(sid: int, register: Register | str, value: int, persist: b
     reg.check(value)
     if not isinstance(persist, bool):
         raise InvalidArgumentError(f"persist must be True or False, not {persist!r}")
+    if persist and memory is Memory.EEP:
+        raise InvalidArgumentError(
+            "persist=True also writes the EEP copy of a RAM register; an EEP write is "
+            "persistent already: give one of them"
+        )
     if persist and reg.name not in EEP:
         raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
 

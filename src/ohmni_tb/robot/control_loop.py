@@ -390,7 +390,9 @@ class ControlLoop:
             config.watchdog_s <= 0
             or state.watchdog_tripped
             or not self._moving_target()
-            or now - self._last_command_s < config.watchdog_s
+            # The timer's own sum (_watchdog_due): a difference can round below
+            # watchdog_s at the very instant the timer fires, and trip a tick late.
+            or now < self._last_command_s + config.watchdog_s
         ):
             return False
         state.watchdog_tripped = True

@@ -76,6 +76,7 @@ from ohmni_tb.robot.link import LinkKeeper
 from ohmni_tb.robot.motion import MotionGoals, MotionResult
 from ohmni_tb.robot.renumber import Renumbering
 from ohmni_tb.robot.samples import Link, RobotStateSample
+from ohmni_tb.robot.servo_settings import NeckSettings
 from ohmni_tb.robot.state import RobotState
 from ohmni_tb.robot.stats import BusFigures, RobotStats
 from ohmni_tb.robot.wheels import WheelCounts
@@ -100,8 +101,10 @@ class LocalRobot(Robot):
         self._state = state = RobotState(bus, config, self._loop)
         self._counts = WheelCounts(state)
         self._control = ControlLoop(state, self._counts)
-        self._feedback = Feedback(state, self._control, self._counts, Guards(state))
-        self._discovery = Discovery(state, self._feedback.found)
+        # The neck servo's own settings: loaded at open, checked after a silence.
+        self._settings = NeckSettings(state)
+        self._feedback = Feedback(state, self._control, self._counts, Guards(state, self._settings))
+        self._discovery = Discovery(state, self._found)
         self._link = LinkKeeper(state, self._control, self._feedback, self._discovery)
         self._renumbering = Renumbering(state, self._feedback, self._reconfigure)
         self._discovery.renumber = self._renumbering.servo
@@ -176,11 +179,19 @@ class LocalRobot(Robot):
 
     async def _start(self) -> None:
         await self._discovery.discover()
+        await self._settings.load("the Robot opened")
         self._feedback.build()
         self._feedback.start()
         self._link.start()
         self._discovery.arm()
         self._state.publish("opened")
+
+    def _found(self, sid: int) -> None:
+        """A device answered after open: its stream, and the neck servo its settings."""
+        self._feedback.found(sid)
+        neck = self._settings.handle()
+        if neck is not None and sid == neck.sid:
+            self._state.spawn(self._settings.load("the neck answered"), "neck settings")
 
     async def _close_shielded(self) -> None:
         """Close, and finish closing even if the caller is cancelled meanwhile."""
@@ -462,7 +473,9 @@ class LocalRobot(Robot):
     async def info(self) -> dict[str, Any]:
         """Firmware tags, servo models, the neck kind (the contract: ohmni_tb.robot.api.Robot)."""
         self._state.check_port()
-        return await self._discovery.info()
+        info = await self._discovery.info()
+        info["neck_settings"] = self._settings.report
+        return info
 
     @staticmethod
     def ports() -> list[dict[str, Any]]:

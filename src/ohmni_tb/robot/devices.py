@@ -14,7 +14,6 @@ target: a HerkuleX servo within :data:`HERKULEX_TOLERANCE_RAW` and done moving (
 from __future__ import annotations
 
 import asyncio
-import math
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, TypeVar
 
@@ -28,8 +27,8 @@ from ohmni_tb.errors import (
 )
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.herkulex.servo import Servo
-from ohmni_tb.herkulex.units import check_zero_offset_raw
-from ohmni_tb.protocol import Packet
+from ohmni_tb.herkulex.units import check_playtime_s, check_zero_offset_raw
+from ohmni_tb.protocol import Memory, Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
 from ohmni_tb.robot.checks import check_servo_write
 
@@ -245,7 +244,8 @@ class ServoHandle:
         Args:
             raw: The target, raw counts within ``min_raw..max_raw``.
             rad: Or the target in radians (0 = 512 + ``zero_offset_raw``).
-            playtime_s: How long the move takes, 0..2.84 s.
+            playtime_s: How long the move takes, 0..2.8448 s, sent to the nearest 11.2 ms
+                tick (2.84 s goes as 254 ticks, 2.8448 s).
             wait: Wait until the position reads back at the target.
             timeout_s: With ``wait``, the longest wait from the move, 0..600 s;
                 default ``playtime_s`` + :data:`HERKULEX_SETTLE_S`.
@@ -257,17 +257,15 @@ class ServoHandle:
             InvalidArgumentError: Neither or both of ``raw`` and ``rad``, not numbers, or
                 ``timeout_s`` without ``wait``.
             OutOfRangeError: Outside ``min_raw..max_raw``, a playtime outside
-                0..2.84 s or a timeout outside 0..600 s; nothing sent.
+                0..2.8448 s or a timeout outside 0..600 s; nothing sent.
             DeviceStatusError: The servo has a latched fault.
             StateError: ``check`` refused (the Robot's port is released), or ``wait``
                 and the servo's stream is off; nothing sent.
             PositionTimeoutError: ``wait``, and not there in time (or no sample came).
         """
         target = self.servo.target(raw, angle_rad=rad)  # checks before anything is sent
-        if isinstance(playtime_s, bool) or not isinstance(playtime_s, int | float):
-            raise InvalidArgumentError(f"playtime_s must be a number, not {playtime_s!r}")
-        if not math.isfinite(playtime_s) or not 0.0 <= playtime_s <= 2.84:
-            raise OutOfRangeError("playtime_s", playtime_s, 0.0, 2.84, "s")
+        # The one playtime range of every caller (0..2.8448 s, sent to the nearest tick).
+        playtime_s = check_playtime_s(playtime_s)
         limit_s = _wait_limit(wait, timeout_s, playtime_s + HERKULEX_SETTLE_S)
         samples = self._subscribe() if wait else None
         try:
@@ -327,16 +325,30 @@ class ServoHandle:
         """Every EEP and RAM register's value (tb_control's ``get_servo_info``)."""
         return await self.servo.info()
 
-    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
-        """Write a RAM register (to EEP as well with ``persist``); checked before sending.
+    async def write(
+        self,
+        register: str | int,
+        value: int,
+        *,
+        persist: bool = False,
+        memory: Memory | str = Memory.RAM,
+    ) -> None:
+        """Write a register by name or address: RAM (acts now; with ``persist`` the EEP
+        copy too), or with ``memory="eep"`` the EEP register alone (acts after a reboot:
+        tb_control's ``servo_write_eep``, e.g. ``write(30, 200, memory="eep")``).
+
+        Checked against the register map before anything is sent: the address names a
+        register of that memory, it is writable, the value is in its range.
 
         Raises:
-            InvalidArgumentError: Unknown or read-only register, a bad value, or the id
-                (:meth:`set_id` changes it); nothing sent.
+            InvalidArgumentError: Unknown register or memory, no register at that address,
+                a read-only one, a bad value, the id (:meth:`set_id` changes it), or ``persist``
+                with an EEP write; nothing sent.
             OutOfRangeError: The value is out of the register's range; nothing sent.
+            StateError: The Robot's port is released; nothing sent.
         """
-        check_servo_write(self.sid, register, value, persist)
-        await self.servo.write(register, value, persist=persist)
+        check_servo_write(self.sid, register, value, persist, memory)
+        await self.servo.write(register, value, persist=persist, memory=memory)
 
     async def set_id(self, new_sid: int) -> None:
         """Give the servo a new id (EEP and RAM); this handle then speaks to it, and the

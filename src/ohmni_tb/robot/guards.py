@@ -14,6 +14,7 @@ from ohmni_tb.errors import OhmniError
 from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.protocol.messages import StatusError
 from ohmni_tb.robot.samples import ServoSample
+from ohmni_tb.robot.servo_settings import NeckSettings
 from ohmni_tb.robot.state import RobotState, ServoWatch
 
 __all__ = ["THERMAL_HYSTERESIS_RAW", "Guards", "sample_ok"]
@@ -29,12 +30,16 @@ THERMAL_HYSTERESIS_RAW = 10
 class Guards:
     """The thermal and hold guards over every HerkuleX servo of the Robot."""
 
-    def __init__(self, state: RobotState) -> None:
+    def __init__(self, state: RobotState, settings: NeckSettings | None = None) -> None:
         self._state = state
+        self._settings = settings
 
     def check(self, watch: ServoWatch, sample: ServoSample) -> None:
         """Act on a new sample of ``watch``'s servo."""
         state = self._state
+        if self._settings is not None and watch.stream == "servo_neck":
+            # Back after a silence (a reboot?): the servo's settings are checked.
+            self._settings.check(sample)
         config = state.config
         if not config.thermal_guard:
             return

@@ -64,7 +64,9 @@ from ohmni_tb.errors import (
     StateError,
     TransportClosedError,
 )
+from ohmni_tb.herkulex.registers import memory_of
 from ohmni_tb.herkulex.units import check_zero_offset_raw
+from ohmni_tb.protocol import Memory
 from ohmni_tb.robot._connection import DEFAULT_TIMEOUT_S, DaemonConnection, open_websocket
 from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
@@ -825,11 +827,24 @@ class RemoteServo:
         )
         return data
 
-    async def write(self, register: str, value: int, *, persist: bool = False) -> None:
+    async def write(
+        self,
+        register: str | int,
+        value: int,
+        *,
+        persist: bool = False,
+        memory: Memory | str = Memory.RAM,
+    ) -> None:
         """:meth:`HerkulexHandle.write <ohmni_tb.robot.api.HerkulexHandle.write>`, checked
         and sent by the daemon's robot."""
-        check_servo_write(self.sid, register, value, persist)
-        args = ServoWriteArgs(target=self.target, reg=register, value=value, persist=persist)
+        check_servo_write(self.sid, register, value, persist, memory)
+        args = ServoWriteArgs(
+            target=self.target,
+            reg=register,
+            value=value,
+            persist=persist,
+            memory=memory_of(memory).value,
+        )
         await self._robot._call("servo_write", args)
 
     async def set_id(self, new_sid: int) -> None:

@@ -390,15 +390,24 @@ class ServoArgs(_ServoCommand):
 
 
 class ServoWriteArgs(_ServoCommand):
-    """``servo_write``: RAM register ``reg`` of ``target`` (``persist``: its EEP copy
-    too), checked against the register map before anything is sent."""
+    """``servo_write``: register ``reg`` (a name or an address) of ``target``, in RAM
+    (``persist``: its EEP copy too) or EEP alone, checked against the register map before
+    anything is sent."""
 
-    reg: str | int = Field(description="The register: its name (as in the register map).")
+    reg: str | int = Field(
+        description="The register: its name, or its address in ``memory`` (the register map)."
+    )
     value: int
     persist: bool = False
+    memory: Literal["ram", "eep"] = "ram"
 
     def call_kwargs(self) -> dict[str, Any]:
-        return {"register": self.reg, "value": self.value, "persist": self.persist}
+        return {
+            "register": self.reg,
+            "value": self.value,
+            "persist": self.persist,
+            "memory": self.memory,
+        }
 
 
 class ServoIdArgs(_ServoCommand):

@@ -15,19 +15,25 @@ milliseconds, deterministically::
 
 The loop still polls real file descriptors (without blocking while timers are due), so a
 pseudo-terminal or a thread calling ``call_soon_threadsafe`` keeps working; when nothing
-is due and nothing is ready it blocks for real.
+is due and nothing is ready it blocks for real. While a job it handed to an executor
+(``asyncio.to_thread``, ``run_in_executor``: opening a serial port, say) is running, the
+clock stands still and the loop waits for it for real: a thread takes no virtual time, so
+a virtual timeout around it cannot expire however slow the machine is.
 """
 
 from __future__ import annotations
 
 import asyncio
 import selectors
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 __all__ = ["VirtualClockLoop", "run_virtual"]
 
 T = TypeVar("T")
+
+#: While an executor job runs, the longest real wait before the loop looks again.
+_THREAD_POLL_S = 0.05
 
 
 class _JumpingSelector(selectors.DefaultSelector):
@@ -45,6 +51,9 @@ class _JumpingSelector(selectors.DefaultSelector):
         if ready or timeout is None:
             return ready if ready or timeout == 0 else super().select(None)
         if timeout > 0 and self.loop is not None:
+            if self.loop.threads_busy:
+                # The thread's result wakes the loop through its self-pipe.
+                return super().select(min(timeout, _THREAD_POLL_S))
             self.loop.advance(timeout)
         return ready
 
@@ -59,6 +68,19 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._virtual_s = start_s
         # Timers due within this window run together; virtual time is exact, so none.
         self._clock_resolution = 1e-9
+        #: Executor jobs started and not yet finished: the clock stands still meanwhile.
+        self.threads_busy = 0
+
+    def run_in_executor(  # type: ignore[override]  # same call; typeshed's overloads
+        self, executor: Any, func: Callable[..., T], *args: Any
+    ) -> asyncio.Future[T]:
+        future = super().run_in_executor(executor, func, *args)
+        self.threads_busy += 1
+        future.add_done_callback(self._thread_done)
+        return future
+
+    def _thread_done(self, _future: asyncio.Future[Any]) -> None:
+        self.threads_busy -= 1
 
     def time(self) -> float:
         return self._virtual_s

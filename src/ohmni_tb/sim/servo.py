@@ -29,7 +29,8 @@ them):
   ``ratio`` (RAM 8, %) of the playtime but no longer than the max acceleration time
   (RAM 9), cruises, and decelerates symmetrically, arriving exactly at the end of the
   playtime. Tracking is ideal, except that the move is stretched when it would need more
-  than the model's no-load speed (playtime 0 = as fast as it can).
+  than the model's no-load speed scaled by the max PWM (RAM 16: 1023 = full speed, 0 =
+  it does not move), playtime 0 = as fast as it can.
 * **Turn JOG**: speed = PWM / 1023 × no-load speed (PWM magnitude capped by RAM 16);
   the absolute position wraps modulo 1024.
 * **Feedback**: RAM 60 = absolute position, 58 = 60 − calibration difference, 62 =
@@ -507,9 +508,13 @@ class SimServo(SimDevice):
         if distance == 0:
             return _Trajectory.hold(now, goal)
         ratio = min(self._get(_ACCEL_RATIO), 50) / 100
+        # The max PWM (RAM 16) caps the motor's drive, and with it its top speed.
+        top_cps = self._max_speed_cps * min(self._get(_MAX_PWM), 1023) / 1023
+        if top_cps <= 0:
+            return _Trajectory.hold(now, start)  # no drive at all: it stays
         # The peak speed of the profile is distance / (T (1 - ratio)); the motor cannot
-        # exceed its no-load speed, so a too-short playtime is stretched.
-        duration = max(playtime_s, distance / (self._max_speed_cps * (1 - ratio)))
+        # exceed its top speed, so a too-short playtime is stretched.
+        duration = max(playtime_s, distance / (top_cps * (1 - ratio)))
         accel = min(ratio * duration, self._get(_MAX_ACCEL_TIME) * TICK_S)
         return _Trajectory(now, start, goal, duration, accel)
 
