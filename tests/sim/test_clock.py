@@ -35,8 +35,12 @@ def test_a_slow_thread_inside_a_short_virtual_timeout_is_waited_for() -> None:
 
         task = asyncio.create_task(ticker())
         start = loop.time()
+        def slow_open() -> str:
+            time.sleep(0.3)
+            return "opened"
+
         async with asyncio.timeout(0.05):
-            result = await asyncio.to_thread(lambda: time.sleep(0.3) or "opened")
+            result = await asyncio.to_thread(slow_open)
         elapsed = loop.time() - start
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
