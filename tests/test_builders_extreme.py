@@ -214,6 +214,7 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "drive.read_count": (1, drive.read_count),
     "drive.read_firmware_tag": (2, drive.read_firmware_tag),
     "drive.read_motor_position": (1, drive.read_motor_position),
+    "drive.set_board_id": (2, drive.set_board_id),
     "drive.set_torque": (2, drive.set_torque),
     "drive.wheel_command": (2, drive.wheel_command),
     # protocol.core
