@@ -69,6 +69,7 @@ def wire(monkeypatch: pytest.MonkeyPatch) -> Wire:
     return spy_on_cli(monkeypatch)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_scan_finds_the_neck_and_the_external_servos() -> None:
     code, out = invoke("servo", "scan", *SIM, "--json")
     assert code == 0, out
@@ -79,6 +80,7 @@ def test_scan_finds_the_neck_and_the_external_servos() -> None:
     assert found[0]["angle_deg"] == 0.0
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_scan_table_names_the_models() -> None:
     code, out = invoke("servo", "scan", "--port", "sim://?neck=0201&ext=none", "--last", "20")
     assert code == 0, out
@@ -86,6 +88,7 @@ def test_scan_table_names_the_models() -> None:
     assert "ext1" not in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_info_has_both_memories() -> None:
     code, out = invoke("servo", "info", *SIM, "--sid", "3", "--json")
     assert code == 0, out
@@ -94,6 +97,7 @@ def test_info_has_both_memories() -> None:
     assert info["ram"]["torque_control"] == 0
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_read_and_unknown_register() -> None:
     code, out = invoke("servo", "read", "acceleration_ratio", *SIM, "--json")
     assert code == 0, out
@@ -106,6 +110,7 @@ def test_read_and_unknown_register() -> None:
     assert "no_such_register" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_write_checks_the_range_before_sending() -> None:
     code, out = invoke("servo", "write", "led_control", "1", *SIM)
     assert code == 0, out
@@ -119,6 +124,7 @@ def test_write_checks_the_range_before_sending() -> None:
     assert "read-only" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_write_takes_an_address_and_eep_alone(wire: Wire) -> None:
     # tb_control's servo_write_eep: EEP 30 (position_kp) by its address.
     code, out = invoke("servo", "write", "30", "200", "--eep", *SIM)
@@ -143,6 +149,7 @@ def test_write_takes_an_address_and_eep_alone(wire: Wire) -> None:
         (["30", "1", "--eep", "--persist"], "give one of them"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_a_bad_write_by_address_exits_2_with_nothing_sent(
     wire: Wire, args: list[str], message: str
 ) -> None:
@@ -152,6 +159,7 @@ def test_a_bad_write_by_address_exits_2_with_nothing_sent(
     assert wire.opened == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_move_needs_torque_and_respects_the_range() -> None:
     code, out = invoke("servo", "move", "400", *SIM)
     assert code == 1
@@ -180,6 +188,7 @@ def test_move_needs_torque_and_respects_the_range() -> None:
     assert "--playtime=9.0 is out of range: allowed 0..2.8448 s" in words(out)
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("mode", ["free", "brake", "on"])
 def test_torque_modes(mode: str) -> None:
     code, out = invoke("servo", "torque", mode, *SIM)
@@ -187,12 +196,14 @@ def test_torque_modes(mode: str) -> None:
     assert f"torque {mode}" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_torque_bad_mode() -> None:
     code, out = invoke("servo", "torque", "loose", *SIM)
     assert code == 2
     assert "loose" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_stat_and_clear() -> None:
     code, out = invoke("servo", "stat", *SIM, "--json")
     assert code == 0, out
@@ -204,6 +215,7 @@ def test_stat_and_clear() -> None:
     assert json.loads(out)["torque_on"] is True
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_missing_servo_is_an_error_line_not_a_traceback() -> None:
     code, out = invoke("servo", "stat", *SIM, "--sid", "40", "--timeout", "0.005")
     assert code == 1
@@ -211,12 +223,14 @@ def test_missing_servo_is_an_error_line_not_a_traceback() -> None:
     assert "Traceback" not in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_bad_sid_names_the_value() -> None:
     code, out = invoke("servo", "stat", *SIM, "--sid", "neck")
     assert code == 2
     assert "neck" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_demo_runs_on_the_simulator() -> None:
     code, out = invoke("demo")
     assert code == 0, out
@@ -242,12 +256,14 @@ def test_demo_runs_on_the_simulator() -> None:
     assert "bus: the wire carried bytes" in text
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_version() -> None:
     code, out = invoke("version")
     assert code == 0
     assert out.strip().count(".") == 2
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_demo_moves_a_worm_neck_when_the_robot_has_one() -> None:
     code, out = invoke("demo", "--port", "sim://?neck=worm")
     assert code == 0, out
@@ -259,6 +275,7 @@ def test_demo_moves_a_worm_neck_when_the_robot_has_one() -> None:
 # -- hardening: every argument checked before the first byte, one line per error -----------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_move_checks_every_argument_before_the_torque_goes_on(wire: Wire) -> None:
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime", "5")
     assert code == 2
@@ -266,6 +283,7 @@ def test_move_checks_every_argument_before_the_torque_goes_on(wire: Wire) -> Non
     assert wire.written == []  # the torque write used to go out before the refusal
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_valid_move_writes_what_the_spy_sees(wire: Wire) -> None:
     # The spy itself works: a good move puts the torque write and the jog on the wire.
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime", "2.84")
@@ -282,6 +300,7 @@ def test_a_valid_move_writes_what_the_spy_sees(wire: Wire) -> None:
 @pytest.mark.parametrize(
     "playtime", ["1e308", "-1e308", "inf", "nan", "-0.001", "2.86", "2.85", "2.8449"]
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_playtimes_that_cannot_be_sent_are_bad_arguments(wire: Wire, playtime: str) -> None:
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", f"--playtime={playtime}")
     assert code == 2, out
@@ -291,12 +310,14 @@ def test_playtimes_that_cannot_be_sent_are_bad_arguments(wire: Wire, playtime: s
     assert wire.opened == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_zero_playtime_is_sent_as_zero(wire: Wire) -> None:
     code, out = invoke("servo", "move", "400", *SIM, "--torque-on", "--playtime=-0.0")
     assert code == 0, out
     assert "over 0 s (0 ticks)" in out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_an_unparsable_port_url_is_one_error_line() -> None:
     result = runner.invoke(app, ["servo", "stat", "--port", "http://[::1"])
     assert result.exit_code == 1
@@ -305,6 +326,7 @@ def test_an_unparsable_port_url_is_one_error_line() -> None:
     assert line.startswith("error: cannot parse the URL 'http://[::1'")
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_an_error_text_with_brackets_is_printed_not_parsed_as_markup() -> None:
     # The unknown option's name looks like a closing markup tag.
     result = runner.invoke(app, ["servo", "stat", "--port", "sim://?[/x]=1"])
@@ -313,6 +335,7 @@ def test_an_error_text_with_brackets_is_printed_not_parsed_as_markup() -> None:
     assert result.exception is None or isinstance(result.exception, SystemExit)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_long_error_stays_on_one_line() -> None:
     result = runner.invoke(app, ["servo", "stat", "--port", "sim://?" + "x" * 200 + "=1"])
     assert result.exit_code == 1
@@ -346,6 +369,7 @@ def test_a_long_error_stays_on_one_line() -> None:
         (("clear", "--sid", "1e308"), "--sid must be an integer"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_bad_arguments_exit_2_naming_the_parameter(
     wire: Wire, args: tuple[str, ...], named: str
 ) -> None:
@@ -356,12 +380,14 @@ def test_bad_arguments_exit_2_naming_the_parameter(
     assert wire.opened == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_scan_takes_hex_bounds_like_sid() -> None:
     code, out = invoke("servo", "scan", *SIM, "--first", "0x0B", "--last", "0xFD", "--json")
     assert code == 0, out
     assert [row["sid"] for row in json.loads(out)] == [11, 12]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_hex_ids_are_printed_as_numbers() -> None:
     code, out = invoke("servo", "torque", "on", *SIM, "--sid", "0x0B")
     assert code == 0, out

@@ -29,6 +29,7 @@ def _words(text: str) -> str:
 # -- ohmni bus send -----------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_reads_the_left_wheel_count_as_json() -> None:
     result = _invoke("bus", "send", "0", "RAM_READ", "3B", "04", "--port", "sim://", "--json")
     assert result.exit_code == 0, result.output
@@ -43,6 +44,7 @@ def test_send_reads_the_left_wheel_count_as_json() -> None:
     assert reply["status_detail"] == "none"
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_takes_hex_sids_and_joined_hex_data() -> None:
     result = _invoke("bus", "send", "0x14", "4", "A012", "--port", "sim://", "--json")
     assert result.exit_code == 0, result.output
@@ -51,6 +53,7 @@ def test_send_takes_hex_sids_and_joined_hex_data() -> None:
     assert len(bytes.fromhex(reply["value_hex"])) == 18
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_prints_the_decoded_reply() -> None:
     result = _invoke("bus", "send", "20", "EEP_READ", "F1", "00", "--port", "sim://")
     assert result.exit_code == 0, result.output
@@ -61,6 +64,7 @@ def test_send_prints_the_decoded_reply() -> None:
     assert "73 69 6d 2d 63 6f 72 65 2d 31 2e 30" in result.stdout
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_shows_error_bits_of_a_read_outside_the_map() -> None:
     result = _invoke("bus", "send", "0", "RAM_READ", "99", "02", "--port", "sim://", "--json")
     assert result.exit_code == 0, result.output
@@ -69,6 +73,7 @@ def test_send_shows_error_bits_of_a_read_outside_the_map() -> None:
     assert reply["status_detail"] == "EXCEED_REG_RANGE"
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_a_stat() -> None:
     result = _invoke("bus", "send", "1", "stat", "--port", "sim://", "--json")
     assert result.exit_code == 0, result.output
@@ -76,6 +81,7 @@ def test_send_a_stat() -> None:
     assert (reply["sid"], reply["cmd"], reply["data"]) == (1, 0x47, "00 00")
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_a_broadcast_jog_expects_no_reply() -> None:
     jog = wheel_command(100, 100).data.hex(" ").split()
     result = _invoke("bus", "send", "0xFE", "S_JOG", *jog, "--port", "sim://")
@@ -85,6 +91,7 @@ def test_send_a_broadcast_jog_expects_no_reply() -> None:
     assert json.loads(result.stdout)["reply"] is None
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_to_a_silent_device_fails_with_one_error_line() -> None:
     result = _invoke("bus", "send", "20", "STAT", "--port", "sim://?silent=20")
     assert result.exit_code == 1
@@ -94,6 +101,7 @@ def test_send_to_a_silent_device_fails_with_one_error_line() -> None:
     assert "Traceback" not in result.output
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_send_with_a_bad_port_url_fails_with_an_error_line() -> None:
     result = _invoke("bus", "send", "0", "STAT", "--port", "sim://?neck=9")
     assert result.exit_code == 1
@@ -107,6 +115,7 @@ def test_send_with_a_bad_port_url_fails_with_an_error_line() -> None:
         ("sim://?seed=٣", "option seed='٣' is not an integer"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_a_port_url_that_cannot_be_read_is_one_error_line(port: str, named: str) -> None:
     result = _invoke("bus", "send", "0", "STAT", "--port", port)
     assert result.exit_code == 1
@@ -136,6 +145,7 @@ def test_a_port_url_that_cannot_be_read_is_one_error_line(port: str, named: str)
         (("0xFE", "STAT"), "every device would answer"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_send_refuses_bad_arguments_by_name(args: tuple[str, ...], named: str) -> None:
     result = _invoke("bus", "send", "--port", "sim://", *args)
     assert result.exit_code == 2
@@ -156,6 +166,7 @@ def capture(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_monitor_describes_a_capture_file(capture: Path) -> None:
     result = _invoke("bus", "monitor", "--capture", str(capture))
     assert result.exit_code == 0, result.output
@@ -169,6 +180,7 @@ def test_monitor_describes_a_capture_file(capture: Path) -> None:
     assert "bytes_discarded 6" in words
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_monitor_json_gives_one_document_a_line(capture: Path) -> None:
     result = _invoke("bus", "monitor", "--capture", str(capture), "--json")
     assert result.exit_code == 0, result.output
@@ -186,6 +198,7 @@ def test_monitor_json_gives_one_document_a_line(capture: Path) -> None:
     assert summary["decoder"]["bytes_discarded"] == 6
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_monitor_quiet_prints_only_the_summary(capture: Path) -> None:
     result = _invoke("bus", "monitor", "--capture", str(capture), "--json", "--quiet")
     assert result.exit_code == 0, result.output
@@ -193,6 +206,7 @@ def test_monitor_quiet_prints_only_the_summary(capture: Path) -> None:
     assert set(json.loads(line)) == {"devices", "decoder"}
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_monitor_of_a_missing_capture_names_it(tmp_path: Path) -> None:
     result = _invoke("bus", "monitor", "--capture", str(tmp_path / "nope.bin"))
     assert result.exit_code == 2
@@ -200,6 +214,7 @@ def test_monitor_of_a_missing_capture_names_it(tmp_path: Path) -> None:
     assert "nope.bin" in "".join(_words(result.output).split())
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("args", [(), ("--port", "sim://", "--capture", "x.bin")])
 def test_monitor_needs_exactly_one_source(args: tuple[str, ...]) -> None:
     result = _invoke("bus", "monitor", *args)
@@ -214,6 +229,7 @@ def test_monitor_listens_on_a_port_for_a_while() -> None:
     assert json.loads(result.stdout)["devices"] == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("duration", ["inf", "nan", "1e308", "-1", "٣"])
 def test_monitor_refuses_a_duration_it_cannot_keep(duration: str) -> None:
     result = _invoke("bus", "monitor", "--port", "sim://", f"--duration={duration}")

@@ -108,6 +108,7 @@ def assert_stopped(truth: Truth) -> None:
 # -- timed drives -----------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_timed_drive_moves_the_robot_as_far_as_the_ramps_allow_and_stops(truth: Truth) -> None:
     result = run_json("--linear", "0.3", "--duration", "1")
     x, y, yaw = truth.pose
@@ -130,6 +131,7 @@ def test_a_timed_drive_moves_the_robot_as_far_as_the_ramps_allow_and_stops(truth
     assert result["elapsed_s"] >= 1.0
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
     result = run_json("--angular", "-0.8", "--linear", "0.1", "--duration", "0.3")
     assert truth.urls == ["sim://"]
@@ -162,6 +164,7 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
         assert isinstance(value, float)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_table_names_what_was_measured() -> None:
     code, out = invoke("--linear", "-0.2", "--duration", "0.3", *SIM)
     assert code == 0, out
@@ -183,6 +186,7 @@ def test_the_table_names_what_was_measured() -> None:
 # -- goal drives ------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_distance_ends_within_a_few_mm_of_the_goal_by_truth(truth: Truth) -> None:
     result = run_json("--distance", "0.5")
     x, y, _ = truth.pose
@@ -197,6 +201,7 @@ def test_a_distance_ends_within_a_few_mm_of_the_goal_by_truth(truth: Truth) -> N
     assert result["command"]["linear_mps"] == drive_cli.DEFAULT_LINEAR_MPS
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_turn_ends_within_a_few_degrees_of_the_goal_by_truth(truth: Truth) -> None:
     result = run_json("--turn", "90")
     x, y, yaw = truth.pose
@@ -215,6 +220,7 @@ def test_a_turn_ends_within_a_few_degrees_of_the_goal_by_truth(truth: Truth) -> 
         (("--turn", "-45", "--angular", "-1.5"), "yaw", -45.0),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_goals_take_their_sign_from_the_goal(
     truth: Truth, args: tuple[str, ...], axis: str, goal: float
 ) -> None:
@@ -230,6 +236,7 @@ def test_goals_take_their_sign_from_the_goal(
     assert_stopped(truth)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_goal_not_reached_in_time_is_one_error_line_and_the_robot_stops(
     truth: Truth, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -243,6 +250,7 @@ def test_a_goal_not_reached_in_time_is_one_error_line_and_the_robot_stops(
     assert_stopped(truth)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_stop_the_counts_do_not_confirm_is_an_error(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(drive_cli, "STOP_CONFIRM_TIMEOUT_S", 0.0)
     code, out = invoke("--linear", "0.1", "--duration", "0.1", *SIM)
@@ -284,6 +292,7 @@ def test_ctrl_c_stops_the_drive_and_exits_130() -> None:
         ("0,1", "error: drive boards 0 and 1 do not answer: the robot cannot drive"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_silent_drive_boards_are_refused(truth: Truth, silent: str, message: str) -> None:
     code, out = invoke("--linear", "0.1", "--port", f"sim://?silent={silent}")
     assert code == 1, out
@@ -401,6 +410,7 @@ def test_signals_mid_drive_leave_the_robot_stopped(signals: tuple[int, ...]) -> 
         (("--teleop",), "--teleop reads keys from a terminal, and stdin is not one"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_bad_arguments_exit_2_naming_them_and_nothing_opens(
     truth: Truth, args: tuple[str, ...], message: str
 ) -> None:
@@ -411,6 +421,7 @@ def test_bad_arguments_exit_2_naming_them_and_nothing_opens(
     assert truth.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_limits_come_from_the_config(truth: Truth) -> None:
     env = {"OHMNI_MAX_LINEAR_MPS": "0.5", "OHMNI_MAX_ANGULAR_RADPS": "1"}
     code, out = invoke("--linear", "0.6", *SIM, env=env)
@@ -422,6 +433,7 @@ def test_the_limits_come_from_the_config(truth: Truth) -> None:
     assert truth.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_bad_config_is_one_error_line(truth: Truth) -> None:
     code, out = invoke("--linear", "0.1", *SIM, env={"OHMNI_WATCHDOG_S": "-1"})
     assert code == 1
@@ -430,6 +442,7 @@ def test_a_bad_config_is_one_error_line(truth: Truth) -> None:
     assert truth.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("port", ["/dev/ttyUSB0", "serial:///dev/ttyUSB7?baudrate=115200"])
 @pytest.mark.parametrize("args", [("--linear", "0.1"), ("--distance", "0.1"), ("--turn", "5")])
 def test_a_real_port_needs_consent_and_nothing_opens_without_it(
@@ -443,6 +456,7 @@ def test_a_real_port_needs_consent_and_nothing_opens_without_it(
     assert truth.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_with_yes_a_real_port_is_opened_and_its_error_is_one_line(truth: Truth) -> None:
     code, out = invoke("--linear", "0.1", "--port", "/dev/ohmni-no-such-port", "--yes")
     assert code == 1
@@ -452,6 +466,7 @@ def test_with_yes_a_real_port_is_opened_and_its_error_is_one_line(truth: Truth) 
     assert truth.urls == ["/dev/ohmni-no-such-port"]
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_help_has_an_example() -> None:
     code, out = invoke("--help")
     assert code == 0
@@ -537,6 +552,7 @@ def teleop(*args: str) -> Iterator[Terminal]:
         terminal.close()
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_teleop_drives_while_a_key_repeats_and_quits_with_the_terminal_restored() -> None:
     with teleop("--port", "sim://") as term:
         term.wait_for("odometry", 10.0)
@@ -606,6 +622,7 @@ def test_drive_over_a_pty_to_the_simulator_process() -> None:
         assert json.loads(out)["heading_change_deg"] == pytest.approx(30, abs=3)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_teleop_summary_counts_one_key_press_in_the_singular(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -626,6 +643,7 @@ def test_the_teleop_summary_counts_one_key_press_in_the_singular(
     assert capsys.readouterr().out.splitlines()[0] == "teleop: 1 key press"
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_goal_drive_whose_counts_stop_coming_stops_at_once(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -89,6 +89,7 @@ def run_json(*args: str) -> dict[str, Any]:
 # -- the HerkuleX neck ------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize(("name", "target"), [("up", 650), ("down", 280), ("center", 465)])
 def test_named_positions_move_the_herkulex_neck_there_and_it_stays(
     opened: Opened, name: str, target: int
@@ -111,6 +112,7 @@ def test_named_positions_move_the_herkulex_neck_there_and_it_stays(
     assert data["torque"] == "on"
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_up_prints_the_target_and_the_read_back(opened: Opened) -> None:
     result = invoke("neck", "up", *SIM, "--playtime", "0.2")
     assert result.code == 0, result.out
@@ -120,6 +122,7 @@ def test_up_prints_the_target_and_the_read_back(opened: Opened) -> None:
     assert truth(opened) == (650, TorqueControl.ON)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_raw_and_deg_targets(opened: Opened) -> None:
     data = run_json("--raw", "0x190", *SIM, "--playtime", "0.2")  # 400
     assert (data["action"], data["target_raw"]) == ("raw", 400)
@@ -133,6 +136,7 @@ def test_raw_and_deg_targets(opened: Opened) -> None:
     assert abs(truth(opened)[0] - 481) <= TOLERANCE_RAW
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_longest_playtime_is_taken_as_the_servo_command_takes_it(opened: Opened) -> None:
     # 254 ticks of 11.2 ms: the longest playtime, as neck.move() and `ohmni servo move`.
     data = run_json("--raw", "400", *SIM, "--playtime", "2.8448")
@@ -146,6 +150,7 @@ def test_the_longest_playtime_is_taken_as_the_servo_command_takes_it(opened: Ope
     assert "--playtime=2.85 is out of range: allowed 0..2.8448 s" in words(result.out)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_rest_moves_to_the_rest_position_then_frees(opened: Opened) -> None:
     data = run_json("rest", *SIM)
     assert data["action"] == "rest"
@@ -154,6 +159,7 @@ def test_rest_moves_to_the_rest_position_then_frees(opened: Opened) -> None:
     assert truth(opened) == (465, TorqueControl.FREE)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_free_releases_the_torque(monkeypatch: pytest.MonkeyPatch) -> None:
     def holding(sim: SimRobot) -> None:
         neck = sim.neck
@@ -167,6 +173,7 @@ def test_free_releases_the_torque(monkeypatch: pytest.MonkeyPatch) -> None:
     assert truth(opened) == (512, TorqueControl.FREE)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_no_target_prints_where_the_neck_is_and_moves_nothing(opened: Opened) -> None:
     data = run_json(*SIM)
     assert set(data) == KEYS
@@ -177,6 +184,7 @@ def test_no_target_prints_where_the_neck_is_and_moves_nothing(opened: Opened) ->
     assert truth(opened) == (512, TorqueControl.FREE)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_json_schema(opened: Opened) -> None:
     data = run_json("down", *SIM, "--playtime", "0")
     assert set(data) == KEYS
@@ -192,6 +200,7 @@ def test_the_json_schema(opened: Opened) -> None:
 # -- the worm-gear neck ------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_worm_gear_neck_goes_up_and_to_its_center(opened: Opened) -> None:
     data = run_json("up", *WORM)
     assert (data["neck"], data["sid"], data["target_raw"]) == ("worm", 4, -127_000)
@@ -213,6 +222,7 @@ def test_the_worm_gear_neck_goes_up_and_to_its_center(opened: Opened) -> None:
     assert abs(neck.feedback().position - -3500) <= WORM_TOLERANCE_RAW
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_the_worm_gear_neck_refuses_what_only_a_herkulex_takes(opened: Opened) -> None:
     result = invoke("neck", "--deg", "10", *WORM)
     assert result.code == 1, result.out
@@ -247,6 +257,7 @@ def test_the_worm_gear_neck_refuses_what_only_a_herkulex_takes(opened: Opened) -
         (["sideways"], "POSITION must be up, down, center, rest or free, not 'sideways'"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_bad_targets_are_refused_before_the_port_opens(
     opened: Opened, args: list[str], message: str
 ) -> None:
@@ -256,6 +267,7 @@ def test_bad_targets_are_refused_before_the_port_opens(
     assert opened.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_target_outside_the_answering_necks_range_is_refused_with_nothing_sent(
     opened: Opened,
 ) -> None:
@@ -269,6 +281,7 @@ def test_a_target_outside_the_answering_necks_range_is_refused_with_nothing_sent
     assert truth(opened) == (512, TorqueControl.FREE)  # a move would have turned torque on
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_real_port_asks_first(opened: Opened) -> None:
     result = invoke("neck", "up", "--port", "/dev/no-such-ohmni")
     assert result.code == 1, result.out
@@ -330,6 +343,7 @@ def _silence_neck_after_the_move(monkeypatch: pytest.MonkeyPatch, sid: int, afte
     opened = spy_on_ports(monkeypatch, setup=setup)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_herkulex_neck_silent_after_the_move_says_how_long_it_waited(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -342,6 +356,7 @@ def test_a_herkulex_neck_silent_after_the_move_says_how_long_it_waited(
     )
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_worm_neck_silent_mid_move_is_not_reported_as_still_moving_now(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

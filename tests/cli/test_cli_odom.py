@@ -225,6 +225,7 @@ def test_reset_sets_and_prints_the_pose() -> None:
     assert (row["x_m"], row["y_m"], row["yaw_rad"]) == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize("option", [("--count", "5"), ("--json",), ("--rate", "20")])
 def test_streaming_options_before_reset_are_refused_not_ignored(option: tuple[str, ...]) -> None:
     result = invoke("odom", *option, "reset", "--port", "sim://")

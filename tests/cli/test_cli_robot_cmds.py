@@ -128,6 +128,7 @@ FTDI = {"device": "/dev/ttyUSB1", "description": "FT230X Basic UART", "vid": 0x0
 OTHER = {"device": "/dev/ttyACM0", "description": "Arduino Uno", "vid": 0x2341, "pid": 0x0043}
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_ports_marks_the_bus_adapter(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, opened: Opened
 ) -> None:
@@ -148,6 +149,7 @@ def test_ports_marks_the_bus_adapter(
     assert opened.urls == []  # listing opens no port
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_ports_says_when_none_is_the_bus(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     fake_ports(monkeypatch, tmp_path, OTHER)
     result = invoke("ports")
@@ -216,6 +218,7 @@ def test_light_without_the_core_board_is_an_error() -> None:
 # -- pid --------------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_get_defaults(config_home: Path, opened: Opened) -> None:
     result = invoke("pid", "get", "--config", "--json")
     assert result.code == 0, result.out
@@ -233,6 +236,7 @@ def test_pid_get_defaults(config_home: Path, opened: Opened) -> None:
     assert opened.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_writes_the_user_config_and_later_robots_use_it(
     config_home: Path, opened: Opened
 ) -> None:
@@ -275,6 +279,7 @@ def test_pid_set_writes_the_user_config_and_later_robots_use_it(
     assert tomllib.loads(written.read_text())["pid_ki"] == 250.5
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_keeps_the_rest_of_the_file(config_home: Path, tmp_path: Path) -> None:
     path = tmp_path / "robot.toml"
     before = (
@@ -310,6 +315,7 @@ def test_pid_set_keeps_the_rest_of_the_file(config_home: Path, tmp_path: Path) -
     assert "set OHMNI_CONFIG=" in words(result.out)
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_in_a_robot_table(config_home: Path, tmp_path: Path) -> None:
     path = tmp_path / "ohmni.toml"
     path.write_text('[robot]\nport = "sim://"\npid_ki = 100\n\n[other]\nx = 1\n')
@@ -320,6 +326,7 @@ def test_pid_set_in_a_robot_table(config_home: Path, tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_keeps_windows_line_ends(config_home: Path, tmp_path: Path) -> None:
     path = tmp_path / "ohmni.toml"
     path.write_bytes(b'port = "sim://"\r\npid_kp = 1\r\n')
@@ -337,6 +344,7 @@ def test_pid_set_keeps_windows_line_ends(config_home: Path, tmp_path: Path) -> N
         ("PID_KP = 5\n", "PID_KP is written in another case"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_refuses_what_it_cannot_edit_safely(
     content: str, why: str, config_home: Path, tmp_path: Path
 ) -> None:
@@ -361,6 +369,7 @@ def test_pid_set_refuses_what_it_cannot_edit_safely(
         ((), "give at least one gain: --kp, --ki, --kd, --kff, --ff-offset"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_refuses_bad_gains(
     args: tuple[str, ...], named: str, config_home: Path, opened: Opened
 ) -> None:
@@ -371,6 +380,7 @@ def test_pid_set_refuses_bad_gains(
     assert opened.urls == []
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_says_when_the_environment_wins(
     config_home: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -383,6 +393,7 @@ def test_pid_set_says_when_the_environment_wins(
     assert got["sources"]["kp"] == "$OHMNI_PID_KP"
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_pid_set_writes_the_file_the_commands_read(
     config_home: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -489,6 +500,7 @@ def test_drive_pwm_and_wheels_move_the_robot_for_the_duration() -> None:
         assert named in words(result.out), args
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_gain_help_matches_the_config() -> None:
     for flag, field in robot_cmds.PID_FIELDS.items():
         extra = RobotConfig.model_fields[field].json_schema_extra
@@ -513,12 +525,14 @@ def test_gain_help_matches_the_config() -> None:
         ("stream", "disable"),
     ],
 )
+@pytest.mark.usefixtures("virtual_time")
 def test_help_has_an_example(command: tuple[str, ...]) -> None:
     result = invoke(*command, "--help")
     assert result.code == 0, result.out
     assert f"Example: ohmni {' '.join(command)}" in result.out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_bad_port_is_one_error_line() -> None:
     for command in (("info",), ("light", "1", "2", "3")):
         result = invoke(*command, "--port", "/dev/no-such-ohmni-port")

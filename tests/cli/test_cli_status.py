@@ -350,6 +350,7 @@ def test_a_bad_simulator_option_is_one_error_line() -> None:
     assert result.out.startswith("error: "), result.out
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_help_has_an_example() -> None:
     result = invoke("status", "--help")
     assert result.code == 0

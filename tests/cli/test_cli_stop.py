@@ -47,6 +47,7 @@ def _ohmni_stop(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_robot_left_driving_stands_still_after_ohmni_stop(sim: Simulator) -> None:
     asyncio.run(_leave_driving(sim.path))
     assert sim.speed_mps() > 0.05  # nobody is connected, and it drives on
@@ -62,6 +63,7 @@ def test_a_robot_left_driving_stands_still_after_ohmni_stop(sim: Simulator) -> N
     assert sim.pose() == still
 
 
+@pytest.mark.usefixtures("virtual_time")
 def test_a_port_it_cannot_open_is_one_error_line() -> None:
     done = _ohmni_stop("--port", "/dev/ohmni-no-such-port")
     assert done.returncode == 1

@@ -48,6 +48,7 @@ async def link_becomes(
     raise AssertionError(f"the subscription ended before the link was {link}")
 
 
+@pytest.mark.real_time  # a pseudo-terminal keeps real time
 @needs_pty
 async def test_a_driver_hands_the_port_to_another_program_and_takes_it_back(
     pty_path: str,

@@ -269,6 +269,7 @@ async def try_connect(url: str, timeout_s: float = 5.0) -> ClientConnection | st
         return type(exc).__name__
 
 
+@pytest.mark.real_time  # real clients' connects, accepts and timeouts on the wall clock
 @pytest.mark.parametrize("max_files", [256, 100])
 async def test_idle_connections_beyond_the_cap_are_refused_and_descriptors_remain(
     max_files: int,
@@ -432,6 +433,7 @@ async def test_readers_that_flooded_then_left_are_gone_at_once(server: RobotServ
     assert loop.time() - left < 3.0
 
 
+@pytest.mark.real_time  # real clients' connects, accepts and timeouts on the wall clock
 async def test_accept_failing_for_want_of_descriptors_is_logged_once_per_interval() -> None:
     with daemon_process(256, "exhaust") as (proc, url, _):
         assert proc.stdout is not None

@@ -56,6 +56,7 @@ async def test_the_first_command_takes_the_lease_and_nobody_steals_it(
     await until(lambda: speed(robot) == 0.0)  # and closing it stopped the robot
 
 
+@pytest.mark.real_time  # real clients' connects, accepts and timeouts on the wall clock
 async def test_stats_are_a_copy_at_most_the_refresh_interval_old(
     robot: Robot, server: RobotServer
 ) -> None:

@@ -482,6 +482,7 @@ async def left_count(bus: Bus) -> int:
 
 
 @needs_pty
+@pytest.mark.real_time  # a pseudo-terminal keeps real time
 async def test_on_a_pty_another_program_uses_the_released_port_then_the_robot_takes_it_back(
     pty_path: str,
 ) -> None:
@@ -506,6 +507,7 @@ async def test_on_a_pty_another_program_uses_the_released_port_then_the_robot_ta
 
 
 @needs_pty
+@pytest.mark.real_time  # a pseudo-terminal keeps real time
 async def test_on_a_pty_a_reclaim_waits_while_another_program_holds_the_port(
     pty_path: str,
 ) -> None:

@@ -30,6 +30,7 @@ def link(robot: Robot) -> Link:
 
 
 @needs_pty
+@pytest.mark.real_time  # a pseudo-terminal keeps real time
 async def test_a_robot_on_an_injected_serial_port_releases_and_reclaims_it(
     pty_path: str,
 ) -> None:

@@ -35,6 +35,7 @@ def test_a_slow_thread_inside_a_short_virtual_timeout_is_waited_for() -> None:
 
         task = asyncio.create_task(ticker())
         start = loop.time()
+
         def slow_open() -> str:
             time.sleep(0.3)
             return "opened"
