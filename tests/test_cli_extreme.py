@@ -54,6 +54,7 @@ TEXT_PARAMS = frozenset(
         "foxglove",
         "wheel",
         "stream",
+        "target",  # ohmni connect PORT
     }
 )
 
