@@ -125,10 +125,27 @@ def test_a_timed_drive_moves_the_robot_as_far_as_the_ramps_allow_and_stops(truth
     assert result["pose"]["x_m"] == pytest.approx(x, abs=0.005)
     assert result["truth"]["x_m"] == pytest.approx(x, abs=1e-3)
     assert result["stop"]["confirmed"] is True
-    assert result["command"] == {"linear_mps": 0.3, "angular_radps": 0.0, "duration_s": 1.0}
+    assert result["command"] == {
+        "linear_mps": 0.3,
+        "angular_radps": 0.0,
+        "ramped": True,
+        "duration_s": 1.0,
+    }
     # The average is over the first command to the confirmed stop: below the command.
     assert 0.1 < result["average_linear_mps"] < 0.3
     assert result["elapsed_s"] >= 1.0
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_no_ramp_is_the_pure_velocity_command(truth: Truth) -> None:
+    # tb_control's /tb_cmd_vel: the wheels get the target at once. 0.2 s at 0.3 m/s goes
+    # about 0.06 m before the braking ramp; through the ramps (0.5 m/s² up) it is 0.01 m.
+    result = run_json("--linear", "0.3", "--duration", "0.2", "--no-ramp")
+    assert result["command"]["ramped"] is False
+    assert truth.pose[0] > 0.07
+    assert_stopped(truth)
+    ramped = run_json("--linear", "0.3", "--duration", "0.2")
+    assert ramped["distance_m"] < 0.03
 
 
 @pytest.mark.usefixtures("virtual_time")
@@ -405,6 +422,9 @@ def test_signals_mid_drive_leave_the_robot_stopped(signals: tuple[int, ...]) -> 
         (("--duration", "2"), "nothing to drive"),
         (("--linear", "0", "--angular", "0"), "--linear=0 with --angular=0 drives nowhere"),
         (("--teleop", "--json"), "--json does not combine with --teleop"),
+        (("--distance", "1", "--no-ramp"), "--no-ramp does not combine with --distance"),
+        (("--pwm", "100", "100", "--no-ramp"), "--no-ramp does not combine with --pwm"),
+        (("--wheels", "0.1", "0.1", "--no-ramp"), "--no-ramp does not combine with --wheels"),
         (("--teleop", "--linear", "0"), "--linear=0 gives a --teleop key no speed"),
         # CliRunner's stdin is no terminal.
         (("--teleop",), "--teleop reads keys from a terminal, and stdin is not one"),

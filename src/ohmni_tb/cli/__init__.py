@@ -52,6 +52,16 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "Turn a stream of the running robot on or off: enable|disable NAME.",
     ),
     "light": ("ohmni_tb.cli.robot_cmds", "light", "Set the light ring's colour: H S V."),
+    "connect": (
+        "ohmni_tb.cli.connect",
+        "connect",
+        "Switch the running robot to another serial port (the daemon's when it runs).",
+    ),
+    "disconnect": (
+        "ohmni_tb.cli.connect",
+        "disconnect",
+        "Close the running robot's port until ohmni connect (the daemon's when it runs).",
+    ),
     "info": ("ohmni_tb.cli.robot_cmds", "info", "Firmware tags, servo models, neck kind."),
     "ports": (
         "ohmni_tb.cli.robot_cmds",

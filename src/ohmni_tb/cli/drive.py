@@ -20,6 +20,7 @@ argument is checked against the Robot's limits before the port is opened.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import os
@@ -103,6 +104,7 @@ class _Plan:
     goal: float = 0.0  # metres for "distance", degrees for "turn"
     left: float = 0.0  # "pwm": PWM; "wheels": m/s
     right: float = 0.0
+    ramped: bool = True  # "duration": through the acceleration limits (robot.drive's ramped)
 
     @property
     def timed(self) -> bool:
@@ -287,6 +289,24 @@ def _wheel_plan(
     )
 
 
+def _unramped(plan: _Plan, no_ramp: bool, *, pwm: bool, wheels: bool) -> _Plan:
+    """``plan`` with ``--no-ramp`` applied: a timed --linear/--angular drive only.
+
+    Raises:
+        typer.BadParameter: ``--no-ramp`` with another mode, naming it.
+    """
+    if not no_ramp:
+        return plan
+    if plan.mode != "duration":
+        other = "--pwm" if pwm else "--wheels" if wheels else f"--{plan.mode}"
+        why = "(no ramp there either)" if pwm or wheels else "(it ramps to stop where it should)"
+        raise typer.BadParameter(
+            f"--no-ramp does not combine with {other} {why}: give it with --linear/--angular "
+            "and --duration"
+        )
+    return dataclasses.replace(plan, ramped=False)
+
+
 def _linear_speed(config: RobotConfig, linear: float | None) -> float:
     """The speed a goal or teleop drive uses: ``--linear``'s size, else the default
     within the config's limit."""
@@ -375,6 +395,16 @@ def drive(
             show_default=False,
         ),
     ] = None,
+    no_ramp: Annotated[
+        bool,
+        typer.Option(
+            "--no-ramp",
+            help="With --linear/--angular for --duration: the pure velocity command "
+            "(robot.drive(..., ramped=False), tb_control's /tb_cmd_vel): the wheel setpoints "
+            "jump to the target instead of ramping; still within the speed limits and the "
+            "watchdog, and the stop still ramps down.",
+        ),
+    ] = False,
     port: PortOption = None,
     direct: DirectOption = False,
     yes: YesOption = False,
@@ -403,6 +433,8 @@ def drive(
     ohmni drive --pwm 250 250 --duration 0.5 --port sim://
 
     ohmni drive --wheels 0.2 0.1 --duration 2 --port sim://
+
+    ohmni drive --linear 0.3 --no-ramp --duration 1 --port sim://
     """
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
 
@@ -436,6 +468,7 @@ def drive(
             teleop=teleop,
             as_json=as_json,
         )
+    plan = _unramped(plan, no_ramp, pwm=pwm is not None, wheels=wheels is not None)
     stdin_fd: int | None = None
     if plan.mode == "teleop":
         stdin_fd = _terminal_fd()
@@ -728,7 +761,11 @@ async def _timed(robot: Robot, plan: _Plan, quiet: bool) -> dict[str, Any]:
     elif plan.mode == "wheels":
         sent = {"left_mps": plan.left, "right_mps": plan.right}
     else:
-        sent = {"linear_mps": plan.linear_mps, "angular_radps": plan.angular_radps}
+        sent = {
+            "linear_mps": plan.linear_mps,
+            "angular_radps": plan.angular_radps,
+            "ramped": plan.ramped,
+        }
     return {
         "mode": plan.mode,
         "command": {**sent, "duration_s": plan.duration_s},
@@ -744,7 +781,10 @@ def _timed_command(plan: _Plan) -> tuple[str, str]:
         return f"PWM left {plan.left:+g}, right {plan.right:+g} (open loop)", "drive_pwm"
     if plan.mode == "wheels":
         return f"left wheel {plan.left:+.2f} m/s, right {plan.right:+.2f} m/s", "drive_wheels"
-    return f"{plan.linear_mps:+.2f} m/s, {plan.angular_radps:+.2f} rad/s", "drive"
+    speeds = f"{plan.linear_mps:+.2f} m/s, {plan.angular_radps:+.2f} rad/s"
+    if not plan.ramped:
+        return f"{speeds} (no ramp)", "drive"
+    return speeds, "drive"
 
 
 def _send(robot: Robot, plan: _Plan) -> None:
@@ -754,7 +794,7 @@ def _send(robot: Robot, plan: _Plan) -> None:
     elif plan.mode == "wheels":
         robot.drive_wheels(plan.left, plan.right)
     else:
-        robot.drive(plan.linear_mps, plan.angular_radps)
+        robot.drive(plan.linear_mps, plan.angular_radps, ramped=plan.ramped)
 
 
 def _goal_timeout(goal: float, speed: float, accel: float, decel: float) -> float:

@@ -452,11 +452,37 @@ STREAMS: Mapping[str, StreamSpec] = _table(
         (0.1, 20.0),
         tb_control="/tb_control/tbcore_status",
     ),
-    StreamSpec("servo_neck", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_neck"),
-    StreamSpec("servo_ext1", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_ext1"),
-    StreamSpec("servo_ext2", ServoSample, "polled", "servo_hz", _SERVO_HZ, tb_control="servo_ext2"),
     StreamSpec(
-        "new_neck", WormNeckSample, "polled", "new_neck_hz", _SERVO_HZ, tb_control="new_neck"
+        "servo_neck",
+        ServoSample,
+        "polled",
+        "servo_hz",
+        _SERVO_HZ,
+        tb_control="/tb_control/servo/neck",
+    ),
+    StreamSpec(
+        "servo_ext1",
+        ServoSample,
+        "polled",
+        "servo_hz",
+        _SERVO_HZ,
+        tb_control="/tb_control/servo/ext1",
+    ),
+    StreamSpec(
+        "servo_ext2",
+        ServoSample,
+        "polled",
+        "servo_hz",
+        _SERVO_HZ,
+        tb_control="/tb_control/servo/ext2",
+    ),
+    StreamSpec(
+        "new_neck",
+        WormNeckSample,
+        "polled",
+        "new_neck_hz",
+        _SERVO_HZ,
+        tb_control="/tb_control/servo/new_neck",
     ),
     StreamSpec("robot_state", RobotStateSample, "state", "state_hz", None),
     StreamSpec(
@@ -466,7 +492,7 @@ STREAMS: Mapping[str, StreamSpec] = _table(
         "wheel_hz",
         None,
         follows="wheel_encoder",
-        tb_control="pid_debug",
+        tb_control="/tb_control/motor_pid_debug",
     ),
 )
 #: Every stream's name, in schedule order.
