@@ -89,7 +89,10 @@ def _with_servo(
         StateError: ``ohmni serve`` holds the port (and neither ``--port`` nor ``direct``).
     """
     if not direct and daemon_for(port, False) is not None:
-        _refuse_while_served()
+        error_line(
+            "ohmni serve holds the port: for this command stop it, or name the port with --port"
+        )
+        raise typer.Exit(1)
     if sid == DeviceId.HERKULEX_NECK:
         min_raw = NECK_RAW_RANGE[0] if min_raw is None else min_raw
         max_raw = NECK_RAW_RANGE[1] if max_raw is None else max_raw
