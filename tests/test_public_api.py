@@ -117,7 +117,8 @@ PUBLIC = {
         "info_from_json", "json_schema", "parse_client_message", "parse_server_message",
         "pid_from_json", "pid_state_from_json", "pid_state_json", "raised_error",
         "result_json", "sample_from_json", "sample_json",
-        "schedule_from_json", "schema_text", "stats_from_json", "stats_json",
+        "schedule_from_json", "schema_text", "servo_status_from_json", "servo_status_json",
+        "stats_from_json", "stats_json",
         "write_schema",
     ],
     "ohmni_tb.robot.api": [

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, NoReturn, TypeVar
 
 import typer
 from rich.markup import escape
@@ -25,7 +25,13 @@ from ohmni_tb.cli.common import (
     resolve_port,
     run,
 )
-from ohmni_tb.errors import BusTimeoutError, InvalidArgumentError, StateError
+from ohmni_tb.errors import (
+    BusTimeoutError,
+    DeviceStatusError,
+    InvalidArgumentError,
+    OutOfRangeError,
+    StateError,
+)
 from ohmni_tb.herkulex import EEP, RAM, TorqueControl, parse_reply, stat
 from ohmni_tb.herkulex.registers import Register, RegisterMap
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
@@ -84,9 +90,7 @@ def _with_servo(
     """
     if not direct and daemon_for(port, False) is not None:
         error_line(
-            "ohmni serve holds the port: through it, ohmni servo takes info, write, set-id, "
-            "zero-offset and board-id (and ohmni neck moves the neck); for this command "
-            "stop it, or name the port with --port"
+            "ohmni serve holds the port: for this command stop it, or name the port with --port"
         )
         raise typer.Exit(1)
     if sid == DeviceId.HERKULEX_NECK:
@@ -100,14 +104,31 @@ def _with_servo(
     return run(main)
 
 
-def _via_daemon(via: str, sid: int, action: Callable[[HerkulexHandle], Awaitable[T]]) -> T:
-    """Run ``action`` on servo ``sid`` of the daemon's robot at ``via``."""
+def _via_daemon(
+    via: str,
+    sid: int,
+    action: Callable[[HerkulexHandle], Awaitable[T]],
+    *,
+    control: bool = False,
+) -> T:
+    """Run ``action`` on servo ``sid`` of the daemon's robot at ``via``; ``control``: it
+    commands the servo, refused at once while another client holds the control lease."""
 
     async def main() -> T:
-        async with open_robot(resolve_port(None), via=via) as robot:
+        async with open_robot(resolve_port(None), via=via, control=control) as robot:
             return await action(robot.servo(sid))
 
     return run(main)
+
+
+def _refuse_while_served() -> NoReturn:
+    """Exit 1: this command opens the port, which ``ohmni serve`` holds."""
+    error_line(
+        "ohmni serve holds the port: ohmni servo scan probes every id on the bus, which "
+        "it does not do through the daemon (ohmni info lists the robot's servos); for a "
+        "scan stop it, or name the port with --port"
+    )
+    raise typer.Exit(1)
 
 
 def _position_range(sid: int, min_text: str | None, max_text: str | None) -> tuple[int, int]:
@@ -213,6 +234,8 @@ def scan(
     high = parse_int(last, "--last", 0, _MAX_SID)
     if low > high:
         raise typer.BadParameter(f"--first={low} is after --last={high}")
+    if daemon_for(port, False) is not None:
+        _refuse_while_served()
     boards = {int(DeviceId.LEFT_DRIVE), int(DeviceId.RIGHT_DRIVE), int(DeviceId.CORE)}
     boards.add(int(DeviceId.WORM_NECK))
 
@@ -306,15 +329,21 @@ def read(
     eep: Annotated[bool, typer.Option("--eep", help="Read the EEP copy.")] = False,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
+    direct: DirectOption = False,
 ) -> None:
-    """Read one register by name or address (of RAM, or EEP with --eep).
+    """Read one register by name or address (of RAM, or EEP with --eep); through ohmni
+    serve when it runs.
 
     Example: ohmni servo read temperature --sid 3 --port sim:// ; ohmni servo read 30 --eep
     """
     memory = Memory.EEP if eep else Memory.RAM
     reg = _register(register, EEP if eep else RAM)
     sid_value = _sid(sid)
-    value = _with_servo(port, sid_value, timeout, lambda s: s.read(reg, memory))
+    via = daemon_for(port, direct)
+    if via is not None:
+        value = _via_daemon(via, sid_value, lambda s: s.info())[memory.value][reg.name]
+    else:
+        value = _with_servo(port, sid_value, timeout, lambda s: s.read(reg, memory), direct=True)
     if as_json:
         emit_json({"register": reg.name, "memory": memory.name, "value": value})
     else:
@@ -428,10 +457,13 @@ def move(
         bool, typer.Option("--torque-on", help="Turn the torque on first if it is off.")
     ] = False,
     timeout: TimeoutOption = 0.05,
+    direct: DirectOption = False,
 ) -> None:
     """Move a servo to a position over a playtime (the neck's safe range is 280..650).
 
     Every argument is checked before the first byte goes out, --torque-on included.
+    Through ohmni serve when it runs (it needs the control lease there; the daemon's
+    robot holds the servo inside its own range too).
 
     Example: ohmni servo move 600 --sid 3 --playtime 0.5 --torque-on --port sim://
     """
@@ -448,7 +480,18 @@ def move(
         await servo.move_to(goal, playtime_ticks=ticks)
         return await servo.position_raw()
 
-    start = _with_servo(port, sid_value, timeout, action, min_raw=low, max_raw=high)
+    via = daemon_for(port, direct)
+    if via is not None:
+        start = _via_daemon(
+            via,
+            sid_value,
+            lambda handle: _move_via_daemon(handle, goal, ticks, torque_on=torque_on),
+            control=True,
+        )
+    else:
+        start = _with_servo(
+            port, sid_value, timeout, action, min_raw=low, max_raw=high, direct=True
+        )
     # The playtime the servo got: whole ticks, not the seconds typed.
     seconds = round(playtime_s_from_ticks(ticks), 4)
     console.print(
@@ -457,14 +500,43 @@ def move(
     )
 
 
+async def _move_via_daemon(
+    handle: HerkulexHandle, goal: int, ticks: int, *, torque_on: bool
+) -> int:
+    """``ohmni servo move`` through the daemon, as it is done directly: the goal checked
+    against the daemon's range too and a servo with its torque off refused (without
+    ``--torque-on``) before anything is sent; the position it starts from."""
+    if not handle.min_raw <= goal <= handle.max_raw:
+        # As the daemon's robot would refuse it, but before --torque-on sends anything.
+        raise OutOfRangeError(
+            f"servo {handle.sid} position", goal, handle.min_raw, handle.max_raw, "count"
+        )
+    status = await handle.status()
+    if not torque_on and not status.torque_on:
+        # The handle's move would turn it on; without --torque-on the command refuses.
+        raise DeviceStatusError(
+            f"servo {handle.sid} has torque off; call torque(TorqueControl.ON) first",
+            sid=handle.sid,
+            status_error=int(status.error),
+            status_detail=int(status.detail),
+        )
+    start = (await handle.info())["ram"]["calibrated_position"] & POSITION_MAX_RAW
+    if torque_on:
+        await handle.torque(TorqueControl.ON)
+    await handle.move(goal, playtime_s=playtime_s_from_ticks(ticks))
+    return start
+
+
 @app.command()
 def torque(
     mode: Annotated[str, typer.Argument(help="free | brake | on")],
     port: PortOption = None,
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
+    direct: DirectOption = False,
 ) -> None:
-    """Set the torque: free (limp), brake (holds, ignores moves) or on.
+    """Set the torque: free (limp), brake (holds, ignores moves) or on; through ohmni
+    serve when it runs (with the control lease).
 
     Example: ohmni servo torque free --sid 3 --port sim://
     """
@@ -473,7 +545,11 @@ def torque(
     except KeyError:
         raise typer.BadParameter(f"MODE must be free, brake or on, not {mode!r}") from None
     sid_value = _sid(sid)
-    _with_servo(port, sid_value, timeout, lambda s: s.torque(value))
+    via = daemon_for(port, direct)
+    if via is not None:
+        _via_daemon(via, sid_value, lambda s: s.torque(value), control=True)
+    else:
+        _with_servo(port, sid_value, timeout, lambda s: s.torque(value), direct=True)
     console.print(f"servo {sid_value}: torque {value.name.lower()}")
 
 
@@ -483,13 +559,18 @@ def stat_cmd(
     sid: SidOption = _NECK,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
+    direct: DirectOption = False,
 ) -> None:
-    """The servo's status bytes, decoded.
+    """The servo's status bytes, decoded; through ohmni serve when it runs.
 
     Example: ohmni servo stat --sid 3 --port sim:// --json
     """
     sid_value = _sid(sid)
-    status = _with_servo(port, sid_value, timeout, lambda s: s.status())
+    via = daemon_for(port, direct)
+    if via is not None:
+        status = _via_daemon(via, sid_value, lambda s: s.status())
+    else:
+        status = _with_servo(port, sid_value, timeout, lambda s: s.status(), direct=True)
     if as_json:
         emit_json(_status_dict(status))
     else:
@@ -505,10 +586,12 @@ def clear(
     ] = False,
     timeout: TimeoutOption = 0.05,
     as_json: JsonOption = False,
+    direct: DirectOption = False,
 ) -> None:
     """Clear latched errors (RAM 48/49) and show the status after.
 
     A fault that released the torque leaves it off; --torque-on turns it on again.
+    Through ohmni serve when it runs (with the control lease).
 
     Example: ohmni servo clear --sid 3 --torque-on --port sim://
     """
@@ -521,7 +604,18 @@ def clear(
             status = await servo.status()
         return status
 
-    status = _with_servo(port, sid_value, timeout, action)
+    async def remote(handle: HerkulexHandle) -> ServoStatus:
+        status = await handle.clear_errors()
+        if torque_on:
+            await handle.torque(TorqueControl.ON)
+            status = await handle.status()
+        return status
+
+    via = daemon_for(port, direct)
+    if via is not None:
+        status = _via_daemon(via, sid_value, remote, control=True)
+    else:
+        status = _with_servo(port, sid_value, timeout, action, direct=True)
     if as_json:
         emit_json(_status_dict(status))
     else:

@@ -179,7 +179,9 @@ _POLICY_VIOLATION = 1008
 
 
 #: The servo handle's maintenance calls, which only a HerkuleX servo has.
-_HERKULEX_ONLY: Final = frozenset({"info", "write", "set_id", "set_zero_offset"})
+_HERKULEX_ONLY: Final = frozenset(
+    {"info", "write", "set_id", "set_zero_offset", "status", "clear_errors"}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -574,8 +576,8 @@ class RobotServer:
                 raise StateError("the worm-gear neck has no torque modes: it holds without power")
             elif name in _HERKULEX_ONLY and robot.neck_kind == "worm":
                 raise StateError(
-                    "the worm-gear neck is not a HerkuleX servo: it has no registers, id or "
-                    "zero offset to set"
+                    "the worm-gear neck is not a HerkuleX servo: it has no registers, status "
+                    "bytes, id or zero offset"
                 )
             else:
                 owner = robot.neck

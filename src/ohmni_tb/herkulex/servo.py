@@ -384,15 +384,19 @@ class Servo:
         """Set torque: FREE (limp), BRAKE (holds, ignores jogs) or ON."""
         await self.write("torque_control", TorqueControl(mode))
 
-    async def clear_errors(self) -> ServoStatus:
+    async def clear_errors(self, *, restore_torque: bool = True) -> ServoStatus:
         """Clear latched errors (RAM 48/49 ← 0), then restore the torque that was asked for.
+
+        Args:
+            restore_torque: Restore it; ``False``: the torque stays as the fault left it
+                (off, when the fault released it).
 
         Returns:
             The status after clearing. An error whose cause remains (still too hot) comes
             back at once; check :attr:`ServoStatus.ok`.
         """
         await self._send(clear_status(self.sid))
-        if self._torque_wanted is not TorqueControl.FREE:
+        if restore_torque and self._torque_wanted is not TorqueControl.FREE:
             await self._send(ram_write(self.sid, "torque_control", self._torque_wanted))
         return await self.status()
 

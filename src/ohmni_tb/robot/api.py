@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.errors import MotionResult
     from ohmni_tb.herkulex import TorqueControl
+    from ohmni_tb.herkulex.servo import ServoStatus
     from ohmni_tb.robot.checks import Wheel
     from ohmni_tb.robot.samples import (
         PidDebugSample,
@@ -249,6 +250,33 @@ class HerkulexHandle(NeckHandle, Protocol):
         Raises:
             InvalidArgumentError: Not an int.
             OutOfRangeError: Outside −512..511.
+        """
+        ...
+
+    # -- status (tb_control reports it in every servo sample; these ask the servo now).
+
+    async def status(self) -> ServoStatus:
+        """The servo's two status bytes, asked now (STAT): its latched errors (RAM 48) and
+        torque on, moving, in position… (RAM 49). Read-only: no lease needed through the
+        daemon.
+
+        Raises:
+            StateError: The port is released (:meth:`Robot.release_port`); nothing sent.
+            BusTimeoutError: The servo did not answer.
+        """
+        ...
+
+    async def clear_errors(self) -> ServoStatus:
+        """Clear the servo's latched errors (RAM 48/49 ← 0) and return its status after.
+
+        The torque stays as the fault left it: a fault that released it leaves it off,
+        and :meth:`torque` ``"on"`` (or the next :meth:`move`) turns it on again. An
+        error whose cause remains (still too hot) comes back at once: check
+        ``ServoStatus.ok``. Through the daemon it needs the control lease.
+
+        Raises:
+            StateError: The port is released; nothing sent.
+            BusTimeoutError: The servo did not answer.
         """
         ...
 

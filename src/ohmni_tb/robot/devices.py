@@ -26,7 +26,7 @@ from ohmni_tb.errors import (
     PositionTimeoutError,
 )
 from ohmni_tb.herkulex import TorqueControl
-from ohmni_tb.herkulex.servo import Servo
+from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import check_playtime_s, check_zero_offset_raw
 from ohmni_tb.protocol import Memory, Packet
 from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
@@ -369,6 +369,25 @@ class ServoHandle:
         self.zero_offset_raw = raw
         if self._on_zero_offset is not None:
             self._on_zero_offset(self.sid, self.zero_offset_raw)
+
+    async def status(self) -> ServoStatus:
+        """The servo's status bytes, asked now (STAT).
+
+        Raises:
+            StateError: ``check`` refused (the Robot's port is released); nothing sent.
+            BusTimeoutError: No answer.
+        """
+        return await self.servo.status()
+
+    async def clear_errors(self) -> ServoStatus:
+        """Clear the servo's latched errors; the torque stays as the fault left it.
+
+        Raises:
+            StateError: ``check`` refused (the Robot's port is released); nothing sent.
+            BusTimeoutError: No answer.
+        """
+        # Not a command of the hold-time guard: the torque stays as it was.
+        return await self.servo.clear_errors(restore_torque=False)
 
 
 class WormNeckHandle:

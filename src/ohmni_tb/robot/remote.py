@@ -125,6 +125,7 @@ from ohmni_tb.robot.wire import (
     pid_state_from_json,
     sample_from_json,
     schedule_from_json,
+    servo_status_from_json,
     stats_from_json,
 )
 
@@ -134,6 +135,7 @@ if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.herkulex import TorqueControl
+    from ohmni_tb.herkulex.servo import ServoStatus
     from ohmni_tb.robot.samples import RobotStateSample
     from ohmni_tb.robot.stats import RobotStats
     from ohmni_tb.transport import Transport
@@ -873,6 +875,19 @@ class RemoteServo:
             await robot._follow()
         else:
             robot._zero_offsets[self.sid] = raw
+
+    async def status(self) -> ServoStatus:
+        """:meth:`HerkulexHandle.status <ohmni_tb.robot.api.HerkulexHandle.status>`: asked
+        by the daemon's robot (no lease needed)."""
+        data = await self._robot._call("servo_status", ServoArgs(target=self.target))
+        return servo_status_from_json(data)
+
+    async def clear_errors(self) -> ServoStatus:
+        """:meth:`HerkulexHandle.clear_errors
+        <ohmni_tb.robot.api.HerkulexHandle.clear_errors>`, by the daemon's robot (with the
+        control lease)."""
+        data = await self._robot._call("servo_clear", ServoArgs(target=self.target))
+        return servo_status_from_json(data)
 
 
 class _Figures:

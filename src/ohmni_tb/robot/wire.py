@@ -51,6 +51,8 @@ from ohmni_tb.errors import (
     TransportError,
     WheelStallError,
 )
+from ohmni_tb.herkulex.servo import ServoStatus
+from ohmni_tb.protocol import StatusDetail, StatusError
 from ohmni_tb.robot.samples import (
     STREAM_NAMES,
     STREAMS,
@@ -128,6 +130,8 @@ __all__ = [
     "sample_json",
     "schedule_from_json",
     "schema_text",
+    "servo_status_from_json",
+    "servo_status_json",
     "stats_from_json",
     "stats_json",
     "write_schema",
@@ -556,6 +560,16 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
         ServoIdArgs, True, "null (the robot's stream and handle follow)", "set_id", awaited=True
     ),
     "servo_zero_offset": MethodSpec(ZeroOffsetArgs, True, "null", "set_zero_offset", awaited=True),
+    "servo_status": MethodSpec(
+        ServoArgs, False, "{error: RAM 48, detail: RAM 49}, asked now", "status", awaited=True
+    ),
+    "servo_clear": MethodSpec(
+        ServoArgs,
+        True,
+        "{error, detail}: the status after clearing (the torque stays as the fault left it)",
+        "clear_errors",
+        awaited=True,
+    ),
     "reset_board_id": MethodSpec(BoardIdArgs, True, "null", "reset_board_id", awaited=True),
     "port": MethodSpec(NoArgs, False, "the port open now, or null (disconnected, released)"),
     "connect": MethodSpec(
@@ -956,6 +970,16 @@ def pid_state_from_json(data: Any) -> tuple[PidGains, PidGains, tuple[bool, bool
     )
 
 
+def servo_status_json(status: ServoStatus) -> dict[str, int]:
+    """``servo_status``'s and ``servo_clear``'s data: the two status bytes."""
+    return {"error": int(status.error), "detail": int(status.detail)}
+
+
+def servo_status_from_json(data: Any) -> ServoStatus:
+    """``servo_status``'s and ``servo_clear``'s data as a :class:`ServoStatus`."""
+    return ServoStatus(StatusError(data["error"]), StatusDetail(data["detail"]))
+
+
 def schedule_from_json(data: Any) -> list[tuple[str, float, float, float]]:
     """``schedule``'s data as :meth:`Robot.schedule`'s rows."""
     return [(str(name), float(hz), float(phase), float(cost)) for name, hz, phase, cost in data]
@@ -1075,6 +1099,8 @@ _RESULTS: dict[str, Any] = {
     },
     "drive_wheels": lambda wheels: {"left_mps": wheels.left_mps, "right_mps": wheels.right_mps},
     "drive_pwm": list,
+    "servo_status": servo_status_json,
+    "servo_clear": servo_status_json,
     "drive_distance": goal_json,
     "rotate": goal_json,
     "go_to": goal_json,
