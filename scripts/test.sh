@@ -5,4 +5,7 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$root/scripts/setup.sh"
 cd "$root"
+# pytest keeps the test modules it rewrote (for its assert messages) in __pycache__; with
+# bytecode writing off it rewrites all of them again in every worker, every run.
+export PYTHONDONTWRITEBYTECODE=
 exec "$root/.venv/bin/python" -m pytest -n 2 --dist worksteal "$@"

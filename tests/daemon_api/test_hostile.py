@@ -383,6 +383,7 @@ def fastest_wheel(robot: Robot) -> float:
     return float(max(abs(v) for v in robot.sim.wheel_speeds_mps()))
 
 
+@pytest.mark.real_time  # load on the daemon shows on the wall clock, not on a virtual one
 async def test_flooding_readers_neither_stop_the_control_tick_nor_the_watchdog(
     robot: Robot, server: RobotServer
 ) -> None:
@@ -418,6 +419,7 @@ async def test_flooding_readers_neither_stop_the_control_tick_nor_the_watchdog(
     assert stopped_after <= robot.config.watchdog_s + 2.0, stopped_after
 
 
+@pytest.mark.real_time  # sixty real clients' closing handshakes, timed on the wall clock
 async def test_readers_that_flooded_then_left_are_gone_at_once(server: RobotServer) -> None:
     loop = asyncio.get_running_loop()
     async with flooding(server.url, 60):

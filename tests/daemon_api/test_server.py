@@ -93,6 +93,7 @@ async def drain(subscription: SampleStream[Any]) -> None:
         pass
 
 
+@pytest.mark.real_time  # load on the daemon shows on the wall clock, not on a virtual one
 async def test_twenty_readers_each_get_every_odometry_and_battery_sample(
     robot: Robot, server: RobotServer
 ) -> None:
@@ -133,6 +134,7 @@ def _queued(subscription: SampleStream[Any]) -> list[Any]:
     return samples
 
 
+@pytest.mark.real_time  # load on the daemon shows on the wall clock, not on a virtual one
 async def test_a_stalled_client_loses_its_oldest_samples_and_slows_nothing(
     robot: Robot, server: RobotServer
 ) -> None:
@@ -233,6 +235,7 @@ async def test_a_bad_message_is_answered_to_its_sender_only_and_the_connection_s
         assert bystander.latest("wheel_odom") is not None
 
 
+@pytest.mark.real_time  # load on the daemon shows on the wall clock, not on a virtual one
 async def test_a_flooding_client_is_told_and_closed_with_1008(server: RobotServer) -> None:
     flooder = await raw(server.url)
     for i in range(400):

@@ -346,3 +346,22 @@ def test_a_repair_fits_in_what_the_disk_has_left(recording: bytes, at: float, sp
         with io.BytesIO(data) as file:
             times = [m.log_time for _, _, m in make_reader(file).iter_messages()]
         assert (max(times) if times else None) == sink.kept_until_ns
+
+
+def test_on_virtual_time_closing_takes_no_robot_time(tmp_path: Path) -> None:
+    # The file is finished by the writer thread; the loop waits for it without running
+    # the robot on meanwhile (a virtual clock would otherwise race ahead of the thread).
+    path = tmp_path / "close.mcap"
+
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        async with Robot.open("sim://") as robot:
+            recorder = McapRecorder(robot, path, duration_s=1.0)
+            async with recorder:
+                await recorder.wait()
+                waited = loop.time()
+            return loop.time() - waited
+
+    assert run_virtual(main()) < 0.1
+    counts, _ = read_back(path)
+    assert counts["/tf"] >= 45

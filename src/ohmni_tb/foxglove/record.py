@@ -458,7 +458,6 @@ class _FileSink:
         self._condition = threading.Condition()
         self._closing = False
         self._scanner = _McapScanner()
-        self._done: asyncio.Future[None] = loop.create_future()
         self._thread = threading.Thread(target=self._run, name="ohmni-mcap-writer", daemon=True)
         #: Bytes on disk.
         self.written = 0
@@ -506,29 +505,27 @@ class _FileSink:
         with self._condition:
             self._closing = True
             self._condition.notify()
-        await asyncio.shield(self._done)
+        # Joined from an executor thread: the loop goes on meanwhile (and a loop on
+        # virtual time, which waits for its executor jobs, does not race ahead of it).
+        await asyncio.shield(asyncio.to_thread(self._thread.join))
 
     # -- the writer thread ---------------------------------------------------------------
 
     def _run(self) -> None:
-        try:
-            while True:
+        while True:
+            with self._condition:
+                while not self._pending and not self._closing:
+                    self._condition.wait()
+                if not self._pending:
+                    break
+                batch = list(self._pending)
+                self._pending.clear()
+            for data in batch:
+                if self.error is None:
+                    self._write(data)
                 with self._condition:
-                    while not self._pending and not self._closing:
-                        self._condition.wait()
-                    if not self._pending:
-                        break
-                    batch = list(self._pending)
-                    self._pending.clear()
-                for data in batch:
-                    if self.error is None:
-                        self._write(data)
-                    with self._condition:
-                        self._pending_bytes -= len(data)
-            self._close_file()
-        finally:
-            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits
-                self._loop.call_soon_threadsafe(_resolve, self._done)
+                    self._pending_bytes -= len(data)
+        self._close_file()
 
     def _write(self, data: bytes) -> None:
         try:
@@ -713,8 +710,3 @@ def _write_all(fd: int, data: bytes) -> None:
     while view:
         written = os.write(fd, view)
         view = view[written:]
-
-
-def _resolve(future: asyncio.Future[None]) -> None:
-    if not future.done():
-        future.set_result(None)
