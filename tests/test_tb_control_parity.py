@@ -197,7 +197,8 @@ async def sensor_stream(robot: Robot) -> None:
 
 
 async def ports(robot: Robot) -> None:
-    listed = LocalRobot.ports()
+    listed = await robot.list_ports()
+    assert listed == LocalRobot.ports()
     assert all("device" in port for port in listed), listed
 
 
@@ -628,7 +629,7 @@ ROWS: list[Row] = [
     ),
     Row(
         "/tb_control/get_connect_ports",
-        "LocalRobot.ports()",
+        "robot.list_ports()",
         "ohmni ports",
         ports,
         ("ports", "--json"),

@@ -12,6 +12,7 @@ from ohmni_tb import Robot
 from ohmni_tb.errors import InvalidArgumentError, StateError, TransportError
 from ohmni_tb.robot import Link
 from ohmni_tb.sim.robot import SimRobot
+from ohmni_tb.transport.ports import list_ports
 
 from .conftest import run
 from .test_contract import drive_for, speed
@@ -85,5 +86,19 @@ def test_a_port_that_cannot_open_leaves_the_robot_disconnected(kind: str) -> Non
         assert port_of(robot) == "sim://"
         with pytest.raises(InvalidArgumentError, match="serial device or URL"):
             await robot.connect("ws://127.0.0.1:1")
+
+    run(kind, check)
+
+
+def test_list_ports_names_the_computers_serial_ports_even_while_disconnected(kind: str) -> None:
+    # tb_control's get_connect_ports. The daemon in these tests runs on this computer, so
+    # both kinds list the same ports as the computer's own list.
+    here = [port.as_dict() for port in list_ports()]
+
+    async def check(robot: Robot, truth: SimRobot) -> None:
+        assert await robot.list_ports() == here
+        await robot.disconnect()
+        assert await robot.list_ports() == here
+        await robot.connect()
 
     run(kind, check)

@@ -837,6 +837,13 @@ class Robot(RobotStreams):
             StateError: The port is released (:meth:`release_port`).
         """
 
+    @abc.abstractmethod
+    async def list_ports(self) -> list[dict[str, Any]]:
+        """The serial ports of the computer the robot runs on (through a daemon, the
+        daemon's computer), with their USB ids, the likely bus adapter first
+        (``likely_bus``): tb_control's ``get_connect_ports``. Opens none of them, and
+        works while the port is released or disconnected."""
+
     # -- the port ------------------------------------------------------------------------------
 
     @abc.abstractmethod

@@ -477,6 +477,11 @@ class LocalRobot(Robot):
         info["neck_settings"] = self._settings.report
         return info
 
+    async def list_ports(self) -> list[dict[str, Any]]:
+        """This computer's serial ports (the contract: ohmni_tb.robot.api.Robot), listed in
+        a thread: reading the USB descriptors may block."""
+        return await asyncio.to_thread(self.ports)
+
     @staticmethod
     def ports() -> list[dict[str, Any]]:
         """Serial ports of the computer it runs on, with their USB ids, the likely adapter first

@@ -629,6 +629,12 @@ class RemoteRobot(Robot):
         """:meth:`Robot.info <ohmni_tb.robot.api.Robot.info>`, asked of the daemon's robot."""
         return info_from_json(await self._call("info"))
 
+    async def list_ports(self) -> list[dict[str, Any]]:
+        """:meth:`Robot.list_ports <ohmni_tb.robot.api.Robot.list_ports>`: the daemon's
+        computer's serial ports."""
+        listed: list[dict[str, Any]] = await self._call("list_ports")
+        return listed
+
     async def release_port(self, duration_s: float | None = None) -> None:
         """:meth:`Robot.release_port <ohmni_tb.robot.api.Robot.release_port>`, by the
         daemon's robot."""

@@ -572,6 +572,13 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     ),
     "reset_board_id": MethodSpec(BoardIdArgs, True, "null", "reset_board_id", awaited=True),
     "port": MethodSpec(NoArgs, False, "the port open now, or null (disconnected, released)"),
+    "list_ports": MethodSpec(
+        NoArgs,
+        False,
+        "[{device, vid, pid, …, usb_id, likely_bus}]: the serial ports of the daemon's computer",
+        "list_ports",
+        awaited=True,
+    ),
     "connect": MethodSpec(
         ConnectArgs,
         True,
