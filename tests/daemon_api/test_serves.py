@@ -90,7 +90,9 @@ def test_driving_through_a_daemon_on_the_simulator_needs_no_yes(
     assert code == 0, out
     drove = json.loads(out[out.index("{") :])
     assert drove["port"] == url
-    assert drove["goal"]["error_m"] == pytest.approx(0.0, abs=0.005)
+    # The daemon runs the goal in real time in its own process: on a loaded machine its
+    # control ticks come late (the contract suite holds the precision, on virtual time).
+    assert drove["goal"]["error_m"] == pytest.approx(0.0, abs=0.02)
     assert "--yes" not in out
 
 
