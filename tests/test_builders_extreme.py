@@ -198,6 +198,10 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "registers.RegisterMap.by_addr": (1, registers.RAM.by_addr),
     "registers.resolve": (1, lambda a: registers.resolve(a, Memory.EEP)),
     "registers.RegisterMap.writable": (2, registers.RAM.writable),
+    "registers.write_targets": (
+        2,
+        lambda a, b: registers.write_targets(a, b, persist=True),
+    ),
     # herkulex.servo (the synchronous half; the moves go through Servo.target)
     "servo.Servo": (
         4,

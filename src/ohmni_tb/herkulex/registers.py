@@ -48,6 +48,7 @@ __all__ = [
     "memory_of",
     "model_from_bytes",
     "resolve",
+    "write_targets",
 ]
 
 #: EEP 0..53: the last EEP register is the calibration difference at 53.
@@ -299,6 +300,43 @@ def memory_of(memory: Memory | str) -> Memory:
     if isinstance(memory, str) and memory.lower() in ("ram", "eep"):
         return Memory(memory.lower())
     raise InvalidArgumentError(f"memory must be RAM or EEP ('ram', 'eep'), not {show(memory)}")
+
+
+def write_targets(
+    register: Register | str | int,
+    value: int,
+    *,
+    persist: bool = False,
+    memory: Memory | str = Memory.RAM,
+) -> list[Register]:
+    """The registers a servo write goes to, in the order to write them, each checked: the
+    EEP register alone (``memory`` EEP), or the RAM one, after its EEP copy with
+    ``persist``.
+
+    Raises:
+        InvalidArgumentError: Unknown register or memory, no register at that address, a
+            read-only one, a bad value, ``persist`` with an EEP write, or ``persist`` of a
+            register with no EEP copy.
+        OutOfRangeError: The value is out of the register's range.
+    """
+    memory = memory_of(memory)
+    if memory is Memory.EEP:
+        if persist:
+            raise InvalidArgumentError(
+                "persist=True also writes the EEP copy of a RAM register; an EEP write is "
+                "persistent already: give one of them"
+            )
+        targets = [resolve(register, Memory.EEP)]
+    else:
+        reg = resolve(register, Memory.RAM)
+        targets = [reg]
+        if persist:
+            if reg.name not in EEP:
+                raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
+            targets.insert(0, EEP[reg.name])
+    for target in targets:
+        target.check(value)
+    return targets
 
 
 def resolve(register: Register | str | int, memory: Memory) -> Register:

@@ -71,6 +71,7 @@ from ohmni_tb.herkulex.registers import (
     TorqueControl,
     memory_of,
     resolve,
+    write_targets,
 )
 from ohmni_tb.herkulex.units import (
     POSITION_MAX_RAW,
@@ -290,23 +291,13 @@ class Servo:
                 nothing sent.
             OutOfRangeError: The value is out of the register's range; nothing sent.
         """
-        memory = memory_of(memory)
-        if memory is Memory.EEP:
-            if persist:
-                raise InvalidArgumentError(
-                    "persist=True also writes the EEP copy of a RAM register; an EEP "
-                    "write is persistent already: give one of them"
-                )
-            await self._send(eep_write(self.sid, resolve(register, Memory.EEP), value))
-            return
-        reg = resolve(register, Memory.RAM)
-        packets = [ram_write(self.sid, reg, value)]
-        if persist:
-            if reg.name not in EEP:
-                raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
-            packets.insert(0, eep_write(self.sid, reg.name, value))
-        for packet in packets:
-            await self._send(packet)
+        # Every target is checked before the first packet goes out.
+        targets = write_targets(register, value, persist=persist, memory=memory)
+        for reg in targets:
+            build = eep_write if reg.memory is Memory.EEP else ram_write
+            await self._send(build(self.sid, reg, value))
+        if reg.memory is Memory.EEP:
+            return  # acts after a reboot
         if reg.name == "ack_policy":
             self._requester.set_ack_policy(self.sid, value)
         elif reg.name == "torque_control":

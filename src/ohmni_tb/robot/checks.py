@@ -12,7 +12,7 @@ from ohmni_tb._checks import bounded, check_seconds, integer, number, show
 from ohmni_tb.control.defaults import MAX_POSE_M, WHEEL_GAIN_RANGES
 from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
-from ohmni_tb.herkulex.registers import EEP, RAM, Register, memory_of, resolve
+from ohmni_tb.herkulex.registers import RAM, Register, memory_of, resolve, write_targets
 from ohmni_tb.protocol import BROADCAST_ID, Memory
 from ohmni_tb.protocol.drive import PWM_LIMIT
 from ohmni_tb.robot.samples import STREAM_NAMES, STREAMS
@@ -187,23 +187,15 @@ def check_servo_write(
             copy.
         OutOfRangeError: The value is outside the register's range.
     """
-    memory = memory_of(memory)
-    reg = resolve(register, memory)
+    reg = resolve(register, memory_of(memory))
     if reg.name == "id":
         raise InvalidArgumentError(
             f"servo {sid}'s id is changed with set_id({value!r}), which the robot follows; "
             "nothing was sent"
         )
-    reg.check(value)
     if not isinstance(persist, bool):
         raise InvalidArgumentError(f"persist must be True or False, not {persist!r}")
-    if persist and memory is Memory.EEP:
-        raise InvalidArgumentError(
-            "persist=True also writes the EEP copy of a RAM register; an EEP write is "
-            "persistent already: give one of them"
-        )
-    if persist and reg.name not in EEP:
-        raise InvalidArgumentError(f"{reg.name} has no EEP copy to persist")
+    write_targets(register, value, persist=persist, memory=memory)
 
 
 def check_board_id(sid: int, new_sid: int, confirm: bool) -> None:
