@@ -1,28 +1,20 @@
 """A Robot on ``sim://`` served on a free loopback port.
 
-The async tests run on the simulator's virtual clock (:mod:`ohmni_tb.sim.clock`): the
-daemon and its clients talk over real loopback sockets, but their waits take no wall time
-and what they time is exact. A test that needs the wall clock (a subprocess, a thread that
-keeps real time) says so with ``@pytest.mark.real_time``."""
+The async tests run on the simulator's virtual clock: the daemon and its clients talk over
+real loopback sockets, but their waits take no wall time and what they time is exact
+(``@pytest.mark.real_time`` for the exceptions)."""
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator
 
 import pytest
 
+from _virtual_loops import virtual_unless_real_time as pytest_asyncio_loop_factories
 from ohmni_tb import Robot
 from ohmni_tb.daemon.server import RobotServer
-from ohmni_tb.sim.clock import VirtualClockLoop
 
-
-def pytest_asyncio_loop_factories(
-    config: pytest.Config, item: pytest.Item
-) -> Mapping[str, Callable[[], asyncio.AbstractEventLoop]]:
-    if item.get_closest_marker("real_time") is not None:
-        return {"real_time": asyncio.new_event_loop}
-    return {"virtual_time": VirtualClockLoop}
+__all__ = ["pytest_asyncio_loop_factories"]
 
 
 @pytest.fixture
