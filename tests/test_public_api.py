@@ -44,8 +44,13 @@ PUBLIC = {
         "jog_tags",
     ],
     "ohmni_tb.protocol.core": [
-        "CELL_COUNT", "CORE_PROFILE", "CoreProfile", "TbcoreStatus", "encode_status",
-        "parse_status", "percent_from_cells", "read_status", "set_light_ring",
+        "CELL_COUNT", "CORE_PROFILE", "BatteryLayout", "CoreProfile", "TbcoreStatus",
+        "decode_status", "encode_status", "parse_status", "percent_from_cells", "read_status",
+        "set_light_ring",
+    ],
+    "ohmni_tb.protocol.profile": [
+        "DEFAULT_PROFILE", "PROFILE_SETTINGS", "BusProfile", "check_ext_servo_ids",
+        "parse_ext_servo_ids",
     ],
     "ohmni_tb.protocol.worm_neck": [
         "WORM_MAX", "WORM_MIN", "WORM_PROFILE", "WormFeedback", "WormFlags", "WormProfile",

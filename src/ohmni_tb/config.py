@@ -69,7 +69,10 @@ from ohmni_tb.control.pid import PidGains
 from ohmni_tb.errors import ConfigError
 from ohmni_tb.herkulex.registers import RAM as SERVO_RAM
 from ohmni_tb.protocol.connection import DEFAULT_TIMEOUT_S
+from ohmni_tb.protocol.core import BatteryLayout
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, NECK_RAW_RANGE, DeviceId
+from ohmni_tb.protocol.messages import MAX_READ_LENGTH
+from ohmni_tb.protocol.profile import PROFILE_SETTINGS, BusProfile
 from ohmni_tb.protocol.worm_neck import WORM_MAX, WORM_MIN
 
 if TYPE_CHECKING:
@@ -481,6 +484,58 @@ class RobotConfig(BaseSettings):
         json_schema_extra={"allowed": f"at most {_MAX_EXT_SERVOS} bus ids 0..{_MAX_SERVO_ID}"},
     )
 
+    # The bus profile: what the project assumes of the boards until `ohmni probe` (or a
+    # capture) says otherwise. Addresses take decimal or 0x hex (TOML 0xA0, "0xA0").
+    wheel_form: Literal["s_jog", "i_jog"] = Field(
+        default="s_jog",
+        description="Packet of the wheel command (assumed s_jog): one S_JOG or one I_JOG to "
+        "broadcast, a tag per drive board. `ohmni probe --allow-motion` finds which moves "
+        "the wheels. Allowed: s_jog, i_jog.",
+        json_schema_extra={"allowed": "s_jog, i_jog"},
+    )
+    right_mirrored: bool = Field(
+        default=True,
+        description="The right drive board counts and is commanded mirrored (forward = left "
+        "+, right -), as on the Ohmni.",
+    )
+    drive_torque_addr: int = _setting(
+        52, 0, 255, "", "RAM address of the drive boards' torque control (assumed 52)."
+    )
+    battery_addr: int = _setting(
+        0xA0,
+        0,
+        255,
+        "",
+        "RAM address of the core board's battery/dock block (assumed 0xA0 = 160); "
+        "`ohmni probe` searches for it.",
+    )
+    battery_length: int = _setting(
+        18,
+        BatteryLayout.CELLS.size,
+        MAX_READ_LENGTH,
+        "bytes",
+        "Bytes read from the battery/dock block (assumed 18); at least its layout's size "
+        "(tbcore 18, cells 10).",
+    )
+    battery_layout: Literal["tbcore", "cells"] = Field(
+        default="tbcore",
+        description="Byte layout of the battery/dock block (assumed tbcore): tbcore = cells "
+        "1..5 mV (u16 LE), charging current mA (i16), docked, FET status, status 1..4 (u8); "
+        "cells = the five cells alone (current, docked and status then read 0). Allowed: "
+        "tbcore, cells.",
+        json_schema_extra={"allowed": "tbcore, cells"},
+    )
+    worm_target_addr: int = _setting(
+        0x70, 0, 255, "", "RAM address of the worm neck's int32 target (assumed 0x70 = 112)."
+    )
+    worm_feedback_addr: int = _setting(
+        0x74,
+        0,
+        255,
+        "",
+        "RAM address of the worm neck's feedback, position int32 + flags (assumed 0x74 = 116).",
+    )
+
     # Stream rates.
     wheel_hz: float = _setting(
         PID_RATE_HZ,
@@ -635,6 +690,10 @@ class RobotConfig(BaseSettings):
             ),
         )
 
+    def profile(self) -> BusProfile:
+        """The bus profile these settings describe (wheel form, battery block, ...)."""
+        return BusProfile.from_settings({name: getattr(self, name) for name in PROFILE_SETTINGS})
+
     def bus_timeout_s(self) -> float:
         """The bus's reply timeout: the adapter's latency timer plus event-loop delay.
 
@@ -700,6 +759,19 @@ class RobotConfig(BaseSettings):
             and 0 < value < off_below
         ):
             raise PydanticCustomError("out_of_range", "between off and the lowest value")
+        return value
+
+    @field_validator(
+        "drive_torque_addr", "battery_addr", "worm_target_addr", "worm_feedback_addr", mode="before"
+    )
+    @classmethod
+    def _parse_address(cls, value: object) -> object:
+        # "0xA0" from the environment or a URL; TOML reads 0xA0 as an integer itself.
+        if isinstance(value, str) and value.strip().lower().startswith("0x"):
+            try:
+                return int(value.strip(), 16)
+            except ValueError:
+                return value
         return value
 
     @field_validator("ext_servo_ids", mode="before")
@@ -771,6 +843,15 @@ class RobotConfig(BaseSettings):
                     "frame_id_baselink",
                     f"frame_id_baselink={self.frame_id_baselink!r} is frame_id_odom's too: "
                     "the body frame needs a name of its own",
+                )
+            )
+        layout = BatteryLayout(self.battery_layout)
+        if self.battery_length < layout.size:
+            problems.append(
+                (
+                    "battery_length",
+                    f"battery_length={self.battery_length} is shorter than the "
+                    f"{layout.value} layout's {layout.size} bytes",
                 )
             )
         if self.neck_id in self.ext_servo_ids:

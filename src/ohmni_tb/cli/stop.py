@@ -58,8 +58,13 @@ def stop(
         from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # pydantic: only when run
         from ohmni_tb.daemon.supervisor import stop_wheels_at  # noqa: PLC0415
 
-        bus_timeout_s = RobotConfig.load().bus_timeout_s()
-        return await stop_wheels_at(url, timeout_s=timeout, bus_timeout_s=bus_timeout_s)
+        config = RobotConfig.load()
+        return await stop_wheels_at(
+            url,
+            timeout_s=timeout,
+            bus_timeout_s=config.bus_timeout_s(),
+            profile=config.profile().drive,
+        )
 
     report = run(main)
     if as_json:

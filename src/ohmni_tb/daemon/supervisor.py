@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Final
 from ohmni_tb.errors import OhmniError, StateError
 
 if TYPE_CHECKING:
+    from ohmni_tb.protocol.drive import DriveProfile
     from ohmni_tb.safety import StopReport
 
 __all__ = [
@@ -228,7 +229,11 @@ async def until_stopped(stop: asyncio.Event, supervisor_fd: int | None = None) -
 
 
 async def stop_wheels_at(
-    url: str, *, timeout_s: float | None = None, bus_timeout_s: float | None = None
+    url: str,
+    *,
+    timeout_s: float | None = None,
+    bus_timeout_s: float | None = None,
+    profile: DriveProfile | None = None,
 ) -> StopReport:
     """Open ``url``, stop both wheels confirmed by their counts
     (:func:`~ohmni_tb.safety.stop_wheels`), send a last stop and close the port.
@@ -237,25 +242,30 @@ async def stop_wheels_at(
         url: The port (``/dev/ttyUSB0``, ``serial://…``, ``auto``, ``sim://``).
         timeout_s: How long to try (default :data:`~ohmni_tb.safety.DEFAULT_STOP_TIMEOUT_S`).
         bus_timeout_s: The bus's reply timeout (default the bus's).
+        profile: The drive boards' profile: the wheel command's form (default the
+            assumed one).
 
     Raises:
         TransportError: The port cannot be opened (missing, held by another program).
         StopNotConfirmedError: The counts did not show the wheels still in time.
     """
     from ohmni_tb.bus import DEFAULT_TIMEOUT_S, Bus  # noqa: PLC0415  # loaded when used
-    from ohmni_tb.protocol.drive import wheel_command  # noqa: PLC0415
+    from ohmni_tb.protocol.drive import DRIVE_PROFILE, wheel_command  # noqa: PLC0415
     from ohmni_tb.safety import DEFAULT_STOP_TIMEOUT_S, stop_wheels  # noqa: PLC0415
     from ohmni_tb.transport import open_transport  # noqa: PLC0415
 
+    boards = DRIVE_PROFILE if profile is None else profile
     transport = await open_transport(url)
     bus = Bus(transport, timeout_s=DEFAULT_TIMEOUT_S if bus_timeout_s is None else bus_timeout_s)
     bus.start()
     try:
         return await stop_wheels(
-            bus, timeout_s=DEFAULT_STOP_TIMEOUT_S if timeout_s is None else timeout_s
+            bus,
+            timeout_s=DEFAULT_STOP_TIMEOUT_S if timeout_s is None else timeout_s,
+            profile=boards,
         )
     finally:
-        await bus.aclose(final=[wheel_command(0, 0)])
+        await bus.aclose(final=[wheel_command(0, 0, boards)])
 
 
 # -- private ------------------------------------------------------------------------------
@@ -267,6 +277,7 @@ class _StopSettings:
 
     bus_timeout_s: float | None = None
     stop_timeout_s: float | None = None
+    profile: DriveProfile | None = None
 
 
 def _prepare() -> _StopSettings:
@@ -281,7 +292,7 @@ def _prepare() -> _StopSettings:
         config = RobotConfig.load()
     except ConfigError:
         return _StopSettings()  # the worker says what is wrong with it
-    return _StopSettings(config.bus_timeout_s(), config.stop_timeout_s)
+    return _StopSettings(config.bus_timeout_s(), config.stop_timeout_s, config.profile().drive)
 
 
 class _Worker:
@@ -423,7 +434,10 @@ async def _stop_after(
     settings = await prepared
     try:
         report = await stop_wheels_at(
-            port, timeout_s=settings.stop_timeout_s, bus_timeout_s=settings.bus_timeout_s
+            port,
+            timeout_s=settings.stop_timeout_s,
+            bus_timeout_s=settings.bus_timeout_s,
+            profile=settings.profile,
         )
     except OhmniError as exc:
         _log.error("%s, and the wheels may still be moving: %s", how, exc)

@@ -90,7 +90,8 @@ class WheelJogForm(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class DriveProfile:
-    """Where things live on a drive board. Change this table after a capture.
+    """Where things live on a drive board (settings ``wheel_form``, ``right_mirrored``,
+    ``drive_torque_addr``; ``ohmni probe`` finds the wheel form).
 
     Attributes:
         count_addr: RAM address of the accumulated wheel count (confirmed).
@@ -114,6 +115,7 @@ class DriveProfile:
     Raises:
         InvalidArgumentError: ``wheel_form`` is not a :class:`WheelJogForm`, or
             ``right_mirrored`` is not a bool.
+        OutOfRangeError: An address is not 0..255.
     """
 
     count_addr: int = 59
@@ -128,6 +130,19 @@ class DriveProfile:
     id_ram_addr: int = 0
 
     def __post_init__(self) -> None:
+        for name in (
+            "count_addr",
+            "motor_position_addr",
+            "tag_addr",
+            "torque_addr",
+            "id_eep_addr",
+            "id_ram_addr",
+        ):
+            addr = getattr(self, name)
+            if isinstance(addr, bool) or not isinstance(addr, int):
+                raise InvalidArgumentError(f"drive board {name} must be an int, not {addr!r}")
+            if not 0 <= addr <= 0xFF:
+                raise OutOfRangeError(f"drive board {name}", addr, 0, 0xFF)
         form: object = self.wheel_form  # typed, but a table edited by hand may hold anything
         if not isinstance(form, WheelJogForm):
             raise InvalidArgumentError(

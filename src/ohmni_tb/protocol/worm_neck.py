@@ -49,15 +49,29 @@ class WormFlags(enum.IntFlag):
 
 @dataclass(frozen=True, slots=True)
 class WormProfile:
-    """Where things live on the worm neck. Change this table after a capture.
+    """Where things live on the worm neck (settings ``worm_target_addr``,
+    ``worm_feedback_addr``; ``ohmni probe`` judges the feedback).
 
     Attributes:
         target_addr: RAM address of the int32 LE target (**assumed**).
         feedback_addr: RAM address of position int32 LE + flags u8 (**assumed**).
+
+    Raises:
+        OutOfRangeError: An address is not 0..255.
     """
 
     target_addr: int = 0x70
     feedback_addr: int = 0x74
+
+    def __post_init__(self) -> None:
+        for name, addr in (
+            ("target_addr", self.target_addr),
+            ("feedback_addr", self.feedback_addr),
+        ):
+            if isinstance(addr, bool) or not isinstance(addr, int):
+                raise InvalidArgumentError(f"worm neck {name} must be an int, not {addr!r}")
+            if not 0 <= addr <= 0xFF:
+                raise OutOfRangeError(f"worm neck {name}", addr, 0, 0xFF)
 
 
 WORM_PROFILE = WormProfile()

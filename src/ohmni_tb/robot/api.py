@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from ohmni_tb.errors import MotionResult
     from ohmni_tb.herkulex import TorqueControl
     from ohmni_tb.herkulex.servo import ServoStatus
+    from ohmni_tb.protocol.profile import BusProfile
     from ohmni_tb.robot.checks import Wheel
     from ohmni_tb.robot.samples import (
         PidDebugSample,
@@ -454,6 +455,7 @@ class Robot(RobotStreams):
         *,
         token: str | None = None,
         config: RobotConfig | None = None,
+        profile: BusProfile | None = None,
         **overrides: Any,
     ) -> AbstractAsyncContextManager[Robot]:
         """Open the robot on ``port`` and run it: ``async with Robot.open(port) as robot:``.
@@ -477,6 +479,11 @@ class Robot(RobotStreams):
                 default ``$OHMNI_DAEMON_TOKEN``. A local robot takes none.
             config: The settings of a local robot (default: :class:`RobotConfig` from the
                 environment and the config file). A remote robot runs with the daemon's.
+            profile: The bus profile of a local robot (wheel command form, battery block,
+                worm neck registers, external servo ids): a
+                :class:`~ohmni_tb.protocol.profile.BusProfile`, e.g. what ``ohmni probe``
+                found; it replaces the config's profile settings. A remote robot runs with
+                the daemon's.
             overrides: Settings that replace the config's, by field name (a local robot);
                 a remote robot takes ``timeout_s`` (each call, 5 s) and ``reconnect``.
 
@@ -488,7 +495,9 @@ class Robot(RobotStreams):
         """
         for implementation in Robot._implementations:
             if implementation._opens(port):
-                return implementation.open(port, token=token, config=config, **overrides)
+                return implementation.open(
+                    port, token=token, config=config, profile=profile, **overrides
+                )
         raise ConfigError(f"no Robot implementation opens {port!r}")
 
     @property

@@ -81,6 +81,8 @@ class ControlLoop:
         config = self._config = state.config
         self._bus = state.bus
         self._drive = config.drive()
+        #: The drive boards' profile: the form of every wheel command built here.
+        self._boards = state.profile.drive
         self._limits = config.velocity_limits()
         self._limiter = config.twist_limiter()
         gains = config.pid_gains()
@@ -115,7 +117,7 @@ class ControlLoop:
         self._stale_ticks = 0
         self._count_reads = counts.reads
         self._cycles: dict[tuple[int, int], tuple[Packet, ...]] = {}
-        state.packets["wheel_encoder"] = [wheel_command(0, 0), *self._count_reads]
+        state.packets["wheel_encoder"] = [wheel_command(0, 0, self._boards), *self._count_reads]
         self._early_pending = False
         self._early_slot: Slot | None = None
         self._early_writes = 0
@@ -220,7 +222,7 @@ class ControlLoop:
             self._bus.cancel(early)
         self._state.publish("emergency stop latched")
         if self._bus.connected:
-            await self._bus.send_now(wheel_command(0, 0))
+            await self._bus.send_now(wheel_command(0, 0, self._boards))
 
     def clear_estop(self) -> None:
         """Release a latched emergency stop (``Robot.clear_estop``)."""
@@ -299,7 +301,7 @@ class ControlLoop:
             # One tuple per command value: the bus checks a tuple it has seen only once.
             if len(self._cycles) >= _CONTROL_CYCLES_MAX:
                 self._cycles.clear()
-            cycle = self._cycles[pwm] = (wheel_command(*pwm), *self._count_reads)
+            cycle = self._cycles[pwm] = (wheel_command(*pwm, self._boards), *self._count_reads)
         return cycle
 
     def _step(self, now: float) -> tuple[int, int]:
@@ -454,7 +456,7 @@ class ControlLoop:
         for waiting in (control.unstarted(), self._early_slot):
             if waiting is not None and waiting.started_at is None:
                 with contextlib.suppress(OhmniError):
-                    waiting.replace_unsent(0, wheel_command(*self._step(now)))
+                    waiting.replace_unsent(0, wheel_command(*self._step(now), self._boards))
                     self._early_writes += 1
                     return
         if self._early_pending or (not force and control.next_due_s - now <= control.period_s / 4):
@@ -462,7 +464,7 @@ class ControlLoop:
         pwm = self._step(now)
         try:
             slot = self._bus.submit(
-                [wheel_command(*pwm)],
+                [wheel_command(*pwm, self._boards)],
                 priority=CONTROL_PRIORITY,
                 deadline=control.next_due_s if self._moving_target() else None,
             )

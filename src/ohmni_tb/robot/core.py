@@ -51,6 +51,7 @@ from ohmni_tb.errors import ConfigError, StopNotConfirmedError
 from ohmni_tb.eventloop import MILLISECOND_S, timer_resolution_s
 from ohmni_tb.protocol.core import set_light_ring
 from ohmni_tb.protocol.drive import wheel_command
+from ohmni_tb.protocol.profile import PROFILE_SETTINGS, BusProfile
 from ohmni_tb.robot.api import Robot, SampleStream
 from ohmni_tb.robot.checks import (
     WHEELS,
@@ -132,6 +133,7 @@ class LocalRobot(Robot):
         *,
         token: str | None = None,
         config: RobotConfig | None = None,
+        profile: BusProfile | None = None,
         **overrides: Any,
     ) -> AsyncIterator[LocalRobot]:
         """:meth:`Robot.open <ohmni_tb.robot.api.Robot.open>` on a port this process opens;
@@ -145,6 +147,15 @@ class LocalRobot(Robot):
             )
         if token is not None:
             raise ConfigError("a token is for a daemon's URL (ws://, wss://), not for a port")
+        if profile is not None:
+            if not isinstance(profile, BusProfile):
+                raise ConfigError(f"profile must be a BusProfile, not {profile!r}")
+            clash = sorted(set(overrides) & set(PROFILE_SETTINGS))
+            if clash:
+                raise ConfigError(
+                    f"{', '.join(clash)} given both alone and in profile: give one or the other"
+                )
+            overrides = {**overrides, **profile.settings()}
         if config is None:
             config = RobotConfig(**overrides)
         elif overrides:
@@ -164,7 +175,7 @@ class LocalRobot(Robot):
             robot._port = _port_name(transport, asked)
             await robot._start()
         except BaseException:
-            await bus.aclose(final=[wheel_command(0, 0)])
+            await bus.aclose(final=[wheel_command(0, 0, config.profile().drive)])
             raise
         try:
             yield robot
@@ -219,6 +230,18 @@ class LocalRobot(Robot):
 
     @config.setter
     def config(self, config: RobotConfig) -> None:
+        profile = config.profile()
+        fixed = self._state.profile
+        if (profile.drive, profile.core, profile.worm) != (fixed.drive, fixed.core, fixed.worm):
+            changed = [
+                name
+                for name, value in profile.settings().items()
+                if name != "ext_servo_ids" and fixed.settings()[name] != value
+            ]
+            raise ConfigError(
+                f"the bus profile ({', '.join(changed)}) is fixed while the Robot is open: "
+                "open it again with the new settings"
+            )
         self._state.config = config
 
     def _reconfigure(self, **changes: Any) -> None:
@@ -466,7 +489,7 @@ class LocalRobot(Robot):
 
     async def light_ring(self, hue: int, saturation: int, value: int) -> None:
         """The light ring's colour (the contract: ohmni_tb.robot.api.Robot)."""
-        packet = set_light_ring(hue, saturation, value)
+        packet = set_light_ring(hue, saturation, value, self._state.profile.core)
         self._state.check_port()
         await self._bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
 

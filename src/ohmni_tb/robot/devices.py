@@ -29,7 +29,12 @@ from ohmni_tb.herkulex import TorqueControl
 from ohmni_tb.herkulex.servo import Servo, ServoStatus
 from ohmni_tb.herkulex.units import check_playtime_s, check_zero_offset_raw
 from ohmni_tb.protocol import Memory, Packet
-from ohmni_tb.protocol.worm_neck import check_worm_target, set_target
+from ohmni_tb.protocol.worm_neck import (
+    WORM_PROFILE,
+    WormProfile,
+    check_worm_target,
+    set_target,
+)
 from ohmni_tb.robot.checks import check_servo_write
 
 if TYPE_CHECKING:
@@ -396,7 +401,8 @@ class WormNeckHandle:
     The hardware stalls its motor until a power cycle on a target beyond its travel, so
     every target is checked against ``min_raw..max_raw`` (inside −127000…120000) first.
     ``check``, if given, is called before anything is sent and raises to refuse;
-    ``feedback`` subscribes to the ``new_neck`` stream for ``move(wait=True)``.
+    ``feedback`` subscribes to the ``new_neck`` stream for ``move(wait=True)``;
+    ``profile`` says where the target register is.
     """
 
     def __init__(
@@ -407,8 +413,10 @@ class WormNeckHandle:
         max_raw: int,
         check: Callable[[], None] | None = None,
         feedback: Callable[[int], Subscription[WormNeckSample]] | None = None,
+        profile: WormProfile = WORM_PROFILE,
     ) -> None:
         self._bus = bus
+        self._profile = profile
         self._check = check
         self._feedback = feedback
         self.min_raw = min_raw
@@ -473,7 +481,7 @@ class WormNeckHandle:
             samples = self._feedback(_QUEUE)
         try:
             await self._bus.request(
-                set_target(position), expect_reply=False, priority=COMMAND_PRIORITY
+                set_target(position, self._profile), expect_reply=False, priority=COMMAND_PRIORITY
             )
             self._position_cmd = position
             if samples is None:

@@ -62,17 +62,19 @@ class Discovery:
         config = state.config
         for sid in _DRIVES:
             state.expected.add(int(sid))
-            if await self._answers(read_count(sid)) is not None:
+            if await self._answers(read_count(sid, self._state.profile.drive)) is not None:
                 state.present.add(int(sid))
         if config.core_hz > 0:
             state.expected.add(int(DeviceId.CORE))
-            if await self._answers(read_status()) is not None:
+            if await self._answers(read_status(self._state.profile.core)) is not None:
                 state.present.add(int(DeviceId.CORE))
         kind = config.neck
         if kind in ("auto", "herkulex") and await self._answers(stat(config.neck_id)):
             state.neck_kind = "herkulex"
             state.present.add(config.neck_id)
-        elif kind in ("auto", "worm") and await self._answers(read_feedback()):
+        elif kind in ("auto", "worm") and await self._answers(
+            read_feedback(self._state.profile.worm)
+        ):
             state.neck_kind = "worm"
             state.present.add(int(DeviceId.WORM_NECK))
         else:
@@ -201,6 +203,7 @@ class Discovery:
             max_raw=state.config.worm_max_raw,
             check=state.check_port,
             feedback=lambda maxlen: self._feedback_subscription("new_neck", maxlen),
+            profile=state.profile.worm,
         )
 
     def _feedback_subscription(self, stream: str, maxlen: int) -> Subscription[Any]:
@@ -235,11 +238,11 @@ class Discovery:
             if not state.bus.connected:
                 break
             if sid in _DRIVES:
-                packet = read_count(sid)
+                packet = read_count(sid, self._state.profile.drive)
             elif sid == DeviceId.CORE:
-                packet = read_status()
+                packet = read_status(self._state.profile.core)
             elif sid == DeviceId.WORM_NECK:
-                packet = read_feedback()
+                packet = read_feedback(self._state.profile.worm)
             else:
                 packet = stat(sid)
             if await self._answers(packet) is None:

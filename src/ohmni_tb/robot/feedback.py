@@ -14,6 +14,7 @@ at ``state_hz``.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from collections.abc import Callable
 from typing import Any, Literal, TypeVar
@@ -69,6 +70,10 @@ class Feedback:
         self._counts = counts
         self._guards = guards
         self._state_timer: asyncio.TimerHandle | None = None
+        # The profile's decoders of the worm neck's and the core board's replies.
+        profile = state.profile
+        self._parse_worm = functools.partial(parse_feedback, profile=profile.worm)
+        self._parse_core = functools.partial(parse_status, profile=profile.core)
 
     # -- the schedule --------------------------------------------------------------------
 
@@ -234,7 +239,7 @@ class Feedback:
             "new_neck",
             self._state.config.new_neck_hz,
             phase_s=SERVO_PHASE_S,
-            packets=[read_feedback()],
+            packets=[read_feedback(self._state.profile.worm)],
             handle=self._worm_result,
         )
 
@@ -243,7 +248,7 @@ class Feedback:
             "tbcore_status",
             self._state.config.core_hz,
             phase_s=CORE_PHASE_S,
-            packets=[read_status()],
+            packets=[read_status(self._state.profile.core)],
             handle=self._core_result,
         )
 
@@ -353,7 +358,7 @@ class Feedback:
     def _worm_result(self, result: CycleResult) -> None:
         state = self._state
         topic = state.topics["new_neck"]
-        feedback = self._parsed(topic, result, parse_feedback)
+        feedback = self._parsed(topic, result, self._parse_worm)
         if feedback is None:
             return
         neck = state.neck
@@ -371,7 +376,7 @@ class Feedback:
 
     def _core_result(self, result: CycleResult) -> None:
         topic = self._state.topics["tbcore_status"]
-        status = self._parsed(topic, result, parse_status)
+        status = self._parsed(topic, result, self._parse_core)
         if status is None:
             return
         sample = TbcoreStatusSample(

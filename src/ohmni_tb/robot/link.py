@@ -73,7 +73,7 @@ class LinkKeeper:
             self._reclaim_timer.cancel()
         self._control.close()
         await state.cancel_tasks()
-        stop = wheel_command(0, 0)
+        stop = wheel_command(0, 0, state.profile.drive)
         error = None
         # Not when the port is released (or lost): there is nothing to send the stop on.
         if state.bus.connected:
@@ -106,7 +106,11 @@ class LinkKeeper:
                     why,
                 )
             else:
-                await stop_wheels(state.bus, timeout_s=state.config.stop_timeout_s)
+                await stop_wheels(
+                    state.bus,
+                    timeout_s=state.config.stop_timeout_s,
+                    profile=state.profile.drive,
+                )
         except StopNotConfirmedError as exc:
             error = exc
             _log.warning("%s: %s", why, exc)
@@ -170,7 +174,7 @@ class LinkKeeper:
         (the control slot and the streams that are on)."""
         state = self._state
         with contextlib.suppress(OhmniError):
-            await state.bus.send_now(wheel_command(0, 0))
+            await state.bus.send_now(wheel_command(0, 0, state.profile.drive))
         state.link = Link.CONNECTED
         state.faults.discard("link_lost")
         self._control.restart()
@@ -310,7 +314,7 @@ class LinkKeeper:
                 # The last word before the port goes, as closing's (the stop of a Robot
                 # whose drive boards never answered, too).
                 with contextlib.suppress(OhmniError):
-                    await bus.send_now(wheel_command(0, 0))
+                    await bus.send_now(wheel_command(0, 0, state.profile.drive))
             try:
                 await bus.release()
             except BusClosedError as exc:  # close() ran meanwhile

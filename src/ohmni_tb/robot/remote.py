@@ -136,6 +136,7 @@ if TYPE_CHECKING:
     from ohmni_tb.control.pid import PidGains
     from ohmni_tb.herkulex import TorqueControl
     from ohmni_tb.herkulex.servo import ServoStatus
+    from ohmni_tb.protocol.profile import BusProfile
     from ohmni_tb.robot.samples import RobotStateSample
     from ohmni_tb.robot.stats import RobotStats
     from ohmni_tb.transport import Transport
@@ -218,6 +219,7 @@ class RemoteRobot(Robot):
         *,
         token: str | None = None,
         config: RobotConfig | None = None,
+        profile: BusProfile | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         reconnect: bool = False,
         **overrides: Any,
@@ -229,6 +231,7 @@ class RemoteRobot(Robot):
             port: ``ws://host:port`` or ``wss://host:port`` of ``ohmni serve``.
             token: The daemon's token (default ``$OHMNI_DAEMON_TOKEN``, else none).
             config: Not taken: the daemon's robot runs with the daemon's settings.
+            profile: Not taken: the daemon's robot runs with the daemon's bus profile.
             timeout_s: How long connecting, and each call, may take.
             reconnect: When the daemon goes away (restarted, its machine rebooted),
                 connect again and again (backing off to one try every 2 s) instead of
@@ -248,8 +251,9 @@ class RemoteRobot(Robot):
                 f"{url!r} is not a daemon URL: expected ws://HOST:PORT or wss://HOST:PORT "
                 "(port 1..65535)"
             )
-        if config is not None or overrides:
-            names = ", ".join(["config"] * (config is not None) + sorted(overrides))
+        if config is not None or profile is not None or overrides:
+            given = ["config"] * (config is not None) + ["profile"] * (profile is not None)
+            names = ", ".join(given + sorted(overrides))
             raise ConfigError(
                 f"the daemon's robot runs with the daemon's settings: {names} cannot be "
                 "given to a remote robot (set them for ohmni serve)"

@@ -159,11 +159,13 @@ class Renumbering:
             )
         stop()
         if state.present.issuperset(_DRIVES):
-            await stop_wheels(state.bus, timeout_s=state.config.stop_timeout_s)
+            await stop_wheels(
+                state.bus, timeout_s=state.config.stop_timeout_s, profile=state.profile.drive
+            )
         else:
             # A board away at another id takes no wheel command (it was stopped then).
-            await state.bus.send_now(wheel_command(0, 0))
-        for packet in set_board_id(sid, new_sid):
+            await state.bus.send_now(wheel_command(0, 0, state.profile.drive))
+        for packet in set_board_id(sid, new_sid, state.profile.drive):
             await state.bus.request(packet, expect_reply=False, priority=COMMAND_PRIORITY)
         side = boards.pop(sid, sid)
         if sid in _DRIVES:

@@ -83,6 +83,8 @@ class RobotState:
     tasks: set[asyncio.Task[Any]] = field(default_factory=set)
 
     def __post_init__(self) -> None:
+        #: The bus profile, fixed while the Robot is open (its packets are built once).
+        self.profile = self.config.profile()
         self.topics = {name: Topic(name) for name in STREAM_NAMES}
         self.topics["pid_debug"].enabled = self.config.pid_debug
 

@@ -60,10 +60,14 @@ class WheelCounts:
             (-1.0 if cfg.mirrored else 1.0) / (cfg.metres_per_tick * ENCODER_VEL_PERIOD_HZ)
             for cfg in (left_cfg, right_cfg)
         )
-        self.reads = (read_count(DeviceId.LEFT_DRIVE), read_count(DeviceId.RIGHT_DRIVE))
+        drive = self._drive = state.profile.drive
+        self.reads = (
+            read_count(DeviceId.LEFT_DRIVE, drive),
+            read_count(DeviceId.RIGHT_DRIVE, drive),
+        )
         self._unparsed = 0
         # Each count's time: when its read went on the wire, after the slot's command.
-        self._write_cost_s = bus.cost_s(wheel_command(0, 0))
+        self._write_cost_s = bus.cost_s(wheel_command(0, 0, drive))
         self._read_cost_s = bus.cost_s(self.reads[0])
 
     @property
@@ -147,7 +151,7 @@ class WheelCounts:
         if reply is None:
             return None
         try:
-            raw = parse_count(ReadReply.parse(reply))
+            raw = parse_count(ReadReply.parse(reply), self._drive)
         except OhmniError:
             self._unparsed += 1
             return None

@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ohmni_tb.protocol.core import CORE_PROFILE, TbcoreStatus, encode_status
+from ohmni_tb.protocol.core import CORE_PROFILE, CoreProfile, TbcoreStatus, encode_status
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.sim.board import BoardRegister, SimBoard
 
@@ -89,6 +89,9 @@ class BatteryPack:
 class SimCoreBoard(SimBoard):
     """The core board: battery/dock status block, light ring, firmware tag.
 
+    The status block sits where ``profile`` says (address, length, layout), as the
+    Robot's profile may be told it does.
+
     Attributes:
         load_sync: Brings the devices whose current the pack carries (the drive train,
             through ``pack.extra_load``) to a time, called with the end of each battery
@@ -99,13 +102,19 @@ class SimCoreBoard(SimBoard):
     #: Integration step of the battery.
     STEP_S = 0.05
 
-    def __init__(self, pack: BatteryPack | None = None, tag: str = "sim-core-1.0") -> None:
+    def __init__(
+        self,
+        pack: BatteryPack | None = None,
+        tag: str = "sim-core-1.0",
+        profile: CoreProfile = CORE_PROFILE,
+    ) -> None:
         super().__init__(DeviceId.CORE, tag)
+        self.profile = profile
         self.pack = pack or BatteryPack()
         self.light_ring = bytearray((0, 0, 0))
         self.load_sync: Callable[[float], None] | None = None
         self._now_s = 0.0
-        p = CORE_PROFILE
+        p = profile
         self.ram[p.status_addr] = BoardRegister(p.status_size, self._status_bytes_block)
         self.ram[p.light_ring_addr] = BoardRegister(3, lambda: bytes(self.light_ring), self._ring)
 
@@ -141,7 +150,9 @@ class SimCoreBoard(SimBoard):
         self.status_detail = type(self.status_detail).NONE
 
     def _status_bytes_block(self) -> bytes:
-        return encode_status(self.status())
+        # The block in the profile's layout; the bytes past it (a longer block) read 0.
+        block = encode_status(self.status(), self.profile.layout)
+        return block.ljust(self.profile.status_size, b"\x00")
 
     def _ring(self, data: bytes) -> None:
         self.light_ring[:] = data

@@ -2,8 +2,10 @@
 
 ``open_transport("sim://")`` builds one from the URL's options; the table of every
 option (the robot's and the line's) is in :mod:`ohmni_tb.sim.url`. The robot's own are
-``neck`` (``0101``, ``0201`` or ``worm``), ``ext`` (external servo ids), ``soc``,
-``docked`` and ``count_offset``.
+``neck`` (``0101``, ``0201`` or ``worm``), ``ext_servos`` (external servo ids), ``soc``,
+``docked``, ``count_offset`` and the bus profile's settings (``wheel_form``,
+``battery_addr`` ...: :data:`~ohmni_tb.protocol.profile.PROFILE_SETTINGS`), so the
+simulator can play any profile ``ohmni probe`` may meet.
 
 The :class:`SimRobot` is reachable from the transport (``transport.robot``) for tests
 and tools: its ground-truth pose, the dock, the power switch, obstacles against the
@@ -14,9 +16,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from ohmni_tb.errors import ConfigError
+from ohmni_tb.errors import ConfigError, InvalidArgumentError
 from ohmni_tb.herkulex import Model
-from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, DeviceId
+from ohmni_tb.protocol.devices import DeviceId
+from ohmni_tb.protocol.profile import DEFAULT_PROFILE, PROFILE_SETTINGS, BusProfile
 from ohmni_tb.sim.core import BatteryPack, SimCoreBoard
 from ohmni_tb.sim.device import SimDevice
 from ohmni_tb.sim.drive import DriveTrain, MotorModel, Pose, SimDriveBoard
@@ -34,7 +37,10 @@ class SimRobot:
 
     Args:
         neck: ``"0101"``, ``"0201"`` (HerkuleX neck at sid 3) or ``"worm"`` (sid 4).
-        ext_servo_ids: Ids of the external HerkuleX servos.
+        ext_servo_ids: Ids of the external HerkuleX servos (default the profile's).
+        profile: What the boards speak: the wheel command's form, the right motor's
+            mounting, the torque register, the battery block's address, length and
+            layout, the worm neck's registers, the external servo ids.
         soc_percent: Battery state of charge at start.
         docked: Start on the dock.
         count_offset: Initial accumulated count of both drive boards.
@@ -46,13 +52,17 @@ class SimRobot:
         self,
         *,
         neck: str = "0101",
-        ext_servo_ids: tuple[int, ...] = DEFAULT_EXT_SERVO_IDS,
+        ext_servo_ids: tuple[int, ...] | None = None,
         soc_percent: float = 80.0,
         docked: bool = False,
         count_offset: int = 0,
         motor: MotorModel | None = None,
         wheel_separation_m: float = 0.330,
+        profile: BusProfile = DEFAULT_PROFILE,
     ) -> None:
+        if ext_servo_ids is None:
+            ext_servo_ids = profile.ext_servo_ids
+        self.profile = profile
         if neck not in NECK_CHOICES:
             raise ConfigError(f"neck={neck!r} is not one of {', '.join(NECK_CHOICES)}")
         if not 0 <= soc_percent <= 100:
@@ -70,17 +80,20 @@ class SimRobot:
             if sid in reserved or not 0 <= sid <= 0xFD:
                 raise ConfigError(f"external servo id {sid} clashes with a board or is not 0..253")
         self.train = DriveTrain(
-            motor, wheel_separation_m=wheel_separation_m, count_offsets=(count_offset,) * 2
+            motor,
+            wheel_separation_m=wheel_separation_m,
+            count_offsets=(count_offset,) * 2,
+            profile=profile.drive,
         )
         self.left = SimDriveBoard(DeviceId.LEFT_DRIVE, self.train)
         self.right = SimDriveBoard(DeviceId.RIGHT_DRIVE, self.train)
-        self.core = SimCoreBoard(BatteryPack(soc=soc_percent / 100.0))
+        self.core = SimCoreBoard(BatteryPack(soc=soc_percent / 100.0), profile=profile.core)
         self.core.pack.extra_load = self.train.motor_current_a
         self.core.load_sync = self.train.advance
         self.core.set_docked(docked)
         self.neck: SimServo | SimWormNeck
         if neck == "worm":
-            self.neck = SimWormNeck()
+            self.neck = SimWormNeck(profile=profile.worm)
         else:
             model = Model.DRS_0101 if neck == "0101" else Model.DRS_0201
             self.neck = SimServo(DeviceId.HERKULEX_NECK, model=model)
@@ -149,8 +162,12 @@ class SimRobot:
             ConfigError: An option's value is invalid; the message names it.
         """
         neck = options.pop("neck", "0101")
-        ext_text = options.pop("ext", None)
-        ext_ids = DEFAULT_EXT_SERVO_IDS if ext_text is None else parse_ids("ext", ext_text)
+        profile = _profile_from_options(options)
+        ext_ids = profile.ext_servo_ids
+        for key in ("ext", "ext_servos"):
+            ext_text = options.pop(key, None)
+            if ext_text is not None:
+                ext_ids = parse_ids(key, ext_text)
         try:
             soc = float(options.pop("soc", "80"))
         except ValueError:
@@ -166,7 +183,21 @@ class SimRobot:
             soc_percent=soc,
             docked=docked,
             count_offset=count_offset,
+            profile=profile,
         )
+
+
+def _profile_from_options(options: dict[str, str]) -> BusProfile:
+    """The profile the URL's options give (the assumed one for the rest), consuming them.
+
+    Raises:
+        ConfigError: An option's value is invalid; the message names it.
+    """
+    given = {key: options.pop(key) for key in PROFILE_SETTINGS if key in options}
+    try:
+        return BusProfile.from_settings(given)
+    except InvalidArgumentError as exc:
+        raise ConfigError(f"sim:// option {exc}") from None
 
 
 def parse_ids(name: str, text: str) -> tuple[int, ...]:

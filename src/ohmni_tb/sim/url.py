@@ -7,10 +7,20 @@ these options:
 option              meaning                                                    default
 ==================  =========================================================  ==========
 ``neck``            ``0101`` / ``0201`` (HerkuleX at sid 3) or ``worm`` (sid 4) ``0101``
-``ext``             external servo ids, comma-separated, or ``none``           ``11,12``
+``ext_servos``      external servo ids, comma-separated, or ``none`` (``ext``  ``11,12``
+                    is the same option)
 ``soc``             battery state of charge at start, percent                  ``80``
 ``docked``          start on the dock (1/0)                                    ``0``
 ``count_offset``    initial wheel count of both boards (int32 wrap tests)      ``0``
+``wheel_form``      the wheel command the drive boards take: ``s_jog`` or      ``s_jog``
+                    ``i_jog``
+``right_mirrored``  the right motor is mounted mirrored (1/0)                  ``1``
+``drive_torque_addr``  RAM address of the drive boards' torque control         ``52``
+``battery_addr``    RAM address of the core board's battery/dock block          ``0xA0``
+``battery_length``  its length, bytes (at least its layout's)                  ``18``
+``battery_layout``  its layout: ``tbcore`` (18 bytes) or ``cells`` (10)        ``tbcore``
+``worm_target_addr``   RAM address of the worm neck's target                   ``0x70``
+``worm_feedback_addr`` RAM address of the worm neck's feedback                 ``0x74``
 ``baudrate``        line speed                                                 ``115200``
 ``turnaround_us``   device reply delay                                         ``500``
 ``realtime``        1: replies take their wire time on the clock; 0: at once,  ``1``
@@ -24,8 +34,12 @@ option              meaning                                                    d
 ``seed``            seed of the fault generator                                ``0``
 ==================  =========================================================  ==========
 
-The first five describe the robot (:class:`~ohmni_tb.sim.robot.SimRobot`), the rest the
-line (:class:`~ohmni_tb.sim.line.SimLine`).
+The options from ``neck`` to ``worm_feedback_addr`` describe the robot
+(:class:`~ohmni_tb.sim.robot.SimRobot`); the ones from ``wheel_form`` on are its bus
+profile, named as the Robot's settings (:class:`~ohmni_tb.protocol.profile.BusProfile`),
+so ``sim://?wheel_form=i_jog&battery_addr=0xB0&ext_servos=13,14`` plays a robot whose
+boards differ from the assumed profile in those three ways. The rest describe the line
+(:class:`~ohmni_tb.sim.line.SimLine`).
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ from ohmni_tb.protocol.worm_neck import (
     WORM_PROFILE,
     WormFeedback,
     WormFlags,
+    WormProfile,
     encode_feedback,
 )
 from ohmni_tb.sim.board import BoardRegister, SimBoard
@@ -27,16 +28,23 @@ class SimWormNeck(SimBoard):
 
     Args:
         speed_per_s: Travel speed in raw units per second.
+        profile: Where its target and feedback registers are.
     """
 
-    def __init__(self, *, speed_per_s: float = 80_000.0, tag: str = "sim-worm-1.0") -> None:
+    def __init__(
+        self,
+        *,
+        speed_per_s: float = 80_000.0,
+        tag: str = "sim-worm-1.0",
+        profile: WormProfile = WORM_PROFILE,
+    ) -> None:
         super().__init__(DeviceId.WORM_NECK, tag)
         self.speed_per_s = speed_per_s
         self.position = 0.0
         self.target = 0
         self.stalled = False
         self._now_s = 0.0
-        p = WORM_PROFILE
+        p = profile
         self.ram[p.target_addr] = BoardRegister(
             4, lambda: self.target.to_bytes(4, "little", signed=True), self._set_target
         )
