@@ -4,11 +4,15 @@
 and it returns one :class:`MonitorEvent` per packet, described in words, and keeps
 per-device counts. ``ohmni bus monitor`` runs it on a live port or a capture file; it is
 the tool for capturing a real robot's unknown bytes and checking them against the
-project's assumed tables.
+project's assumed tables. The boards' registers are named and decoded as a
+:class:`~ohmni_tb.protocol.profile.BusProfile` says (the assumed one unless given); a wheel
+command is decoded in either jog form, so a capture shows which one the vendor sends.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 from ohmni_tb.errors import InvalidArgumentError, MalformedReplyError
@@ -26,10 +30,11 @@ from ohmni_tb.protocol import (
     flag_names,
 )
 from ohmni_tb.protocol.connection import ReplyMatcher
-from ohmni_tb.protocol.core import CORE_PROFILE, parse_status
+from ohmni_tb.protocol.core import parse_status
 from ohmni_tb.protocol.devices import DeviceId, device_name
-from ohmni_tb.protocol.drive import DRIVE_PROFILE, decode_wheel_command
-from ohmni_tb.protocol.worm_neck import WORM_PROFILE, parse_feedback
+from ohmni_tb.protocol.drive import WheelJogForm, decode_wheel_command
+from ohmni_tb.protocol.profile import DEFAULT_PROFILE, BusProfile
+from ohmni_tb.protocol.worm_neck import parse_feedback
 
 __all__ = ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"]
 
@@ -37,33 +42,43 @@ _LATENCY_WINDOW = 1024
 #: Requests kept waiting for their replies; a capture of requests alone stays bounded.
 _PENDING_LIMIT = 16
 
-_BOARD_REGISTERS: dict[tuple[int, Memory, int], str] = {
-    **{
-        (sid, Memory.RAM, addr): name
-        for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)
-        for addr, name in (
-            (DRIVE_PROFILE.count_addr, "count"),
-            (DRIVE_PROFILE.motor_position_addr, "motor_position"),
-            (60, "absolute_position"),
-            (62, "differential_position"),
-            (DRIVE_PROFILE.torque_addr, "torque (assumed)"),
-            (0x6B, "unknown_6B"),
-        )
-    },
-    (DeviceId.CORE, Memory.RAM, CORE_PROFILE.status_addr): "status (assumed)",
-    (DeviceId.CORE, Memory.RAM, CORE_PROFILE.light_ring_addr): "light_ring",
-    (DeviceId.WORM_NECK, Memory.RAM, WORM_PROFILE.target_addr): "target (assumed)",
-    (DeviceId.WORM_NECK, Memory.RAM, WORM_PROFILE.feedback_addr): "feedback (assumed)",
-}
+
+@functools.cache
+def _board_registers(profile: BusProfile) -> dict[tuple[int, Memory, int], str]:
+    """The boards' register names where ``profile`` puts them."""
+    drive, core, worm = profile.drive, profile.core, profile.worm
+    return {
+        **{
+            (sid, Memory.RAM, addr): name
+            for sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE)
+            for addr, name in (
+                (drive.count_addr, "count"),
+                (drive.motor_position_addr, "motor_position"),
+                (60, "absolute_position"),
+                (62, "differential_position"),
+                (drive.torque_addr, "torque (assumed)"),
+                (0x6B, "unknown_6B"),
+            )
+        },
+        (DeviceId.CORE, Memory.RAM, core.status_addr): "status (assumed)",
+        (DeviceId.CORE, Memory.RAM, core.light_ring_addr): "light_ring",
+        (DeviceId.WORM_NECK, Memory.RAM, worm.target_addr): "target (assumed)",
+        (DeviceId.WORM_NECK, Memory.RAM, worm.feedback_addr): "feedback (assumed)",
+    }
+
+
 _TAG_ADDR = 0xF1
 _BOARD_IDS = frozenset(
     {DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE, DeviceId.CORE, DeviceId.WORM_NECK}
 )
 
 
-def register_name(sid: int, memory: Memory, addr: int) -> str:
-    """A name for a register of device ``sid``: the boards' tables, else HerkuleX's."""
-    name = _BOARD_REGISTERS.get((sid, memory, addr))
+def register_name(
+    sid: int, memory: Memory, addr: int, profile: BusProfile = DEFAULT_PROFILE
+) -> str:
+    """A name for a register of device ``sid``: the boards' (where ``profile`` puts them),
+    else HerkuleX's."""
+    name = _board_registers(profile).get((sid, memory, addr))
     if name is not None:
         return name
     if addr == _TAG_ADDR and memory is Memory.EEP:
@@ -77,27 +92,28 @@ def register_name(sid: int, memory: Memory, addr: int) -> str:
     return f"{memory.name}[{addr}]"
 
 
-def _value_text(reply: ReadReply) -> str:
+def _value_text(reply: ReadReply, profile: BusProfile) -> str:
     sid, addr, data = reply.sid, reply.addr, reply.data
+    drive, core, worm = profile.drive, profile.core, profile.worm
     try:
         if reply.memory is Memory.EEP and addr == _TAG_ADDR:
             return repr(data.decode("ascii", errors="replace"))
         if sid in (DeviceId.LEFT_DRIVE, DeviceId.RIGHT_DRIVE):
-            if addr == DRIVE_PROFILE.count_addr and len(data) == 4:
+            if addr == drive.count_addr and len(data) == 4:
                 return str(int.from_bytes(data, "little", signed=True))
-            if addr in (DRIVE_PROFILE.motor_position_addr, 60) and len(data) == 2:
+            if addr in (drive.motor_position_addr, 60) and len(data) == 2:
                 return str(int.from_bytes(data, "little"))
             if addr == 62 and len(data) == 2:
                 return str(int.from_bytes(data, "little", signed=True))
-        if sid == DeviceId.CORE and addr == CORE_PROFILE.status_addr:
-            s = parse_status(reply)
+        if sid == DeviceId.CORE and addr == core.status_addr:
+            s = parse_status(reply, core)
             cells = "/".join(str(mv) for mv in s.cell_mv)
             return (
                 f"cells {cells} mV, pack {s.pack_mv} mV, {s.charging_current_ma} mA, "
                 f"{'docked' if s.docked else 'undocked'}, {s.percent} %"
             )
-        if sid == DeviceId.WORM_NECK and addr == WORM_PROFILE.feedback_addr:
-            f = parse_feedback(reply)
+        if sid == DeviceId.WORM_NECK and addr == worm.feedback_addr:
+            f = parse_feedback(reply, worm)
             return f"position {f.position} {flag_names(f.flags)}"
         if sid not in _BOARD_IDS and reply.memory is Memory.RAM:
             reg = HERKULEX_RAM.by_addr(addr)
@@ -108,8 +124,9 @@ def _value_text(reply: ReadReply) -> str:
     return data.hex(" ")
 
 
-def describe(packet: Packet) -> str:
-    """One line of words for a packet, request or reply."""
+def describe(packet: Packet, profile: BusProfile = DEFAULT_PROFILE) -> str:
+    """One line of words for a packet, request or reply, the boards' registers read as
+    ``profile`` says."""
     base = packet.cmd & ~REPLY_FLAG
     try:
         cmd_name = Command(base).name
@@ -119,15 +136,17 @@ def describe(packet: Packet) -> str:
     if not packet.is_reply:
         if base in (Command.RAM_READ, Command.EEP_READ) and len(packet.data) == 2:
             memory = Memory.RAM if base == Command.RAM_READ else Memory.EEP
-            return f"{cmd_name} {register_name(sid, memory, packet.data[0])} len {packet.data[1]}"
+            name = register_name(sid, memory, packet.data[0], profile)
+            return f"{cmd_name} {name} len {packet.data[1]}"
         if base in (Command.RAM_WRITE, Command.EEP_WRITE) and len(packet.data) >= 2:
             memory = Memory.RAM if base == Command.RAM_WRITE else Memory.EEP
-            name = register_name(sid, memory, packet.data[0])
+            name = register_name(sid, memory, packet.data[0], profile)
             return f"{cmd_name} {name} = {packet.data[2:].hex(' ')}"
         if base in (Command.S_JOG, Command.I_JOG):
             try:
-                # Read as the drive profile says the boards take it (S_JOG or I_JOG).
-                wheels = decode_wheel_command(packet, DRIVE_PROFILE)
+                # Either form: a capture shows which one the vendor's software sends.
+                form = dataclasses.replace(profile.drive, wheel_form=WheelJogForm(base))
+                wheels = decode_wheel_command(packet, form)
             except MalformedReplyError:
                 wheels = {}
             if wheels:
@@ -137,8 +156,8 @@ def describe(packet: Packet) -> str:
     try:
         if base in (Command.RAM_READ, Command.EEP_READ):
             reply = ReadReply.parse(packet)
-            text = f"{cmd_name} reply {register_name(sid, reply.memory, reply.addr)} = "
-            text += _value_text(reply)
+            text = f"{cmd_name} reply {register_name(sid, reply.memory, reply.addr, profile)} = "
+            text += _value_text(reply, profile)
             if reply.status_error:
                 text += f" [error {flag_names(reply.status_error)}]"
             return text
@@ -189,9 +208,15 @@ class DeviceTraffic:
 
 
 class BusMonitor:
-    """Decode a byte stream into described packets and per-device statistics."""
+    """Decode a byte stream into described packets and per-device statistics.
 
-    def __init__(self) -> None:
+    Args:
+        profile: Where the boards' registers are, and how they decode (default the
+            assumed profile; ``ohmni bus monitor`` passes the configured one).
+    """
+
+    def __init__(self, profile: BusProfile = DEFAULT_PROFILE) -> None:
+        self.profile = profile
         self._decoder = PacketDecoder()
         # The bus engine's own pairing rule: a reply answers the oldest request it fits,
         # so a capture taken at the host, where requests run ahead of their replies,
@@ -247,7 +272,8 @@ class BusMonitor:
                 traffic.last_s = t_s
             if packet.cmd in _ANSWERED:
                 self._unanswered(self._pending.add(packet, (packet, t_s)))
-        return MonitorEvent(t_s, packet, device_name(packet.sid), describe(packet), latency)
+        text = describe(packet, self.profile)
+        return MonitorEvent(t_s, packet, device_name(packet.sid), text, latency)
 
 
 _ANSWERED = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})

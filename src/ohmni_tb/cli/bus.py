@@ -21,6 +21,7 @@ from ohmni_tb.cli.common import (
     console,
     emit_json,
     error_line,
+    load_config,
     open_bus,
     parse_int,
     resolve_port,
@@ -157,13 +158,15 @@ def monitor(
     """Decode bus traffic: packets by device and register name, rates, latencies, errors.
 
     Use --capture for bytes logged from the real robot (see docs/hardware.md), or --port
-    on an adapter that listens to the line. Ctrl-C ends a live session.
+    on an adapter that listens to the line. Ctrl-C ends a live session. The boards'
+    registers are read as the configured bus profile says (battery_addr, ...).
 
     Example: ohmni bus monitor --capture robot.bin --json > decoded.ndjson
     """
     if (port is None) == (capture is None):
         raise typer.BadParameter("give exactly one of --port or --capture")
-    mon = BusMonitor()
+    # The boards' registers are named where the configured profile puts them.
+    mon = BusMonitor(load_config().profile())
 
     def show(events: list[MonitorEvent]) -> None:
         if quiet:

@@ -74,7 +74,7 @@ async def device_info(robot: Robot) -> dict[str, Any]:
         ``firmware`` (``left_drive``, ``right_drive``, ``core``, ``worm_neck``: the tag or
         ``None``), ``neck_kind``, ``servos`` (``sid``, ``role``, ``model``), ``present``,
         ``absent``, ``neck_settings`` (what the last load of the HerkuleX neck's own
-        settings read back, or ``None``).
+        settings read back, or ``None``), ``profile`` (the bus profile's settings).
     """
     from ohmni_tb.errors import OhmniError, StateError  # noqa: PLC0415
     from ohmni_tb.protocol import Memory  # noqa: PLC0415
@@ -109,6 +109,7 @@ async def device_info(robot: Robot) -> dict[str, Any]:
         "present": list(found["present"]),
         "absent": list(found["absent"]),
         "neck_settings": found.get("neck_settings"),
+        "profile": found.get("profile"),
     }
 
 
@@ -186,6 +187,21 @@ def _print_info(found: Mapping[str, Any]) -> None:
     settings = found.get("neck_settings")
     if settings is not None:
         console.print(_settings_line(settings), highlight=False)
+    profile = found.get("profile")
+    if profile is not None:
+        shown = ", ".join(
+            f"{name}={_profile_value(name, value)}" for name, value in profile.items()
+        )
+        console.print(f"bus profile: {shown}", highlight=False)
+
+
+def _profile_value(name: str, value: object) -> str:
+    """A profile setting as a config file holds it: addresses in hex."""
+    if name.endswith("_addr") and isinstance(value, int):
+        return f"0x{value:02X}"
+    if isinstance(value, list):
+        return ",".join(map(str, value)) or "none"
+    return str(value)
 
 
 def _settings_line(report: Mapping[str, Any]) -> str:

@@ -105,6 +105,13 @@ class BusProfile:
             "ext_servo_ids": self.ext_servo_ids,
         }
 
+    def as_json(self) -> dict[str, Any]:
+        """:meth:`settings` as JSON values (the servo ids a list)."""
+        return {
+            name: list(value) if isinstance(value, tuple) else value
+            for name, value in self.settings().items()
+        }
+
     def replace(self, **settings: object) -> BusProfile:
         """This profile with some settings changed (names of :data:`PROFILE_SETTINGS`).
 

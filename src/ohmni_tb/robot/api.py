@@ -840,7 +840,9 @@ class Robot(RobotStreams):
     @abc.abstractmethod
     async def info(self) -> dict[str, Any]:
         """Firmware tags, servo models and the neck kind (``firmware``, ``servos``,
-        ``neck``, ``present``, ``absent``).
+        ``neck``, ``present``, ``absent``), and the bus profile the robot runs with
+        (``profile``: its settings, e.g. ``{"wheel_form": "s_jog", "battery_addr": 160,
+        ...}``).
 
         Raises:
             StateError: The port is released (:meth:`release_port`).

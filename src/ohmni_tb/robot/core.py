@@ -498,6 +498,7 @@ class LocalRobot(Robot):
         self._state.check_port()
         info = await self._discovery.info()
         info["neck_settings"] = self._settings.report
+        info["profile"] = self._state.config.profile().as_json()
         return info
 
     async def list_ports(self) -> list[dict[str, Any]]:
