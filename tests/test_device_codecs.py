@@ -254,15 +254,16 @@ def test_a_wheel_command_of_another_form_is_not_read(
         drive.decode_wheel_command(drive.wheel_command(100, 100, built_with), read_with)
 
 
-def test_the_bus_monitor_reads_the_wheel_command_with_the_drive_table(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_the_bus_monitor_reads_the_wheel_command_in_either_form() -> None:
+    # A capture shows which form the vendor sends: the monitor reads both, with the
+    # profile's mirror.
     i_jog_packet = drive.wheel_command(300, 300, I_JOG_PROFILE)
-    assert "wheels" not in monitor.describe(i_jog_packet)  # not the form the table assumes
-    # A capture that shows I_JOG: the table changes, and the monitor reads it.
-    monkeypatch.setattr(monitor, "DRIVE_PROFILE", I_JOG_PROFILE)
-    text = "I_JOG wheels: left pwm +300, right pwm -300 (board frame)"
-    assert monitor.describe(i_jog_packet) == text
+    assert monitor.describe(i_jog_packet) == (
+        "I_JOG wheels: left pwm +300, right pwm -300 (board frame)"
+    )
+    assert monitor.describe(drive.wheel_command(300, 300, UNMIRRORED)) == (
+        "S_JOG wheels: left pwm +300, right pwm +300 (board frame)"
+    )
 
 
 def test_the_wheel_command_is_a_herkulex_turn_jog() -> None:

@@ -16,6 +16,7 @@ from ohmni_tb.cli import robot_cmds
 from ohmni_tb.cli.common import open_robot
 from ohmni_tb.config import RobotConfig
 from ohmni_tb.control.pid import PidGains
+from ohmni_tb.protocol.profile import DEFAULT_PROFILE
 from ohmni_tb.transport import ports as port_list
 
 from ._helpers import Opened, invoke, spy_on_ports, words
@@ -52,6 +53,8 @@ def test_info_json_names_every_device() -> None:
     assert result.code == 0, result.out
     found = json.loads(result.stdout)
     settings = found.pop("neck_settings")
+    # The bus profile the robot runs with: the assumed one.
+    assert found.pop("profile") == DEFAULT_PROFILE.as_json()
     # The HerkuleX neck's own settings, as the servo read them back after the Robot
     # wrote them at open (the config's defaults).
     assert (settings["sid"], settings["memory"], settings["ok"]) == (3, "ram", True)
