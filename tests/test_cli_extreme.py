@@ -297,8 +297,8 @@ def check(target: Target, value: str, wire: Wire) -> int:
     assert "Traceback" not in out, context
     lines = [line for line in out.splitlines() if line.strip()]
     if result.exit_code == 2:
-        message = [line for line in lines if line.startswith("│")]
-        assert len(message) == 1, context  # one line in typer's error box
+        message = [line for line in lines if line.startswith("Error: ")]
+        assert len(message) == 1, context  # one line under the usage
         assert any(name in message[0] for name in target.names()), context
         assert wire.written == [], context
     elif result.exit_code == 1:

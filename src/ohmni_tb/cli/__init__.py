@@ -8,6 +8,7 @@ numpy nor the simulator loads for a command that does not use them.
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import Annotated, Any, Final
 
 import typer
@@ -15,7 +16,7 @@ from typer.core import TyperCommand, TyperGroup
 
 from ohmni_tb._version import __version__
 
-__all__ = ["COMMANDS", "app", "main"]
+__all__ = ["COMMANDS", "app", "main", "new_app"]
 
 #: name → (module, attribute, one line for ``ohmni --help``). The attribute is a Typer
 #: app (a command with subcommands) or a command function.
@@ -90,6 +91,18 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
 }
 
 
+def new_app(**settings: Any) -> typer.Typer:
+    """A Typer app with the ``ohmni`` habits: help in plain text, reflowed to the terminal
+    (flags shown as flags), no completion options of its own (``ohmni
+    --install-completion`` covers every command), no pretty tracebacks."""
+    defaults: dict[str, Any] = {
+        "add_completion": False,
+        "pretty_exceptions_enable": False,
+        "rich_markup_mode": None,
+    }
+    return typer.Typer(**{**defaults, **settings})
+
+
 class _LazyGroup(TyperGroup):
     """A group whose commands are imported when one is run (or asked for its help)."""
 
@@ -120,7 +133,7 @@ class _LazyGroup(TyperGroup):
 def _load(name: str, module: str, attribute: str) -> Any:
     target: Any = getattr(importlib.import_module(module), attribute)
     if not isinstance(target, typer.Typer):
-        single = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+        single = new_app()
         single.command(name=name)(target)
         target = single
     command = typer.main.get_command(target)
@@ -128,28 +141,64 @@ def _load(name: str, module: str, attribute: str) -> Any:
     return command
 
 
-app = typer.Typer(
+app = new_app(
     name="ohmni",
+    add_completion=True,
     cls=_LazyGroup,
     help="Drive the OhmniLabs Ohmni robot over its serial bus (or the built-in simulator).\n\n"
     "Port: --port URL, else $OHMNI_PORT, else the config file's `port`, else the bus "
     "adapter found by its USB id. Try anything on the simulator with --port sim://.",
     no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
 )
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(__version__)
+        raise typer.Exit
 
 
 @app.callback()
 def _root(
     debug: Annotated[
-        bool, typer.Option("--debug", help="Show the traceback of an error, and debug logs.")
+        bool,
+        typer.Option("--debug", help="Show the traceback of an error, and debug logs."),
+    ] = False,
+    verbose: Annotated[
+        int,
+        typer.Option(
+            "--verbose",
+            "-v",
+            count=True,
+            show_default=False,
+            help="Log more on stderr: -v the library's info, -vv its debug lines too.",
+        ),
+    ] = 0,
+    quiet: Annotated[
+        bool,
+        typer.Option(
+            "--quiet", "-q", help="Only errors on stderr: no warnings (the output stays)."
+        ),
+    ] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version",
+            "-V",
+            is_eager=True,
+            callback=_print_version,
+            help="Print the ohmni_tb version and exit.",
+        ),
     ] = False,
 ) -> None:
-    if debug:
+    del version  # handled by its callback
+    if quiet and (verbose or debug):
+        raise typer.BadParameter("--quiet and --verbose/--debug ask for opposite things")
+    # Every run sets it (a process that runs several commands, a test's, starts afresh).
+    if debug or verbose or quiet or "ohmni_tb.cli.common" in sys.modules:
         from ohmni_tb.cli import common  # noqa: PLC0415  # only the command that runs loads it
 
-        common.set_debug(True)
+        common.set_verbosity(-1 if quiet else 2 if debug else verbose, tracebacks=debug)
 
 
 @app.command()

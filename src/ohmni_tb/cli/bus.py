@@ -14,6 +14,7 @@ import typer
 from rich.table import Table
 
 from ohmni_tb._files import open_regular
+from ohmni_tb.cli import new_app
 from ohmni_tb.cli.common import (
     JsonOption,
     PortOption,
@@ -43,7 +44,7 @@ from ohmni_tb.protocol.framing import HEADER_SIZE
 from ohmni_tb.protocol.timing import reply_size_range
 from ohmni_tb.transport import open_transport
 
-app = typer.Typer(
+app = new_app(
     help="Raw packets on the bus: send one request, see the decoded reply; decode traffic."
     "\n\nExample: ohmni bus send 20 EEP_READ F1 00 --port sim://"
 )

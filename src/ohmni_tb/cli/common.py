@@ -53,6 +53,7 @@ __all__ = [
     "resolve_port",
     "run",
     "set_debug",
+    "set_verbosity",
     "stats_rows",
     "write_line",
 ]
@@ -83,6 +84,7 @@ PortOption = Annotated[
         "sim:// (built-in simulator), auto (the bus adapter by its USB id). Default: "
         "$OHMNI_PORT, else the config file's port, else auto.",
         show_default=False,
+        metavar="PORT",
     ),
 ]
 YesOption = Annotated[
@@ -92,12 +94,18 @@ YesOption = Annotated[
 JsonOption = Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")]
 TimeoutOption = Annotated[
     float,
-    typer.Option("--timeout", help="Reply timeout per attempt, in seconds.", min=0.001, max=10.0),
+    typer.Option(
+        "--timeout",
+        help="Reply timeout per attempt, in seconds, 0.001..10.",
+        min=0.001,
+        max=10.0,
+        metavar="S",
+    ),
 ]
 
 console = Console()
 _err = Console(stderr=True)
-_options = {"debug": False}
+_options: dict[str, Any] = {"debug": False, "verbosity": 0}
 
 
 def error_line(message: str) -> None:
@@ -108,9 +116,33 @@ def error_line(message: str) -> None:
 
 def set_debug(on: bool) -> None:
     """``ohmni --debug``: errors print their traceback; the library logs at DEBUG."""
-    _options["debug"] = on
-    if on:
-        logging.basicConfig(level=logging.DEBUG, format="%(asctime)s %(name)s %(message)s")
+    set_verbosity(2 if on else 0, tracebacks=on)
+
+
+#: ``ohmni -q`` / ``-v`` / ``-vv``: the lowest level of the library's log shown on stderr.
+_LEVELS = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO, 2: logging.DEBUG}
+
+
+def set_verbosity(level: int, *, tracebacks: bool = False) -> None:
+    """How much the library logs on stderr: ``-1`` errors only (``-q``), ``0`` warnings
+    (the default), ``1`` info (``-v``), ``2`` and more debug (``-vv``, ``--debug``);
+    ``tracebacks``: an error prints its traceback (``--debug``)."""
+    level = max(-1, min(2, level))
+    _options["debug"] = tracebacks
+    _options["verbosity"] = level
+    logger = logging.getLogger("ohmni_tb")
+    previous = _options.pop("handler", None)
+    if isinstance(previous, logging.Handler):
+        logger.removeHandler(previous)
+    if level > 0:
+        # Each line with its time and logger; on stderr as it is now (a test's capture).
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+        logger.addHandler(handler)
+        _options["handler"] = handler
+        logger.setLevel(_LEVELS[level])
+    else:
+        logger.setLevel(logging.NOTSET)
 
 
 def resolve_port(port: str | None) -> str:
@@ -273,7 +305,9 @@ def run(
     signals = _Signals(stop_requested)
     logger = logging.getLogger("ohmni_tb")
     shown = _WarningLines(logger)
-    if not _options["debug"]:
+    if _options["verbosity"] < 0:
+        shown.setLevel(logging.ERROR)
+    if _options["verbosity"] <= 0:  # -v and more: the log lines go to the root handler
         logger.addHandler(shown)
     try:
         # Timers to the tenth of a millisecond: the bus's schedule needs them.

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from ohmni_tb.cli import new_app
 from ohmni_tb.cli.common import (
     DirectOption,
     JsonOption,
@@ -52,10 +53,7 @@ _SCOPE = (
     "one odometry for every command)"
 )
 
-app = typer.Typer(
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+app = new_app()
 
 
 class OdomError(OhmniError):

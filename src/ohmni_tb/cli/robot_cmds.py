@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn
 import typer
 from rich.markup import escape
 
+from ohmni_tb.cli import new_app
 from ohmni_tb.cli.common import (
     DirectOption,
     JsonOption,
@@ -313,13 +314,12 @@ def light(
 
 # -- pid --------------------------------------------------------------------------------
 
-pid_app = typer.Typer(
+pid_app = new_app(
     help="The wheel PIDs of the running robot (the daemon's when ohmni serve runs, else "
     "the port's): get and set their gains, per wheel with --wheel, enable or disable them. "
     "--config: the gains in the config file instead, which every Robot opened later starts "
     "with.\n\nExample: ohmni pid set --kp 600 --ki 300 --wheel left",
     no_args_is_help=True,
-    add_completion=False,
 )
 
 FileOption = Annotated[
@@ -352,7 +352,9 @@ GAINS: Final[dict[str, tuple[str, str]]] = {
 
 def _gain_option(flag: str) -> Any:
     what, allowed = GAINS[flag]
-    return typer.Option(flag, help=f"{what}; allowed {allowed}.", show_default=False)
+    return typer.Option(
+        flag, help=f"{what}; allowed {allowed}.", show_default=False, metavar="GAIN"
+    )
 
 
 def _default_file() -> Path:
@@ -384,6 +386,7 @@ WheelOption = Annotated[
         "--wheel",
         help="left or right: that wheel's PID only. Default: both wheels.",
         show_default=False,
+        metavar="left|right",
     ),
 ]
 ConfigOption = Annotated[

@@ -40,6 +40,7 @@ def serve(
             "--listen",
             help="HOST:PORT to serve on. Loopback (127.0.0.1, [::1], localhost) needs no "
             "token; any other address needs the token file. Port 0 picks a free one.",
+            metavar="HOST:PORT",
         ),
     ] = _DEFAULT_LISTEN,
     read_only: Annotated[
@@ -55,6 +56,7 @@ def serve(
             help="Require the token in this file (created, mode 0600, when missing). "
             "Default beyond loopback: ~/.config/ohmni/daemon-token; on loopback: no token.",
             dir_okay=False,
+            metavar="FILE",
         ),
     ] = None,
     allow_origin: Annotated[
@@ -63,6 +65,7 @@ def serve(
             "--allow-origin",
             help="A browser origin allowed to connect (repeat for more), e.g. "
             "http://localhost:8080. Browsers from other origins are refused.",
+            metavar="ORIGIN",
         ),
     ] = None,
     foxglove: Annotated[

@@ -10,6 +10,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from ohmni_tb.bus import Bus
+from ohmni_tb.cli import new_app
 from ohmni_tb.cli.common import (
     DirectOption,
     JsonOption,
@@ -50,13 +51,16 @@ __all__ = ["app"]
 
 T = TypeVar("T")
 
-app = typer.Typer(
+app = new_app(
     help="HerkuleX servos: the neck (sid 3) and the external servos."
     "\n\nExample: ohmni servo scan --port sim://"
 )
 
 SidOption = Annotated[
-    str, typer.Option("--sid", "-s", help="Servo id 0..253 (the neck is 3; 0x.. accepted).")
+    str,
+    typer.Option(
+        "--sid", "-s", help="Servo id 0..253 (the neck is 3; 0x.. accepted).", metavar="SID"
+    ),
 ]
 _NECK = str(int(DeviceId.HERKULEX_NECK))
 _SCAN_TIMEOUT_S = 0.01
@@ -222,8 +226,12 @@ def _print_kv(title: str, values: dict[str, Any]) -> None:
 @app.command()
 def scan(
     port: PortOption = None,
-    first: Annotated[str, typer.Option(help="First id to try, 0..253 (0x.. accepted).")] = "0",
-    last: Annotated[str, typer.Option(help="Last id to try, 0..253 (0x.. accepted).")] = "0xFD",
+    first: Annotated[
+        str, typer.Option(help="First id to try, 0..253 (0x.. accepted).", metavar="SID")
+    ] = "0",
+    last: Annotated[
+        str, typer.Option(help="Last id to try, 0..253 (0x.. accepted).", metavar="SID")
+    ] = "0xFD",
     as_json: JsonOption = False,
 ) -> None:
     """Find every HerkuleX servo on the bus (STAT to each id; boards are skipped).

@@ -46,6 +46,7 @@ def sim(
             "--url",
             help="Simulator options as a sim:// URL, e.g. 'sim://?neck=worm&docked=1' "
             "(see ohmni_tb.sim.url for every option).",
+            metavar="URL",
         ),
     ] = "sim://",
 ) -> None:

@@ -11,6 +11,7 @@ from typing import Annotated, Any
 
 import typer
 
+from ohmni_tb.cli import new_app
 from ohmni_tb.cli.common import (
     DirectOption,
     JsonOption,
@@ -25,11 +26,10 @@ from ohmni_tb.cli.common import (
 
 __all__ = ["app"]
 
-app = typer.Typer(
+app = new_app(
     help="Turn a stream of the running robot on or off (the daemon's when ohmni serve "
     "runs, else the port's).\n\nExample: ohmni stream disable tbcore_status",
     no_args_is_help=True,
-    add_completion=False,
 )
 
 StreamArgument = Annotated[
