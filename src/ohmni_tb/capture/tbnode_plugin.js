@@ -35,13 +35,13 @@
  * logs nothing; tb-node runs as before.
  *
  * WHAT IT GUARANTEES: tb-node's bytes and timing stay as they are. The wrapped write
- * calls the original with the same arguments and returns what it returns; its errors
- * reach tb-node as before. Received bytes are seen by wrapping the port's emit (no
- * listener is added, so the stream's mode does not change). The log is written in the
- * background, a batch at a time: a failed write is counted (its lines are lost) and
- * logging carries on; lines waiting for a slow disk beyond MAX_PENDING_BYTES, and
- * everything past MAX_LOG_BYTES, are dropped and counted. Nothing here throws into
- * tb-node.
+ * calls the original with the same arguments and returns what it returns; what it
+ * throws reaches tb-node as before (and those bytes, never sent, are not logged).
+ * Received bytes are seen by wrapping the port's emit: no listener is added, so the
+ * stream's mode does not change. The log is written in the background, a batch at a
+ * time: a failed write is counted (its lines are lost) and logging carries on; lines
+ * waiting for a slow disk beyond MAX_PENDING_BYTES, and everything past MAX_LOG_BYTES,
+ * are dropped and counted. Nothing here throws into tb-node.
  */
 
 var fs = require('fs');
@@ -140,17 +140,21 @@ BusCapturePlugin.prototype._wrap = function (port) {
   self._ownWrite = own.call(port, 'write');
   self._ownEmit = own.call(port, 'emit');
   self._wrappedWrite = function (data, encoding) {
+    var t = nowSeconds();
+    // Called first, outside any try: what it throws reaches tb-node untouched, and
+    // bytes it refused are not logged.
+    var result = originalWrite.apply(this, arguments);
     try {
-      self._note('tx', toBuffer(data, typeof encoding === 'string' ? encoding : undefined));
+      self._note('tx', toBuffer(data, typeof encoding === 'string' ? encoding : undefined), t);
     } catch (err) {
       self.stats.errors += 1;
     }
-    return originalWrite.apply(this, arguments);
+    return result;
   };
   self._wrappedEmit = function (event, chunk) {
     if (event === 'data') {
       try {
-        self._note('rx', toBuffer(chunk));
+        self._note('rx', toBuffer(chunk), nowSeconds());
       } catch (err) {
         self.stats.errors += 1;
       }
@@ -184,7 +188,7 @@ function restore(port, name, wrapped, original, wasOwn) {
   else delete port[name];  // the prototype's method shows through again
 }
 
-BusCapturePlugin.prototype._note = function (dir, buffer) {
+BusCapturePlugin.prototype._note = function (dir, buffer, t) {
   if (this._stopped || this._port === null) return;
   if (dir === 'tx') {
     this.stats.tx_chunks += 1;
@@ -194,7 +198,7 @@ BusCapturePlugin.prototype._note = function (dir, buffer) {
     this.stats.rx_bytes += buffer.length;
   }
   if (buffer.length === 0) return;
-  var line = '{"t":' + nowSeconds().toFixed(6) + ',"dir":"' + dir + '","hex":"' +
+  var line = '{"t":' + t.toFixed(6) + ',"dir":"' + dir + '","hex":"' +
     buffer.toString('hex') + '"}\n';
   if (this._pendingBytes + line.length > MAX_PENDING_BYTES ||
       this.stats.log_bytes + this._pendingBytes + line.length > MAX_LOG_BYTES) {
