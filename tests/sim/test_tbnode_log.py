@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ def _records(path: Path) -> list[LogRecord]:
     reader = LogReader()
     records = reader.feed(path.read_bytes()) + reader.finish()
     assert reader.summary.skipped == 0
+    assert reader.summary.backwards == 0  # the log's own times never go back
     return records
 
 
@@ -97,6 +99,48 @@ def test_with_faults_the_log_has_what_the_host_wrote_and_what_it_got(tmp_path: P
     # The host's writes as written (the line garbled some on the way); its reads as read.
     assert [r.data for r in records if r.sent] == [request] * 20
     assert [r.data for r in records if not r.sent] == got
+
+
+@pytest.mark.parametrize("options", ["", "realtime=0", "usb_latency_ms=16"])
+def test_the_logs_times_never_go_back(tmp_path: Path, options: str) -> None:
+    log = tmp_path / "bus.ndjson"
+
+    async def main() -> None:
+        async with LocalRobot.open(f"sim://?{options}&tbnode_log={log}") as robot:
+            robot.drive_pwm(200, 200)
+            await asyncio.sleep(0.3)
+
+    run_virtual(main())
+    reader = LogReader()
+    records = reader.feed(log.read_bytes())
+    assert len(records) > 50
+    assert reader.summary.backwards == 0
+    assert reader.summary.skipped == 0
+
+
+def test_a_late_loop_logs_the_reply_when_the_host_got_it(tmp_path: Path) -> None:
+    # On the wall clock: the loop is held up past a reply's time, and the host writes
+    # again before the reply is handed over. The log, as a plugin's at the host would,
+    # has the reply after that write, never before it in time.
+    log = tmp_path / "bus.ndjson"
+
+    async def main() -> None:
+        transport = await open_transport(f"sim://?tbnode_log={log}")
+        assert isinstance(transport, SimTransport)
+        async with transport:
+            transport.write_nowait(encode_packet(read_count(0)))
+            time.sleep(0.01)  # noqa: ASYNC251  # late on purpose: the reply is due at 2.6 ms
+            transport.write_nowait(encode_packet(read_count(1)))
+            got = b""
+            while len(got) < 30:
+                got += await transport.read()
+
+    asyncio.run(main())
+    records = _records(log)
+    assert [(r.sent, r.data[3]) for r in records] == [(True, 0), (True, 1), (False, 0), (False, 1)]
+    times = [r.t_s for r in records]
+    assert times == sorted(times)
+    assert times[1] >= 0.01
 
 
 def test_the_log_carries_on_across_a_reconnection(tmp_path: Path) -> None:
@@ -171,6 +215,7 @@ def test_a_robots_traffic_logged_converted_and_decoded_by_the_monitor(tmp_path: 
     assert summary["tx"]["bytes"] == stats.bytes_out
     assert summary["rx"]["bytes"] == stats.bytes_in
     assert summary["skipped"] == 0
+    assert summary["time_went_back"] == 0
     assert 0.8 <= summary["span_s"] < 1.0
 
     decoded = _invoke("bus", "monitor", "--capture", str(mcap), "--json")

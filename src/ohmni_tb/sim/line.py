@@ -261,6 +261,7 @@ class SimLine:
         self._anywhere: list[SimDevice] = []
         self._routed: list[SimDevice] = []
         self._taps: list[LineTap] = []
+        self._tap_s = 0.0
 
     # -- clock -------------------------------------------------------------------------
 
@@ -326,8 +327,9 @@ class SimLine:
         the line's time (:meth:`now_s`): each write of the host as it wrote it (``sent``
         true; before the line's faults, when it was written) and each chunk handed to the
         host (when it was handed over, after the faults) — what a program wrapping the
-        host's serial port sees. Returns the function that removes it. A tap that raises
-        is logged and removed; it never disturbs the line.
+        host's serial port sees, on a clock that never goes back. Returns the function
+        that removes it. A tap that raises is logged and removed; it never disturbs the
+        line.
         """
         self._taps.append(tap)
 
@@ -349,8 +351,12 @@ class SimLine:
         if not data:
             return
         if self._taps:
-            # The line's time now, as now_s() reads it, without moving the devices' clock.
-            self._tapped(True, data, max(loop.time() - self._t0, self._now_s))
+            # When the host wrote: the loop's time on the line's clock, or, while the
+            # simulated time runs ahead of the loop, when the bytes go on the wire.
+            elapsed = loop.time() - self._t0
+            if not self.realtime:
+                elapsed = max(elapsed, self._line_free_at)
+            self._tapped(True, data, elapsed)
         if self.faults.unplugged:
             self.stats.dropped_bytes += len(data)
             return
@@ -728,11 +734,16 @@ class SimLine:
                 self.stats.bytes_to_host += len(data)
                 deliver(data)
                 if self._taps:
-                    self._tapped(False, data, chunk.due_s)
+                    # When the host got them: their time, or later if the loop was late.
+                    loop = self._loop
+                    late_s = chunk.due_s if loop is None else loop.time() - self._t0
+                    self._tapped(False, data, max(chunk.due_s, late_s))
             if chunk is target:
                 return
 
     def _tapped(self, sent: bool, data: bytes, t_s: float) -> None:
+        # The times a tap sees never go back, as a monotonic clock's at the host.
+        t_s = self._tap_s = max(t_s, self._tap_s)
         for tap in list(self._taps):
             try:
                 tap(sent, data, t_s)
