@@ -5,6 +5,7 @@ turned into a capture ``ohmni bus monitor --capture`` decodes."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -341,3 +342,19 @@ def test_tbnode_plugin_prints_the_shipped_plugin_or_writes_it(tmp_path: Path) ->
     assert again.exit_code == 2
     assert "exists" in again.output
     assert _invoke("bus", "tbnode-plugin", "-o", str(out), "--overwrite").exit_code == 0
+
+
+@pytest.mark.parametrize("kind", ["device", "fifo", "directory"])
+def test_convert_reads_regular_files_only_and_never_waits(tmp_path: Path, kind: str) -> None:
+    if kind == "device":
+        log, what = Path("/dev/zero"), "a character device"
+    elif kind == "fifo":
+        log, what = tmp_path / "pipe", "a named pipe (FIFO)"
+        os.mkfifo(log)
+    else:
+        log, what = tmp_path, "a directory"
+    out = tmp_path / "c.bin"
+    result = _invoke("bus", "convert", str(log), str(out))
+    assert result.exit_code == 1
+    assert result.stderr.strip() == f"error: cannot read {log}: it is {what}, not a regular file"
+    assert not out.exists()
