@@ -49,7 +49,7 @@ var fs = require('fs');
 var TAG = 'ohmni-bus-capture';
 var LOG_PATH = process.env.OHMNI_BUS_CAPTURE_LOG ||
   '/data/data/com.ohmnilabs.telebot_rtc/files/ohmni-bus-capture.ndjson';
-// The log stops growing here (about a day of tb-node's own polling).
+// The log stops growing here: days of tb-node's own polling (a few MB an hour).
 var MAX_LOG_BYTES = 256 * 1024 * 1024;
 // Lines waiting for the disk; beyond this new lines are dropped (and counted).
 var MAX_PENDING_BYTES = 4 * 1024 * 1024;
