@@ -55,6 +55,8 @@ TEXT_PARAMS = frozenset(
         "wheel",
         "stream",
         "target",  # ohmni connect PORT
+        "log",  # ohmni bus convert LOG OUTPUT
+        "output",
     }
 )
 

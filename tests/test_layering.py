@@ -22,7 +22,12 @@ import ohmni_tb
 #: Top-level modules a sans-IO module must not import.
 FORBIDDEN = frozenset({"asyncio", "serial", "serial_asyncio_fast", "time"})
 #: Packages that are sans-IO as a whole.
-SANS_IO_PACKAGES = ("ohmni_tb.protocol", "ohmni_tb.control", "ohmni_tb.herkulex")
+SANS_IO_PACKAGES = (
+    "ohmni_tb.protocol",
+    "ohmni_tb.control",
+    "ohmni_tb.herkulex",
+    "ohmni_tb.capture",
+)
 #: Modules of those packages that are allowed I/O: the herkulex Servo handle drives the Bus.
 IO_MODULES = frozenset({"ohmni_tb.herkulex.servo"})
 
@@ -203,6 +208,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "ohmni_tb.protocol",
         "ohmni_tb.control",
         "ohmni_tb.herkulex",
+        "ohmni_tb.capture",
         "ohmni_tb.transport",
         "ohmni_tb.sim",
         "ohmni_tb.eventloop",

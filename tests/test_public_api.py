@@ -76,7 +76,13 @@ PUBLIC = {
     "ohmni_tb.monitor": ["BusMonitor", "DeviceTraffic", "MonitorEvent", "describe"],
     "ohmni_tb.sim.line": [
         "DEFAULT_TURNAROUND_S", "MAX_USB_LATENCY_S", "USB_PACKET_PAYLOAD", "HostReceiver",
-        "LineFaults", "LineStats", "SimLine",
+        "LineFaults", "LineStats", "LineTap", "SimLine",
+    ],
+    "ohmni_tb.sim.tbnode_log": ["TbnodeLog"],
+    "ohmni_tb.capture.tbnode": [
+        "FIELDS", "MAX_LINE_BYTES", "MAX_SKIPPED_KEPT", "MAX_T_S", "PLUGIN_FILE", "RX", "TX",
+        "LogReader", "LogRecord", "LogSummary", "SkippedLine", "format_record",
+        "parse_record", "plugin_source",
     ],
     "ohmni_tb.sim.transport": ["SimTransport"],
     "ohmni_tb.sim.url": ["build_line", "open_sim"],
@@ -160,7 +166,7 @@ PUBLIC = {
     ],
     "ohmni_tb.foxglove.record": [
          "DEFAULT_FLUSH_INTERVAL_S", "MAX_BACKLOG_BYTES", "MAX_DURATION_S", "RAW_SCHEMA_NAME",
-         "RAW_TOPICS", "McapRecorder", "RecordingError",
+         "RAW_TOPICS", "McapRecorder", "RecordingError", "write_raw_recording",
     ],
     "ohmni_tb.foxglove.access": [
          "LOCKED_MESSAGE", "LOCKED_STATUS_ID", "UNLOCK_SCHEMAS", "UNLOCK_SERVICE",

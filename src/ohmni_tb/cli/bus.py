@@ -15,6 +15,7 @@ from rich.table import Table
 
 from ohmni_tb._files import open_regular
 from ohmni_tb.cli import new_app
+from ohmni_tb.cli.bus_capture import convert, tbnode_plugin
 from ohmni_tb.cli.common import (
     JsonOption,
     PortOption,
@@ -48,6 +49,10 @@ app = new_app(
     help="Raw packets on the bus: send one request, see the decoded reply; decode traffic."
     "\n\nExample: ohmni bus send 20 EEP_READ F1 00 --port sim://"
 )
+
+# A capture logged on the robot by the vendor's own software: the plugin, its log's converter.
+app.command("tbnode-plugin")(tbnode_plugin)
+app.command()(convert)
 
 #: The longest --duration: a week. Without one, a live monitor runs until Ctrl-C.
 _MAX_DURATION_S = 7 * 24 * 3600.0

@@ -38,7 +38,7 @@ import logging
 import os
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -63,6 +63,7 @@ __all__ = [
     "RAW_TOPICS",
     "McapRecorder",
     "RecordingError",
+    "write_raw_recording",
 ]
 
 _log = logging.getLogger("ohmni_tb.foxglove")
@@ -323,9 +324,7 @@ class McapRecorder:
             if not sink.accepting():
                 channel.dropped += 1
                 return
-            channel.channel.log(
-                b'{"data":"' + data.hex(" ").encode() + b'"}', log_time=clock.ns(t_s)
-            )
+            channel.channel.log(_raw_message(data), log_time=clock.ns(t_s))
             channel.messages += 1
 
         self._untap = bus.add_tap(tap)
@@ -399,6 +398,70 @@ _RAW_SCHEMA: Final = {
         "data": {"type": "string", "description": "the bytes, two hex digits each, spaced"}
     },
 }
+
+
+def write_raw_recording(
+    path: str | os.PathLike[str],
+    chunks: Iterable[tuple[int, bool, bytes]],
+    *,
+    overwrite: bool = False,
+    metadata: Mapping[str, str] | None = None,
+) -> dict[str, ChannelStats]:
+    """Write bus bytes to an MCAP file as ``ohmni record --raw`` records them, without a
+    Robot: the same channels (:data:`RAW_TOPICS`), schema and messages, one message a
+    chunk, and the ``ohmni_tb`` metadata record (with ``metadata`` in it).
+    ``ohmni bus convert`` writes a tb-node capture this way, for ``ohmni bus monitor``.
+
+    Args:
+        path: The file to create.
+        chunks: ``(log_time_ns, sent, data)`` in time order: when, in ns (the
+            recording's ``log_time``), whether the host wrote the bytes, the bytes.
+        overwrite: Replace the file if it exists (by default an existing file is refused).
+        metadata: More entries for the ``ohmni_tb`` metadata record (where the bytes
+            came from).
+
+    Returns:
+        The two raw channels' figures, by topic.
+
+    Raises:
+        RecordingError: The file cannot be created (it exists, its directory is missing
+            or not writable) or written.
+    """
+    text_path = os.fspath(path)
+    fd = _create(text_path, overwrite=overwrite)
+    context = foxglove.Context()
+    channels = {
+        sent: _RawChannel(topic, context)
+        for sent, topic in zip((True, False), RAW_TOPICS, strict=True)
+    }
+    try:
+        with os.fdopen(fd, "wb") as file:
+            writer = foxglove.open_mcap(
+                file,
+                context=context,
+                writer_options=MCAPWriteOptions(compression=MCAPCompression.Zstd),
+            )
+            try:
+                writer.write_metadata(
+                    "ohmni_tb", {"library": f"ohmni_tb {__version__}", **(metadata or {})}
+                )
+                for log_time_ns, sent, data in chunks:
+                    raw = channels[sent]
+                    raw.channel.log(_raw_message(data), log_time=log_time_ns)
+                    raw.messages += 1
+            finally:
+                writer.close()
+    except OSError as exc:
+        raise RecordingError(f"cannot write {text_path}: {exc.strerror or exc}", text_path) from exc
+    return {
+        raw.topic: ChannelStats(raw.topic, RAW_SCHEMA_NAME, raw.messages, raw.dropped)
+        for raw in channels.values()
+    }
+
+
+def _raw_message(data: bytes) -> bytes:
+    """A raw channel's message: the bytes as spaced hex, in JSON."""
+    return b'{"data":"' + data.hex(" ").encode() + b'"}'
 
 
 class _RawChannel:

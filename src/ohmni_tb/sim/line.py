@@ -81,6 +81,7 @@ __all__ = [
     "HostReceiver",
     "LineFaults",
     "LineStats",
+    "LineTap",
     "SimLine",
 ]
 
@@ -103,6 +104,9 @@ HOST_BUFFER_BYTES: Final = 4096
 
 #: Receives the bytes the line hands to the host.
 HostReceiver = Callable[[bytes], None]
+#: Sees the bytes at the host's end of the line: ``tap(sent, data, t_s)``
+#: (:meth:`SimLine.add_tap`).
+LineTap = Callable[[bool, bytes, float], None]
 
 _HEADER: Final = b"\xff\xff"
 _MIN_FRAME: Final = 7
@@ -256,6 +260,8 @@ class SimLine:
         self._by_sid: dict[int, list[SimDevice]] = {}
         self._anywhere: list[SimDevice] = []
         self._routed: list[SimDevice] = []
+        self._taps: list[LineTap] = []
+        self._tap_s = 0.0
 
     # -- clock -------------------------------------------------------------------------
 
@@ -316,6 +322,23 @@ class SimLine:
             self._expiry.cancel()
             self._expiry = None
 
+    def add_tap(self, tap: LineTap) -> Callable[[], None]:
+        """Call ``tap(sent, data, t_s)`` with the bytes at the host's end of the line, at
+        the line's time (:meth:`now_s`): each write of the host as it wrote it (``sent``
+        true; before the line's faults, when it was written) and each chunk handed to the
+        host (when it was handed over, after the faults) — what a program wrapping the
+        host's serial port sees, on a clock that never goes back. Returns the function
+        that removes it. A tap that raises is logged and removed; it never disturbs the
+        line.
+        """
+        self._taps.append(tap)
+
+        def remove() -> None:
+            if tap in self._taps:
+                self._taps.remove(tap)
+
+        return remove
+
     def host_write(self, data: bytes) -> None:
         """The host writes ``data`` now: put it on the wire and let the devices act on it.
 
@@ -327,6 +350,13 @@ class SimLine:
             raise StateError("no host is connected to the simulated line")
         if not data:
             return
+        if self._taps:
+            # When the host wrote: the loop's time on the line's clock, or, while the
+            # simulated time runs ahead of the loop, when the bytes go on the wire.
+            elapsed = loop.time() - self._t0
+            if not self.realtime:
+                elapsed = max(elapsed, self._line_free_at)
+            self._tapped(True, data, elapsed)
         if self.faults.unplugged:
             self.stats.dropped_bytes += len(data)
             return
@@ -703,8 +733,23 @@ class SimLine:
             if data and deliver is not None:
                 self.stats.bytes_to_host += len(data)
                 deliver(data)
+                if self._taps:
+                    # When the host got them: their time, or later if the loop was late.
+                    loop = self._loop
+                    late_s = chunk.due_s if loop is None else loop.time() - self._t0
+                    self._tapped(False, data, max(chunk.due_s, late_s))
             if chunk is target:
                 return
+
+    def _tapped(self, sent: bool, data: bytes, t_s: float) -> None:
+        # The times a tap sees never go back, as a monotonic clock's at the host.
+        t_s = self._tap_s = max(t_s, self._tap_s)
+        for tap in list(self._taps):
+            try:
+                tap(sent, data, t_s)
+            except Exception:
+                _log.exception("a line tap failed: removed")
+                self._taps.remove(tap)
 
     # -- faults ------------------------------------------------------------------------
 

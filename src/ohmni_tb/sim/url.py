@@ -32,6 +32,9 @@ option              meaning                                                    d
 ``corrupt``         share of bytes garbled on the line, 0..1                   ``0``
 ``silent``          device ids that never answer, comma-separated              none
 ``seed``            seed of the fault generator                                ``0``
+``tbnode_log``      a file to log the host's bytes to, in the tb-node capture  none
+                    format (:mod:`ohmni_tb.sim.tbnode_log`), for ``ohmni bus
+                    convert``
 ==================  =========================================================  ==========
 
 The options from ``neck`` to ``worm_feedback_addr`` describe the robot
@@ -49,6 +52,7 @@ from urllib.parse import SplitResult
 from ohmni_tb.errors import ConfigError
 from ohmni_tb.sim.line import DEFAULT_TURNAROUND_S, MAX_USB_LATENCY_S, SimLine
 from ohmni_tb.sim.robot import SimRobot, parse_ids
+from ohmni_tb.sim.tbnode_log import TbnodeLog
 from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import (
     DEFAULT_BAUDRATE,
@@ -78,6 +82,7 @@ def build_line(options: dict[str, str]) -> tuple[SimLine, SimRobot]:
     drop = _option_rate(options, "drop")
     corrupt = _option_rate(options, "corrupt")
     silent = parse_ids("silent", options.pop("silent", ""))
+    tbnode_log = options.pop("tbnode_log", None)
     robot = SimRobot.from_options(options)
     line = SimLine(
         robot.devices,
@@ -90,6 +95,9 @@ def build_line(options: dict[str, str]) -> tuple[SimLine, SimRobot]:
     line.faults.drop_rate = drop
     line.faults.corrupt_rate = corrupt
     line.faults.silent = set(silent)
+    if tbnode_log is not None:
+        # Last: the file is created once the other options have parsed.
+        line.add_tap(TbnodeLog(tbnode_log))
     return line, robot
 
 
