@@ -57,6 +57,7 @@ TEXT_PARAMS = frozenset(
         "target",  # ohmni connect PORT
         "log",  # ohmni bus convert LOG OUTPUT
         "output",
+        "config_file",  # ohmni config --config FILE
     }
 )
 

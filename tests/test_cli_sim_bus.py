@@ -34,14 +34,32 @@ def test_send_reads_the_left_wheel_count_as_json() -> None:
     result = _invoke("bus", "send", "0", "RAM_READ", "3B", "04", "--port", "sim://", "--json")
     assert result.exit_code == 0, result.output
     doc = json.loads(result.stdout)
-    assert doc["request"] == "Packet(sid=0, cmd=RAM_READ, data='3b 04')"
+    assert doc["request"] == {
+        "sid": 0,
+        "cmd": 4,
+        "command": "RAM_READ",
+        "data": "3b 04",
+        "bytes": "ff ff 09 00 04 32 cc 3b 04",
+    }
     reply = doc["reply"]
     assert reply["sid"] == 0
     assert reply["cmd"] == 0x44
+    assert reply["command"] == "RAM_READ reply"
     assert reply["addr"] == 59
     assert reply["value_hex"] == "00 00 00 00"
     assert reply["status_error"] == "none"
     assert reply["status_detail"] == "none"
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_send_shows_a_firmware_tag_as_text() -> None:
+    result = _invoke("bus", "send", "20", "EEP_READ", "F1", "00", "--port", "sim://", "--json")
+    assert result.exit_code == 0, result.output
+    reply = json.loads(result.stdout)["reply"]
+    assert reply["value_text"] == "sim-core-1.0"
+    assert bytes.fromhex(reply["value_hex"]) == b"sim-core-1.0"
+    count = _invoke("bus", "send", "0", "RAM_READ", "3B", "04", "--port", "sim://", "--json")
+    assert "value_text" not in json.loads(count.stdout)["reply"]  # zeros are not text
 
 
 @pytest.mark.usefixtures("virtual_time")

@@ -615,6 +615,53 @@ class RobotConfig(BaseSettings):
             _LOADING.reset(token)
 
     @classmethod
+    def load_explained(
+        cls, config_file: str | os.PathLike[str] | None = None
+    ) -> tuple[RobotConfig, Path | None, dict[str, str]]:
+        """:meth:`load`, and where each setting's value came from (``ohmni config``).
+
+        Returns:
+            The settings, the config file read (``None``: none), and for each setting
+            its source: ``"default"``, the environment variable's name
+            (``"OHMNI_PORT"``), or the config file's path.
+
+        Raises:
+            ConfigError: As :meth:`load`.
+        """
+        loading = _Loading(_find_config_file(config_file))
+        token = _LOADING.set(loading)
+        try:
+            config = cls()
+            origins: dict[str, str] = {}
+            for name in cls.model_fields:
+                where, from_env = _origin(name, {})
+                if not where:
+                    origins[name] = "default"
+                elif from_env:
+                    origins[name] = where.removeprefix(" (from ").removesuffix(")")
+                else:
+                    origins[name] = str(loading.path)
+        finally:
+            _LOADING.reset(token)
+        return config, loading.path, origins
+
+    @classmethod
+    def example_file(cls) -> str:
+        """A commented TOML config file: every setting with its default and what it
+        does, each commented out (``ohmni config init`` writes it). It loads as the
+        defaults; uncomment a line to change one."""
+        lines = [
+            "# ohmni_tb settings. Every setting is here with its default, commented out:",
+            "# uncomment a line and change its value. The environment (OHMNI_<NAME>) and",
+            "# arguments beat this file. `ohmni config` shows what is in effect and why.",
+            "",
+        ]
+        for name, info in cls.model_fields.items():
+            lines.extend(f"# {text}" for text in _wrapped(info.description or "", 86))
+            lines += [f"# {name} = {_toml_value(info.default)}", ""]
+        return "\n".join(lines)
+
+    @classmethod
     def describe(cls) -> list[tuple[str, str, str]]:
         """Every setting as ``(name, default as text, description)``, for docs and ``--help``."""
         return [
@@ -1111,3 +1158,27 @@ def _existing(path: Path, why: str) -> Path:
     if not path.is_file():
         raise ConfigError(f"config file is not a file: {path}{why}")
     return path
+
+
+def _toml_value(value: object) -> str:
+    """A default as a TOML value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return "[" + ", ".join(map(str, value)) + "]"
+    if isinstance(value, int | float):
+        return repr(value)  # the shortest text that reads back as the same number
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _wrapped(text: str, width: int) -> list[str]:
+    """``text`` in lines of at most ``width`` characters (at spaces)."""
+    lines: list[str] = []
+    line = ""
+    for word in text.split():
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    return [*lines, line] if line else lines

@@ -3,6 +3,7 @@ that reads as prose with flags shown as flags."""
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -10,8 +11,10 @@ from typer.testing import CliRunner
 
 from ohmni_tb._version import __version__
 from ohmni_tb.cli import app
+from ohmni_tb.protocol import write_request
+from ohmni_tb.sim.robot import SimRobot
 
-from ._helpers import invoke
+from ._helpers import invoke, spy_on_ports, words
 from .test_cli_help import PATHS
 
 runner = CliRunner()
@@ -102,3 +105,18 @@ def test_quiet_and_verbose_together_are_refused() -> None:
     result = invoke("-q", "-v", "version")
     assert result.code == 2
     assert "--quiet and --verbose/--debug ask for opposite things" in result.out
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_scan_names_the_torque_mode_as_status_does(monkeypatch: pytest.MonkeyPatch) -> None:
+    def brake_ext1(sim: SimRobot) -> None:
+        (servo,) = [s for s in sim.ext_servos if s.sid == 11]
+        servo.handle(write_request(11, 52, bytes((0x40,))), 0.0)  # torque_control = BRAKE
+
+    spy_on_ports(monkeypatch, brake_ext1)
+    result = invoke("servo", "scan", "--port", "sim://", "--first", "3", "--last", "12", "--json")
+    assert result.code == 0, result.out
+    modes = {row["sid"]: row["torque"] for row in json.loads(result.stdout)}
+    assert modes == {3: "free", 11: "brake", 12: "free"}
+    table = words(invoke("servo", "scan", "--port", "sim://", "--first", "11", "--last", "11").out)
+    assert "ext1 DRS_0101 512 +0.0 brake" in table

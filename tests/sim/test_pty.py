@@ -445,7 +445,11 @@ def test_an_overlong_console_line_is_refused_with_one_line(
     assert len(refused) == 1, err[-2000:]
     assert str(MAX_CONSOLE_LINE) in refused[0]
     assert "xxxx" not in err  # the rest of the long line is not taken for a command
-    assert any(ln.startswith("pose ") for ln in err.splitlines())  # the next one is
+    (status,) = [ln for ln in err.splitlines() if ln.startswith("pose ")]  # the next one is
+    # In words, not reprs: the line's counters and the faults injected.
+    assert "B to the devices" in status
+    assert status.endswith("faults none")
+    assert "LineStats(" not in status
     assert "simulator stopped" in err
 
 

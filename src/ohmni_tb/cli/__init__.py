@@ -64,6 +64,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "Close the running robot's port until ohmni connect (the daemon's when it runs).",
     ),
     "info": ("ohmni_tb.cli.robot_cmds", "info", "Firmware tags, servo models, neck kind."),
+    "config": (
+        "ohmni_tb.cli.config_cmd",
+        "app",
+        "The settings in effect and where each came from; `ohmni config init`: an example file.",
+    ),
     "ports": (
         "ohmni_tb.cli.robot_cmds",
         "ports",

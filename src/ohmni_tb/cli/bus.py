@@ -38,6 +38,7 @@ from ohmni_tb.protocol import (
     Packet,
     ReadReply,
     StatusReply,
+    encode_packet,
     flag_names,
 )
 from ohmni_tb.protocol.devices import device_name
@@ -104,11 +105,11 @@ def send(
     reply = run(main)
     if reply is None:
         if as_json:
-            emit_json({"request": repr(packet), "reply": None})
+            emit_json({"request": _packet_json(packet), "reply": None})
         else:
             console.print(f"sent {packet!r}; no reply expected")
         return
-    decoded: dict[str, object] = {"sid": reply.sid, "cmd": reply.cmd, "data": reply.data.hex(" ")}
+    decoded: dict[str, object] = _packet_json(reply)
     try:
         if reply.cmd in (Command.RAM_READ | 0x40, Command.EEP_READ | 0x40):
             rr = ReadReply.parse(reply)
@@ -118,6 +119,9 @@ def send(
                 status_error=flag_names(rr.status_error),
                 status_detail=flag_names(rr.status_detail),
             )
+            as_text = _printable(rr.data)
+            if as_text is not None:
+                decoded["value_text"] = as_text  # a firmware tag, say
         elif len(reply.data) == 2:
             sr = StatusReply.parse(reply)
             decoded.update(
@@ -126,13 +130,39 @@ def send(
     except MalformedReplyError as exc:
         decoded["malformed"] = str(exc)
     if as_json:
-        emit_json({"request": repr(packet), "reply": decoded})
+        emit_json({"request": _packet_json(packet), "reply": decoded})
     else:
-        console.print(f"request  {packet!r}")
-        console.print(f"reply    {reply!r}")
+        console.print(f"request  {packet!r}", highlight=False)
+        console.print(f"reply    {reply!r}", highlight=False)
         for key, value in decoded.items():
-            if key not in ("sid", "cmd", "data"):
-                console.print(f"  {key:14} {value}")
+            if key not in ("sid", "cmd", "command", "data", "bytes"):
+                shown = repr(value) if key == "value_text" else value
+                console.print(f"  {key:14} {shown}", highlight=False)
+
+
+def _packet_json(packet: Packet) -> dict[str, object]:
+    """A packet for JSON: its id, command (number and name), data, and its bytes on the
+    wire."""
+    base = packet.cmd & ~0x40
+    try:
+        name = Command(base).name + (" reply" if packet.is_reply else "")
+    except ValueError:
+        name = f"0x{packet.cmd:02X}"
+    return {
+        "sid": packet.sid,
+        "cmd": packet.cmd,
+        "command": name,
+        "data": packet.data.hex(" "),
+        "bytes": encode_packet(packet).hex(" "),
+    }
+
+
+def _printable(data: bytes) -> str | None:
+    """``data`` as text when it is printable ASCII (a firmware tag), else ``None``."""
+    text = data.rstrip(b"\x00")
+    if text and all(0x20 <= b < 0x7F for b in text):
+        return text.decode("ascii")
+    return None
 
 
 @app.command()

@@ -215,6 +215,7 @@ async def open_robot(
 
     Raises:
         LeaseError: ``control``, and another client of the daemon drives the robot.
+        TransportError: No device of the robot answered on the port it opened.
     """
     if via is not None:
         from ohmni_tb.errors import LeaseError  # noqa: PLC0415
@@ -238,6 +239,14 @@ async def open_robot(
     from ohmni_tb.robot import Robot  # noqa: PLC0415
 
     async with Robot.open(port, config=RobotConfig.load(), **overrides) as robot:
+        if not robot.state.present:
+            from ohmni_tb.errors import TransportError  # noqa: PLC0415
+
+            raise TransportError(
+                f"nothing answered on {port}: no board of the robot replied (is it the "
+                "robot's bus? `ohmni ports` lists the serial ports, `ohmni probe --port "
+                f"{port}` asks every id)"
+            )
         yield robot
 
 

@@ -260,6 +260,9 @@ def scan(
                     continue
                 model = await servo.model()
                 pos = await servo.position_raw()
+                # The torque mode as ohmni status names it (free, brake, on): the
+                # register, not the status bit, which cannot tell free from brake.
+                mode = await servo.read("torque_control")
                 found.append(
                     {
                         "sid": sid,
@@ -267,6 +270,7 @@ def scan(
                         "model": model.name,
                         "position_raw": pos,
                         "angle_deg": round(angle_deg_from_raw(pos), 2),
+                        "torque": _torque_name(mode),
                         **_status_dict(status),
                     }
                 )
@@ -286,12 +290,20 @@ def scan(
             row["model"],
             str(row["position_raw"]),
             f"{row['angle_deg']:+.1f}",
-            "on" if row["torque_on"] else "off",
+            row["torque"],
             row["error_flags"] if row["error"] else "-",
         )
     console.print(table)
     if not found:
         console.print("no servo answered")
+
+
+def _torque_name(value: int) -> str:
+    """RAM 52 as ``ohmni status`` shows it: ``free``, ``brake``, ``on`` (else the value)."""
+    try:
+        return TorqueControl(value).name.lower()
+    except ValueError:
+        return f"0x{value:02X}"
 
 
 async def _quick(bus: Bus, servo: Servo) -> ServoStatus:

@@ -18,7 +18,7 @@ from ohmni_tb.cli.common import run
 from ohmni_tb.errors import ConfigError, OhmniError
 
 if TYPE_CHECKING:
-    from ohmni_tb.sim.line import SimLine
+    from ohmni_tb.sim.line import LineFaults, LineStats, SimLine
     from ohmni_tb.sim.robot import SimRobot
 
 __all__ = ["MAX_CONSOLE_LINE", "sim"]
@@ -293,7 +293,8 @@ def _command(words: list[str], line: SimLine, robot: SimRobot, stop: _Stop) -> s
             return (
                 f"pose x={pose.x:.3f} m y={pose.y:.3f} m yaw={pose.yaw:.3f} rad; "
                 f"pack {s.pack_mv} mV {s.charging_current_ma} mA "
-                f"{'docked' if s.docked else 'undocked'}; line {line.stats}; faults {faults}"
+                f"{'docked' if s.docked else 'undocked'}; line {_line_text(line.stats)}; "
+                f"faults {_faults_text(faults)}"
             )
         elif verb in ("quit", "exit"):
             stop(verb)
@@ -302,3 +303,34 @@ def _command(words: list[str], line: SimLine, robot: SimRobot, stop: _Stop) -> s
     except (IndexError, ValueError):
         return f"{verb}: missing or bad argument"
     return "ok"
+
+
+def _line_text(stats: LineStats) -> str:
+    """The line's counters in words: bytes, packets, replies, and only the troubles seen."""
+    text = (
+        f"{stats.bytes_to_devices} B to the devices, {stats.bytes_to_host} B to the host, "
+        f"{stats.packets} packets, {stats.replies} replies, busy {stats.busy_s:.2f} s"
+    )
+    troubles = {
+        "collisions": stats.collisions,
+        "host collisions": stats.host_collisions,
+        "expired frames": stats.expired,
+        "dropped bytes": stats.dropped_bytes,
+        "corrupted bytes": stats.corrupted_bytes,
+        "host waits": stats.host_waits,
+    }
+    return text + "".join(f", {count} {name}" for name, count in troubles.items() if count)
+
+
+def _faults_text(faults: LineFaults) -> str:
+    """The injected faults in words, or ``none``."""
+    parts = []
+    if faults.drop_rate:
+        parts.append(f"drop {faults.drop_rate:g}")
+    if faults.corrupt_rate:
+        parts.append(f"corrupt {faults.corrupt_rate:g}")
+    if faults.silent:
+        parts.append("silent " + ",".join(map(str, sorted(faults.silent))))
+    if faults.unplugged:
+        parts.append("unplugged")
+    return ", ".join(parts) or "none"

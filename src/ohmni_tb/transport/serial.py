@@ -138,7 +138,7 @@ class SerialTransport(Transport):
                 ),
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise TransportError(f"cannot open serial port {port!r}: {exc}") from exc
+            raise TransportError(_open_error(port, exc)) from exc
         serial_transport = _TtyTransport(loop, _Protocol(transport), device)
         transport._serial = serial_transport
         # Told of every byte left waiting (high water 0), so drain() needs no polling.
@@ -359,3 +359,35 @@ def _why_lost(fd: int, path: str | None) -> str | None:
         except OSError:
             pass
     return "; ".join(signs) or None
+
+
+#: What to do about an errno when a port does not open.
+_OPEN_HINTS = {
+    errno.ENOENT: "no such device: `ohmni ports` lists the serial ports here, "
+    "--port sim:// is the simulator",
+    errno.ENODEV: "no such device: `ohmni ports` lists the serial ports here, "
+    "--port sim:// is the simulator",
+    errno.EACCES: "permission denied: add your user to the port's group "
+    "(`ls -l` on the device shows it, often dialout) and log in again",
+    errno.ENOTTY: "not a serial port",
+    errno.EBUSY: "another program holds it (ohmni serve? the vendor's tb-node? "
+    "`fuser` on the device tells)",
+    errno.EAGAIN: "another program holds it (ohmni serve? the vendor's tb-node? "
+    "`fuser` on the device tells)",
+}
+
+
+def _open_error(port: str, exc: BaseException) -> str:
+    """One line on why ``port`` did not open and what to do: the errno's words once (the
+    serial library repeats the port and the errno in its own message), and a hint."""
+    code = getattr(exc, "errno", None)
+    for inner in (exc.__cause__, exc.__context__):
+        if isinstance(code, int) or inner is None:
+            continue
+        # An OSError's errno, or termios.error's (errno, text) arguments.
+        code = getattr(inner, "errno", None) or next(iter(inner.args), None)
+    if isinstance(code, int) and code in _OPEN_HINTS:
+        return f"cannot open serial port {port!r}: {os.strerror(code)}; {_OPEN_HINTS[code]}"
+    if isinstance(code, int):
+        return f"cannot open serial port {port!r}: {os.strerror(code)}"
+    return f"cannot open serial port {port!r}: {exc}"
