@@ -38,8 +38,10 @@ __all__ = ["probe"]
 _MAX_ID = 0xFD
 #: ``--pwm``'s default and range: ohmni_tb.probe.findings.MOTION_PWM, session.MIN/MAX_PWM.
 _PWM_DEFAULT, _PWM_MIN, _PWM_MAX = 80, 20, 300
-#: Reply bytes shown per finding in the table.
-_RAW_CHARS = 48
+#: Characters of reply bytes shown per finding in the table.
+_RAW_CHARS = 80
+#: The table's raw column, at most this wide.
+_RAW_WIDTH = 26
 _MOTION_WARNING = (
     "ohmni probe --allow-motion: the wheels will turn, one at a time, a few millimetres "
     "each (PWM {pwm} of 1000 for 0.3 s per try). The robot must be on a stand, or have "
@@ -263,8 +265,10 @@ def _print(report: ProbeReport, url: str) -> None:
         padding=(0, 1),
         pad_edge=False,
     )
-    for column in ("finding", "status", "assumed", "found", "raw (reply bytes)"):
+    for column in ("finding", "status", "assumed", "found"):
         table.add_column(column)
+    # The reply bytes on one line, cut short: --json has them all.
+    table.add_column("raw (replies)", no_wrap=True, overflow="ellipsis", max_width=_RAW_WIDTH)
     colour = {"confirmed": "green", "differs": "yellow", "not found": "red"}
     for f in report.findings:
         table.add_row(
