@@ -55,6 +55,7 @@ def probe(
         str,
         typer.Option(
             "--ids",
+            metavar="IDS",
             help="The ids to scan: a list of ids and ranges, e.g. 0..4,11..20 (decimal or "
             "0x..). Default all of 0..253: a silent id costs one bus timeout (25 ms with "
             "the default usb_latency_ms, so about 7 s for the whole scan).",
@@ -123,7 +124,7 @@ def probe(
     (confirmed, differs, not found) and the settings that differ; --write saves them.
     Exit code 0 when the probe ran, 1 when a stop was not confirmed or the bus failed.
 
-    Example: ohmni probe --port sim://?battery_addr=0xB0 --ids 0..20
+    Example: ohmni probe --port 'sim://?battery_addr=0xB0' --ids 0..20
     """
     scan = _parse_ids(ids)
     trial_pwm = parse_int(pwm, "--pwm", _PWM_MIN, _PWM_MAX)
