@@ -293,6 +293,8 @@ def test_write_makes_status_and_drive_work_on_that_robot(tmp_path: Path) -> None
     assert "wheel_form: not set, s_jog → i_jog" in text
     assert "battery_addr: not set, 0xA0 → 0xB0" in text
     assert "ext_servo_ids: not set, [11, 12] → [13, 14]" in text
+    assert "as before: drive_torque_addr, battery_length, battery_layout" in text
+    assert "note:" not in text  # the file written is the one the commands read
 
     # The file holds the measured settings and nothing else, and loads as that profile.
     assert read_settings(path) == {
@@ -327,14 +329,17 @@ def test_write_makes_status_and_drive_work_on_that_robot(tmp_path: Path) -> None
 def test_write_goes_to_the_config_file_named_and_keeps_the_rest(tmp_path: Path) -> None:
     path = tmp_path / "robot.toml"
     path.write_text('# my robot\nport = "sim://"  # the simulator\nbattery_addr = 0xA0\n')
+    other = tmp_path / "ohmni.toml"
+    other.write_text("")
     done = probe(
         "--port", "sim://?battery_addr=0xB0", "--ids", "0..20", "--write", "--config", str(path),
-        "--json",
+        "--json", env={"OHMNI_CONFIG": str(other)},
     )  # fmt: skip
     assert done.code == 0, done.out
     written = json.loads(done.stdout)["written"]
     assert written["file"] == str(path)
     assert written["created"] is False
+    assert written["read_by_commands"] is False  # they read $OHMNI_CONFIG's
     assert written["settings"]["battery_addr"] == {"old": 0xA0, "assumed": 0xA0, "new": 0xB0}
     text = path.read_text()
     assert text.startswith('# my robot\nport = "sim://"  # the simulator\nbattery_addr = 176\n')

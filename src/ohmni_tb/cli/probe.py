@@ -356,15 +356,17 @@ def _raw_text(finding: Finding) -> str:
 
 def _write(report: ProbeReport, settings: RobotConfig, config: Path | None) -> dict[str, Any]:
     """Write the measured settings; what was written (for JSON and the lines printed)."""
-    from ohmni_tb.config_file import default_config_file  # noqa: PLC0415
+    from ohmni_tb.config_file import (  # noqa: PLC0415  # pydantic: when run
+        default_config_file,
+        loaded_config_file,
+        write_settings,
+    )
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
 
     path = config if config is not None else default_config_file()
     values = report.measured()
     outcome: WriteOutcome | None = None
     if values:
-        from ohmni_tb.config_file import write_settings  # noqa: PLC0415
-
         try:
             outcome = write_settings(
                 path, values, comment="ohmni settings (ohmni probe wrote the bus profile)"
@@ -377,14 +379,17 @@ def _write(report: ProbeReport, settings: RobotConfig, config: Path | None) -> d
         name: {"old": previous.get(name), "assumed": _plain(getattr(settings, name)), "new": new}
         for name, new in values.items()
     }
+    read = loaded_config_file()
+    environment = {key.upper() for key in os.environ}
     return {
         "file": str(path),
         "created": outcome is not None and outcome.created,
         "settings": changes,
+        "read_by_commands": read is not None and read.resolve() == path.resolve(),
         "overridden_by": {
             name: f"OHMNI_{name.upper()}"
             for name in values
-            if f"OHMNI_{name.upper()}" in {key.upper() for key in os.environ}
+            if f"OHMNI_{name.upper()}" in environment
         },
     }
 
@@ -401,15 +406,29 @@ def _print_written(written: dict[str, Any]) -> None:
         return
     verb = "created" if written["created"] else "updated"
     console.print(f"{verb} {written['file']}:", highlight=False, markup=False)
+    same: list[str] = []
     for name, change in written["settings"].items():
         old = change["old"]
+        was = change["assumed"] if old is None else old
+        if was == change["new"]:
+            same.append(name)
+            continue
         before = (
             f"{setting_text(name, old)} in the file"
             if old is not None
-            else f"not set, {setting_text(name, change['assumed'])}"
+            else f"not set, {setting_text(name, was)}"
         )
         console.print(
             f"  {name}: {before} → {setting_text(name, change['new'])}",
+            highlight=False,
+            markup=False,
+        )
+    if same:
+        console.print(f"  as before: {', '.join(same)}", highlight=False, markup=False)
+    if not written["read_by_commands"]:
+        console.print(
+            f"note: the commands read another file (or none), not this one: set "
+            f"OHMNI_CONFIG={written['file']} to use it",
             highlight=False,
             markup=False,
         )

@@ -337,8 +337,11 @@ async def _battery(
     found: dict[int, ReadReply] = {}
     raws: dict[int, RawRead] = {}
     for addr in _ADDRESSES:
+        # No retries: an address the board does not answer is no battery block.
         read, raw = await reader.read(
-            read_request(_CORE, addr, SEARCH_LENGTH), f"20 RAM 0x{addr:02X}, {SEARCH_LENGTH} bytes"
+            read_request(_CORE, addr, SEARCH_LENGTH),
+            f"20 RAM 0x{addr:02X}, {SEARCH_LENGTH} bytes",
+            retries=0,
         )
         if read is not None:
             found[addr] = read
