@@ -197,7 +197,7 @@ def test_the_default_simulator_confirms_every_finding_and_the_wheels_end_still(
     assert (
         wheel["found"]["left_sign"]
         == wheel["found"]["right_sign"]
-        == ("+PWM → +counts, as expected")
+        == ("+PWM gives +counts, as expected")
     )
     assert "right_mirrored cannot be measured by counts" in wheel["detail"]
     # Every stop was confirmed: the wheels stand still as the port closes, and the robot

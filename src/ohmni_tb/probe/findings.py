@@ -809,7 +809,9 @@ def _trial_text(trial: WheelTrial) -> str:
 
 
 def _sign_word(delta: int, pwm: int) -> str:
-    return "+PWM → +counts, as expected" if (delta > 0) == (pwm > 0) else "reversed"
+    if (delta > 0) == (pwm > 0):
+        return "+PWM gives +counts, as expected"
+    return "reversed: +PWM gives -counts"
 
 
 _WHEELS = ("left", "right")

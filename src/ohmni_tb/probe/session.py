@@ -360,7 +360,7 @@ async def _battery(
         found_addr=addr,
         cells_read=found[addr],
         tbcore_read=tbcore,
-        raw=[assumed_raw, raws[addr], tbcore_raw],
+        raw=[raws[addr], tbcore_raw, assumed_raw],
         candidates=candidates,
     )
 
