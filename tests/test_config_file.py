@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
 
 from ohmni_tb.config import RobotConfig
-from ohmni_tb.config_file import read_settings, write_settings
+from ohmni_tb.config_file import (
+    SettingValue,
+    default_config_file,
+    loaded_config_file,
+    read_settings,
+    write_settings,
+)
 from ohmni_tb.errors import ConfigError
 
 
@@ -48,3 +55,67 @@ def test_a_bad_value_is_refused_and_the_file_is_untouched(
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         write_settings(path, values)
     assert path.read_text() == "pid_kp = 600\n"
+
+
+def test_strings_booleans_ints_and_id_lists_are_written_as_toml(tmp_path: Path) -> None:
+    path = tmp_path / "ohmni.toml"
+    path.write_text('# mine\nport = "sim://"\n\n[robot]\nwheel_form = "s_jog"  # assumed\n')
+    values: dict[str, SettingValue] = {
+        "wheel_form": "i_jog",
+        "right_mirrored": False,
+        "battery_addr": 0xB0,
+        "ext_servo_ids": [13, 14],
+    }
+    outcome = write_settings(path, values)
+    assert outcome.previous == {
+        "wheel_form": "s_jog",
+        "right_mirrored": None,
+        "battery_addr": None,
+        "ext_servo_ids": None,
+    }
+    assert path.read_text() == (
+        '# mine\nport = "sim://"\n\n[robot]\nwheel_form = "i_jog"  # assumed\n'
+        "right_mirrored = false\nbattery_addr = 176\next_servo_ids = [13, 14]\n"
+    )
+    config = RobotConfig.load(path)
+    assert (config.wheel_form, config.right_mirrored, config.battery_addr) == ("i_jog", False, 176)
+    assert config.ext_servo_ids == (13, 14)
+    # A tuple and an empty list are lists in TOML.
+    write_settings(path, {"ext_servo_ids": ()})
+    assert RobotConfig.load(path).ext_servo_ids == ()
+
+
+@pytest.mark.parametrize(
+    ("values", "named"),
+    [
+        ({"wheel_form": "x_jog"}, "wheel_form='x_jog'"),
+        ({"battery_addr": 256}, "battery_addr=256 is out of range: allowed 0..255"),
+        ({"ext_servo_ids": [1]}, "ext_servo_ids"),
+        ({"ext_servo_ids": ["13"]}, "ext_servo_ids"),
+    ],
+)
+def test_a_bad_value_of_another_kind_is_refused_and_nothing_written(
+    values: dict[str, object], named: str, tmp_path: Path
+) -> None:
+    path = tmp_path / "ohmni.toml"
+    path.write_text("battery_addr = 160\n")
+    with pytest.raises(ConfigError, match=re.escape(named)):
+        write_settings(path, values)  # type: ignore[arg-type]  # the wrong kinds on purpose
+    assert path.read_text() == "battery_addr = 160\n"
+
+
+def test_the_default_file_is_ohmni_config_even_before_it_exists(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    named = tmp_path / "robot.toml"
+    monkeypatch.setenv("OHMNI_CONFIG", str(named))
+    assert default_config_file() == named
+    assert loaded_config_file() is None
+    named.write_text("")
+    assert loaded_config_file() == named
+    monkeypatch.delenv("OHMNI_CONFIG")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    assert default_config_file() == tmp_path / "xdg" / "ohmni" / "ohmni.toml"
+    (tmp_path / "ohmni.toml").write_text("")
+    assert default_config_file() == tmp_path / "ohmni.toml"

@@ -54,7 +54,7 @@ def test_doc_examples_run(
 
 
 #: Modules whose docstring's first ``::`` block is an example a reader would paste.
-DOCSTRING_EXAMPLES = ["ohmni_tb.herkulex", "ohmni_tb.herkulex.servo"]
+DOCSTRING_EXAMPLES = ["ohmni_tb.herkulex", "ohmni_tb.herkulex.servo", "ohmni_tb.probe"]
 
 
 def docstring_example(module: str) -> str:

@@ -30,6 +30,8 @@ SANS_IO_PACKAGES = (
 )
 #: Modules of those packages that are allowed I/O: the herkulex Servo handle drives the Bus.
 IO_MODULES = frozenset({"ohmni_tb.herkulex.servo"})
+#: Sans-IO modules of packages that also hold I/O: ``ohmni probe``'s judges.
+SANS_IO_EXTRA = ("ohmni_tb.probe.findings",)
 
 SRC = Path(ohmni_tb.__file__).parent
 
@@ -46,6 +48,7 @@ def sans_io_modules() -> list[str]:
             continue
         names.append(package)
         names += [f"{package}.{m.name}" for m in pkgutil.iter_modules([str(path)])]
+    names += [name for name in SANS_IO_EXTRA if importlib.util.find_spec(name) is not None]
     return [name for name in names if name not in IO_MODULES]
 
 
@@ -214,7 +217,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "ohmni_tb.eventloop",
     ),
     ("ohmni_tb.safety", "ohmni_tb.bus", "ohmni_tb.config", "ohmni_tb.config_file"),
-    ("ohmni_tb.robot",),
+    ("ohmni_tb.robot", "ohmni_tb.probe"),
     ("ohmni_tb.client", "ohmni_tb.daemon", "ohmni_tb.foxglove", "ohmni_tb.monitor", "ohmni_tb"),
     ("ohmni_tb.cli", "ohmni_tb.__main__"),
 )

@@ -97,7 +97,15 @@ PUBLIC = {
          "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",
          "user_config_dir",
     ],
-    "ohmni_tb.config_file": ["WriteOutcome", "read_settings", "write_settings"],
+    "ohmni_tb.config_file": [
+        "SettingValue", "WriteOutcome", "default_config_file", "loaded_config_file",
+        "read_settings", "write_settings",
+    ],
+    "ohmni_tb.probe": [
+        "ALL_IDS", "AdapterInfo", "Device", "Finding", "ProbeReport", "RawRead", "Skipped",
+        "Status", "WheelTrial", "probe", "probe_port", "read_adapter", "shareable",
+        "wheel_stops",
+    ],
     "ohmni_tb.robot": [
         "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAMS", "STREAM_NAMES", "BusFigures",
         "HerkulexHandle", "Link", "LocalRobot", "MotionResult", "NeckHandle",

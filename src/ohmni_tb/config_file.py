@@ -2,28 +2,45 @@
 
 :func:`write_settings` edits the ``key = value`` lines of a file :class:`RobotConfig`
 reads (at top level, or in its ``[robot]`` table) and nothing else, and refuses any edit
-that would not read back as intended; ``ohmni pid set`` is built on it. ::
+that would not read back as intended; ``ohmni pid set`` and ``ohmni probe --write`` are
+built on it. Values are numbers, strings, booleans or lists of integers::
 
     from pathlib import Path
     from ohmni_tb.config_file import write_settings
 
     outcome = write_settings(Path("ohmni.toml"), {"pid_kp": 650.0, "pid_ki": 300.0})
     print(outcome.previous)        # each setting's value in the file before (None: unset)
+    write_settings(Path("ohmni.toml"), {"wheel_form": "i_jog", "ext_servo_ids": [13, 14]})
+
+:func:`default_config_file` is the file such a write goes to when none is named.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ohmni_tb.config import RobotConfig, toml_settings
+from ohmni_tb.config import CONFIG_ENV, RobotConfig, config_paths, toml_settings
 from ohmni_tb.errors import ConfigError
 
-__all__ = ["WriteOutcome", "read_settings", "write_settings"]
+__all__ = [
+    "SettingValue",
+    "WriteOutcome",
+    "default_config_file",
+    "loaded_config_file",
+    "read_settings",
+    "write_settings",
+]
+
+#: What :func:`write_settings` writes: a number, a string, a bool or a list of integers.
+SettingValue = float | str | bool | Sequence[int]
+#: The first line of a file :func:`write_settings` creates, unless told another.
+_CREATED_COMMENT = "ohmni settings (ohmni pid set wrote the pid_* gains)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,8 +103,14 @@ def _merged(data: dict[str, Any], path: Path) -> dict[str, Any]:
     return merged
 
 
-def write_settings(path: Path, values: Mapping[str, float]) -> WriteOutcome:
-    """Set top-level settings (numbers) in a TOML config file, keeping everything else.
+def write_settings(
+    path: Path, values: Mapping[str, SettingValue], *, comment: str | None = None
+) -> WriteOutcome:
+    """Set top-level settings in a TOML config file, keeping everything else.
+
+    A value is a number (``650.0``, ``176``), a string (``"i_jog"``), a bool or a list of
+    integers (``[13, 14]``), written as TOML writes it; ``comment`` is the first line of
+    a file this creates.
 
     A ``key = value`` line already there (at top level, or in the ``[robot]`` table) is
     rewritten in place, keeping its comment; a new key goes after the last setting before
@@ -106,10 +129,11 @@ def write_settings(path: Path, values: Mapping[str, float]) -> WriteOutcome:
             editor does not change safely (the message says which: set it by hand).
     """
     _check_values(values)
+    shown = {key: _toml_value(key, value) for key, value in values.items()}
 
     created = not path.exists()
     if created:
-        text = "# ohmni settings (ohmni pid set wrote the pid_* gains)\n"
+        text = f"# {comment or _CREATED_COMMENT}\n"
         before: dict[str, Any] = {}
     else:
         if not path.is_file():
@@ -126,8 +150,8 @@ def write_settings(path: Path, values: Mapping[str, float]) -> WriteOutcome:
     if lines and not lines[-1].endswith("\n"):
         lines[-1] += newline
     robot_table = _table_span(lines, "robot")
-    for key, number in values.items():
-        lines = _set_line(lines, key, repr(number), newline, robot_table)
+    for key, text_value in shown.items():
+        lines = _set_line(lines, key, text_value, newline, robot_table)
         robot_table = _table_span(lines, "robot")
     result = "".join(lines)
     _check_result(path, result, before, values)
@@ -185,7 +209,7 @@ def _set_line(
 
 
 def _check_result(
-    path: Path, text: str, before: Mapping[str, Any], values: Mapping[str, float]
+    path: Path, text: str, before: Mapping[str, Any], values: Mapping[str, SettingValue]
 ) -> None:
     """Refuse an edit that would not read back as intended."""
 
@@ -197,7 +221,7 @@ def _check_result(
             f"{path}: cannot set {keys} safely by editing lines ({exc}); nothing was "
             "written: set them by hand"
         ) from exc
-    expected = {**before, **values}
+    expected = {**before, **{key: _as_read(value) for key, value in values.items()}}
     if after != expected:
         changed = sorted(
             key
@@ -210,7 +234,51 @@ def _check_result(
         )
 
 
-def _check_values(values: Mapping[str, float]) -> None:
+def _check_values(values: Mapping[str, SettingValue]) -> None:
     """Each value as RobotConfig takes it from a file, or a ConfigError naming it."""
     for key, value in values.items():
-        RobotConfig.check_setting(key, value)
+        RobotConfig.check_setting(key, _as_read(value))
+
+
+def _toml_value(key: str, value: object) -> str:
+    """``value`` as a TOML value, or a ConfigError for a kind the file cannot hold."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        # A JSON string is a TOML basic string: the same quotes and escapes.
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)) and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in value
+    ):
+        return "[" + ", ".join(str(v) for v in value) + "]"
+    raise ConfigError(
+        f"{key}={value!r}: write_settings writes numbers, strings, booleans and lists of integers"
+    )
+
+
+def _as_read(value: object) -> object:
+    """``value`` as it reads back from TOML (a tuple reads as a list)."""
+    return list(value) if isinstance(value, tuple) else value
+
+
+def default_config_file() -> Path:
+    """The file a setting is written to when none is named: ``$OHMNI_CONFIG`` (even
+    before it exists), else the file :meth:`RobotConfig.load` reads, else the user's
+    ``ohmni.toml`` (:func:`~ohmni_tb.config.user_config_dir`)."""
+    paths = config_paths()
+    if os.environ.get(CONFIG_ENV):
+        return paths[0]
+    return loaded_config_file() or paths[-1]
+
+
+def loaded_config_file() -> Path | None:
+    """The file :meth:`RobotConfig.load` reads now, or ``None`` (no file, or
+    ``$OHMNI_CONFIG`` names one that does not exist, which it refuses)."""
+    paths = config_paths()
+    if os.environ.get(CONFIG_ENV):
+        paths = paths[:1]
+    return next((path for path in paths if path.is_file()), None)

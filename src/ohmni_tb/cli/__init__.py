@@ -78,6 +78,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
     "sim": ("ohmni_tb.cli.sim", "sim", "Serve the simulated robot on a pseudo-terminal."),
     "bus": ("ohmni_tb.cli.bus", "app", "Raw bus requests and a traffic monitor."),
     "servo": ("ohmni_tb.cli.servo", "app", "HerkuleX servos: scan, info, read, write, move."),
+    "probe": (
+        "ohmni_tb.cli.probe",
+        "probe",
+        "First contact: find what the robot's boards speak against the profile (--write).",
+    ),
     "serve": (
         "ohmni_tb.cli.serve",
         "serve",
