@@ -58,6 +58,8 @@ TEXT_PARAMS = frozenset(
         "log",  # ohmni bus convert LOG OUTPUT
         "output",
         "config_file",  # ohmni config --config FILE
+        "config",  # ohmni probe --config FILE
+        "share",  # ohmni probe --share FILE
     }
 )
 
@@ -82,6 +84,8 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("servo", "board-id"): {"board": "0", "new_id": "1", "confirm": True},
     ("drive",): {"linear": "0.1", "duration": "0.1"},
     ("stop",): {"timeout": "0.5"},
+    # Two ids, no motion: a few bus timeouts on the simulator.
+    ("probe",): {"ids": "11..12", "pwm": "80"},
     ("light",): {"hue": "0", "saturation": "0", "value": "0"},
     ("neck",): {"raw": "400", "playtime": "0.2"},
     ("odom",): {"rate": "20", "duration": "0.2", "count": "2"},

@@ -3,7 +3,6 @@ writes a commented example file."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -86,7 +85,8 @@ def init(
     file: Annotated[
         Path | None,
         typer.Argument(
-            help="Where to write it (default: ~/.config/ohmni/ohmni.toml, or $OHMNI_CONFIG).",
+            help="Where to write it (default: $OHMNI_CONFIG, else the file the settings are "
+            "read from, else ~/.config/ohmni/ohmni.toml).",
             dir_okay=False,
             show_default=False,
         ),
@@ -102,15 +102,10 @@ def init(
 
     Example: ohmni config init ./ohmni.toml
     """
-    from ohmni_tb.config import (  # noqa: PLC0415
-        CONFIG_ENV,
-        CONFIG_FILE_NAME,
-        RobotConfig,
-        user_config_dir,
-    )
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415
+    from ohmni_tb.config_file import default_config_file  # noqa: PLC0415
 
-    named = os.environ.get(CONFIG_ENV)
-    target = file or (Path(named).expanduser() if named else user_config_dir() / CONFIG_FILE_NAME)
+    target = file or default_config_file()
     if target.exists() and not overwrite:
         error_line(f"{target} exists: keep it, or give --overwrite to replace it")
         raise typer.Exit(1)

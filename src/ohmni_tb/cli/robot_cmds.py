@@ -357,17 +357,6 @@ def _gain_option(flag: str) -> Any:
     )
 
 
-def _default_file() -> Path:
-    """The config file ``RobotConfig.load()`` reads ($OHMNI_CONFIG even before it
-    exists), else the user's config file."""
-    from ohmni_tb.config import CONFIG_ENV, config_paths  # noqa: PLC0415
-
-    paths = config_paths()
-    if os.environ.get(CONFIG_ENV):
-        return paths[0]
-    return _loaded_file() or paths[-1]
-
-
 def _env_overrides(fields: list[str]) -> dict[str, str]:
     """Settings among ``fields`` that an ``OHMNI_*`` variable sets: field → variable."""
     from ohmni_tb.config import ENV_PREFIX  # noqa: PLC0415
@@ -430,12 +419,12 @@ def pid_get(
 def _pid_get_file(file: Path | None, as_json: bool) -> None:
     """``ohmni pid get --config``: the gains in force by the config file."""
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415
-    from ohmni_tb.config_file import read_settings  # noqa: PLC0415
+    from ohmni_tb.config_file import loaded_config_file, read_settings  # noqa: PLC0415
     from ohmni_tb.errors import ConfigError  # noqa: PLC0415
 
     if file is not None and not file.is_file():
         raise typer.BadParameter(f"--file={str(file)!r}: no such file")
-    path = file if file is not None else _loaded_file()
+    path = file if file is not None else loaded_config_file()
     try:
         config = RobotConfig.load(file)
         in_file = read_settings(path) if path is not None else {}
@@ -476,17 +465,6 @@ def _pid_get_file(file: Path | None, as_json: bool) -> None:
         f"config file: {escape(str(path)) if path else 'none (defaults and environment)'}",
         highlight=False,
     )
-
-
-def _loaded_file() -> Path | None:
-    """The file ``RobotConfig.load()`` reads, or ``None`` when there is none (or when
-    $OHMNI_CONFIG names a missing one, which it refuses)."""
-    from ohmni_tb.config import CONFIG_ENV, config_paths  # noqa: PLC0415
-
-    paths = config_paths()
-    if os.environ.get(CONFIG_ENV):
-        paths = paths[:1]
-    return next((path for path in paths if path.is_file()), None)
 
 
 @pid_app.command("set")
@@ -549,14 +527,16 @@ def pid_set(
     if not (config or file is not None):
         _pid_set_robot(values, which, port, direct, as_json)
         return
-    path = file if file is not None else _default_file()
+    from ohmni_tb.config_file import default_config_file, loaded_config_file  # noqa: PLC0415
+
+    path = file if file is not None else default_config_file()
     from ohmni_tb.config_file import write_settings  # noqa: PLC0415
 
     try:
         outcome = write_settings(path, values)
     except ConfigError as exc:
         _fail(str(exc))
-    read_by_default = _loaded_file()
+    read_by_default = loaded_config_file()
     env = _env_overrides(list(values))
     if as_json:
         emit_json(
