@@ -119,3 +119,19 @@ def test_the_default_file_is_ohmni_config_even_before_it_exists(
     assert default_config_file() == tmp_path / "xdg" / "ohmni" / "ohmni.toml"
     (tmp_path / "ohmni.toml").write_text("")
     assert default_config_file() == tmp_path / "ohmni.toml"
+
+
+def test_settings_that_only_hold_together_are_written_together(tmp_path: Path) -> None:
+    # A cells-only battery block is 10 bytes: the length alone would be too short for
+    # the default (tbcore) layout, but the two are written at once.
+    path = tmp_path / "ohmni.toml"
+    write_settings(path, {"battery_layout": "cells", "battery_length": 10})
+    config = RobotConfig.load(path)
+    assert (config.battery_layout, config.battery_length) == ("cells", 10)
+    # Each value is still checked alone against its own range.
+    with pytest.raises(ConfigError, match="battery_length=5 is out of range"):
+        write_settings(path, {"battery_length": 5})
+    # And the file as a whole must hold together when it is read.
+    path.write_text("battery_length = 10\n")
+    with pytest.raises(ConfigError, match="shorter than the tbcore layout"):
+        RobotConfig.load(path)

@@ -680,10 +680,13 @@ class RobotConfig(BaseSettings):
         """
         if name not in cls.model_fields:
             raise ConfigError(_unknown_message(name, ""))
+        token = _ALONE.set(True)  # the value alone: not against the other defaults
         try:
             cls.__pydantic_validator__.validate_assignment(cls.model_construct(), name, value)
         except ValidationError as exc:
             raise ConfigError(_explain(exc, {name: value})) from None
+        finally:
+            _ALONE.reset(token)
 
     def replace(self, **changes: Any) -> RobotConfig:
         """A copy with ``changes`` applied and validated (the config itself is frozen).
@@ -853,6 +856,8 @@ class RobotConfig(BaseSettings):
 
     @model_validator(mode="after")
     def _check_relations(self) -> Self:
+        if _ALONE.get():
+            return self
         problems: list[tuple[str, str]] = []
         low, high, rest = self.neck_min_raw, self.neck_max_raw, self.neck_rest_raw
         if not low < high:
@@ -922,6 +927,8 @@ class _Loading:
     data: dict[str, Any] = field(default_factory=dict)
 
 
+#: Set while :meth:`RobotConfig.check_setting` checks one value alone.
+_ALONE: ContextVar[bool] = ContextVar("ohmni_config_alone", default=False)
 #: Set for the duration of a load() call, so plain RobotConfig() never reads a file.
 _LOADING: ContextVar[_Loading | None] = ContextVar("ohmni_config_loading", default=None)
 
