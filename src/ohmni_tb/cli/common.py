@@ -24,6 +24,8 @@ from ohmni_tb._checks import ws_address
 from ohmni_tb.errors import OhmniError, StopNotConfirmedError
 
 if TYPE_CHECKING:
+    from rich.table import Table
+
     from ohmni_tb.bus import Bus, BusStats
     from ohmni_tb.config import RobotConfig
     from ohmni_tb.robot import Robot
@@ -49,6 +51,7 @@ __all__ = [
     "open_bus",
     "open_robot",
     "parse_int",
+    "plain_table",
     "quiet_stdout",
     "resolve_port",
     "run",
@@ -545,6 +548,22 @@ def load_config() -> RobotConfig:
         return RobotConfig.load()
 
     return run(load)
+
+
+def plain_table(title: str | None = None) -> Table:
+    """A table of the commands' plain look: a rule under the header, no frame, the title
+    (if any) bold on the left."""
+    from rich import box  # noqa: PLC0415
+    from rich.table import Table  # noqa: PLC0415
+
+    return Table(
+        title=title,
+        title_justify="left",
+        title_style="bold",
+        box=box.SIMPLE_HEAD,
+        padding=(0, 1),
+        pad_edge=False,
+    )
 
 
 def write_line(text: str) -> bool:

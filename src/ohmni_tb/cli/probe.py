@@ -23,6 +23,7 @@ from ohmni_tb.cli.common import (
     emit_json,
     error_line,
     parse_int,
+    plain_table,
     resolve_port,
     run,
 )
@@ -232,20 +233,14 @@ def _load(config: Path | None) -> RobotConfig:
 
 
 def _print(report: ProbeReport, url: str) -> None:
-    from rich import box  # noqa: PLC0415
     from rich.markup import escape  # noqa: PLC0415
-    from rich.table import Table  # noqa: PLC0415
 
     console.print(
         f"[bold]probe of {escape(url)}[/bold]: ids {report.to_json()['scanned']} scanned in "
         f"{report.elapsed_s:.1f} s; {len(report.devices)} answered",
         highlight=False,
     )
-    devices = Table(
-        box=box.SIMPLE_HEAD,
-        padding=(0, 1),
-        pad_edge=False,
-    )
+    devices = plain_table()
     for column in ("sid", "name", "kind", "firmware / model", "latency ms", "status"):
         devices.add_column(column, justify="right" if column in ("sid", "latency ms") else "left")
     for d in report.devices:
@@ -258,14 +253,7 @@ def _print(report: ProbeReport, url: str) -> None:
             f"{d.status_error:02X} {d.status_detail:02X}",
         )
     console.print(devices)
-    table = Table(
-        title="findings",
-        title_justify="left",
-        title_style="bold",
-        box=box.SIMPLE_HEAD,
-        padding=(0, 1),
-        pad_edge=False,
-    )
+    table = plain_table("findings")
     for column in ("finding", "status", "assumed", "found"):
         table.add_column(column)
     # The reply bytes on one line, cut short: --json has them all.

@@ -26,6 +26,7 @@ from ohmni_tb.cli.common import (
     daemon_for,
     emit_json,
     open_robot,
+    plain_table,
     resolve_port,
     run,
     write_line,
@@ -439,17 +440,8 @@ def render(snap: Mapping[str, Any]) -> RenderableType:
 
 
 def _servo_table(snap: Mapping[str, Any]) -> Table:
-    from rich import box  # noqa: PLC0415
-    from rich.table import Table  # noqa: PLC0415
 
-    table = Table(
-        title="neck and servos (position, temperature: raw)",
-        title_justify="left",
-        title_style="bold",
-        box=box.SIMPLE_HEAD,
-        padding=(0, 1),
-        pad_edge=False,
-    )
+    table = plain_table("neck and servos (position, temperature: raw)")
     for column in ("", "sid", "model", "position", "angle", "torque", "temp", "volts"):
         table.add_column(column, justify="left" if column in ("", "model") else "right")
     table.add_column("status")
@@ -486,17 +478,8 @@ def _servo_table(snap: Mapping[str, Any]) -> Table:
 
 
 def _bus_table(bus: Mapping[str, Any]) -> tuple[Table, str]:
-    from rich import box  # noqa: PLC0415
-    from rich.table import Table  # noqa: PLC0415
 
-    table = Table(
-        title="bus",
-        title_justify="left",
-        title_style="bold",
-        box=box.SIMPLE_HEAD,
-        padding=(0, 1),
-        pad_edge=False,
-    )
+    table = plain_table("bus")
     for column in ("stream", "Hz want", "Hz got", "samples", "missed", "skipped"):
         table.add_column(column, justify="left" if column == "stream" else "right")
     table.add_column("jitter ms", justify="right")
