@@ -44,9 +44,9 @@ PUBLIC = {
         "jog_tags",
     ],
     "ohmni_tb.protocol.core": [
-        "CELL_COUNT", "CORE_PROFILE", "BatteryLayout", "CoreProfile", "TbcoreStatus",
-        "decode_status", "encode_status", "parse_status", "percent_from_cells", "read_status",
-        "set_light_ring",
+        "CELL_COUNT", "CELL_MAX_MV", "CELL_MIN_MV", "CELL_SPREAD_MAX_MV", "CORE_PROFILE",
+        "BatteryLayout", "CoreProfile", "TbcoreStatus", "cells_plausible", "decode_status",
+        "encode_status", "parse_status", "percent_from_cells", "read_status", "set_light_ring",
     ],
     "ohmni_tb.protocol.profile": [
         "DEFAULT_PROFILE", "PROFILE_SETTINGS", "BusProfile", "check_ext_servo_ids",

@@ -91,3 +91,19 @@ async def test_a_remote_robot_takes_no_profile() -> None:
     with pytest.raises(ConfigError, match="profile cannot be given to a remote robot"):
         async with Robot.open("ws://127.0.0.1:9", profile=DEFAULT_PROFILE):
             pass
+
+
+async def test_a_battery_block_that_is_not_a_pack_is_a_fault_that_names_the_probe() -> None:
+    events: list[str] = []
+    async with Robot.open(VARIANT_URL) as robot:  # the assumed profile: nothing at 0xA0
+        states = robot.subscribe("robot_state")
+        await asyncio.sleep(1.0)
+        assert "battery_implausible" in robot.state.faults
+        while (sample := states.get_nowait()) is not None:
+            if sample.event:
+                events.append(sample.event)
+    assert any("battery block at RAM 0xA0 reads cells 0/0/0/0/0 mV" in e for e in events), events
+    assert any("ohmni probe" in e for e in events)
+    async with Robot.open(VARIANT_URL, profile=VARIANT) as robot:
+        await asyncio.sleep(1.0)
+        assert "battery_implausible" not in robot.state.faults

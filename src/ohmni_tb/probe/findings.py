@@ -20,9 +20,13 @@ from ohmni_tb.control.encoder import COUNT_BITS, unwrap_delta
 from ohmni_tb.errors import InvalidArgumentError
 from ohmni_tb.protocol.core import (
     CELL_COUNT,
+    CELL_MAX_MV,
+    CELL_MIN_MV,
+    CELL_SPREAD_MAX_MV,
     BatteryLayout,
     CoreProfile,
     TbcoreStatus,
+    cells_plausible,
     decode_status,
 )
 from ohmni_tb.protocol.devices import DeviceId, device_name
@@ -70,11 +74,6 @@ __all__ = [
 
 # -- the rules, as named constants ---------------------------------------------------------
 
-#: A LiFePO4 cell reads between these, mV (flat ≈3.3 V; 2.5 V empty, 3.65 V charging).
-CELL_MIN_MV = 2500
-CELL_MAX_MV = 3700
-#: The five cells of one pack sit close together: a wider spread is not a pack.
-CELL_SPREAD_MAX_MV = 300
 #: Bytes read at each core-board address while searching for the battery block: the
 #: five cells (u16 LE each), the part every layout starts with.
 SEARCH_LENGTH = 2 * CELL_COUNT
@@ -451,11 +450,7 @@ def plausible_cells(data: bytes) -> tuple[int, ...] | None:
     if len(data) < SEARCH_LENGTH:
         return None
     cells = tuple(int.from_bytes(data[i : i + 2], "little") for i in range(0, SEARCH_LENGTH, 2))
-    if not all(CELL_MIN_MV <= mv <= CELL_MAX_MV for mv in cells):
-        return None
-    if max(cells) - min(cells) > CELL_SPREAD_MAX_MV:
-        return None
-    return cells
+    return cells if cells_plausible(cells) else None
 
 
 def battery_candidates(reads: Mapping[int, bytes]) -> list[int]:

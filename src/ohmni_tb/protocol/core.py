@@ -26,10 +26,14 @@ from ohmni_tb.protocol.messages import (
 
 __all__ = [
     "CELL_COUNT",
+    "CELL_MAX_MV",
+    "CELL_MIN_MV",
+    "CELL_SPREAD_MAX_MV",
     "CORE_PROFILE",
     "BatteryLayout",
     "CoreProfile",
     "TbcoreStatus",
+    "cells_plausible",
     "decode_status",
     "encode_status",
     "parse_status",
@@ -39,6 +43,11 @@ __all__ = [
 ]
 
 CELL_COUNT = 5
+#: A LiFePO4 cell reads between these, mV (flat ≈3.3 V; 2.5 V empty, 3.65 V charging).
+CELL_MIN_MV = 2500
+CELL_MAX_MV = 3700
+#: The five cells of one pack sit close together: a wider spread is not a pack.
+CELL_SPREAD_MAX_MV = 300
 #: cells u16 ×5, charging current i16, docked u8, FET status u8, status 1..4 u8 ×4.
 _STATUS_LAYOUT = struct.Struct("<5Hh6B")
 #: cells u16 ×5 alone.
@@ -161,6 +170,19 @@ class TbcoreStatus:
     def charging(self) -> bool:
         """Whether current flows into the pack."""
         return self.charging_current_ma > 0
+
+
+def cells_plausible(cell_mv: tuple[int, ...]) -> bool:
+    """Whether ``cell_mv`` are five cells of one LiFePO4 pack: each
+    :data:`CELL_MIN_MV`..:data:`CELL_MAX_MV`, at most :data:`CELL_SPREAD_MAX_MV` apart.
+    Anything else (zeros, a spread of thousands) is not the battery block: the profile's
+    ``battery_addr`` or layout is wrong, or the read was."""
+    cells = tuple(cell_mv)
+    return (
+        len(cells) == CELL_COUNT
+        and all(CELL_MIN_MV <= mv <= CELL_MAX_MV for mv in cells)
+        and max(cells) - min(cells) <= CELL_SPREAD_MAX_MV
+    )
 
 
 def percent_from_cells(cell_mv: tuple[int, ...]) -> int:

@@ -23,7 +23,7 @@ from ohmni_tb.errors import InvalidArgumentError, OhmniError, StateError
 from ohmni_tb.herkulex.registers import FEEDBACK_ADDR, FEEDBACK_SIZE, decode_feedback
 from ohmni_tb.herkulex.units import angle_rad_from_raw, voltage_v_from_raw
 from ohmni_tb.protocol import Packet, ReadReply, read_request
-from ohmni_tb.protocol.core import parse_status, read_status
+from ohmni_tb.protocol.core import cells_plausible, parse_status, read_status
 from ohmni_tb.protocol.devices import DeviceId
 from ohmni_tb.protocol.worm_neck import parse_feedback, read_feedback
 from ohmni_tb.robot.control_loop import CONTROL_SLACK, ControlLoop
@@ -57,6 +57,9 @@ FEEDBACK_PRIORITY = 5
 #: between control slots, so the 50 Hz and 30 Hz grids do not pile up.
 SERVO_PHASE_S = 0.010
 CORE_PHASE_S = 0.013
+#: Battery reads in a row that are not a LiFePO4 pack before ``battery_implausible``
+#: (one bad read is a glitch; a wrong profile reads wrong every time).
+_IMPLAUSIBLE_READS = 5
 
 
 class Feedback:
@@ -74,6 +77,8 @@ class Feedback:
         profile = state.profile
         self._parse_worm = functools.partial(parse_feedback, profile=profile.worm)
         self._parse_core = functools.partial(parse_status, profile=profile.core)
+        #: Battery reads in a row that were not a pack.
+        self._implausible = 0
 
     # -- the schedule --------------------------------------------------------------------
 
@@ -379,6 +384,7 @@ class Feedback:
         status = self._parsed(topic, result, self._parse_core)
         if status is None:
             return
+        self._judge_cells(status.cell_mv)
         sample = TbcoreStatusSample(
             stamp_s=result.started_s,
             cell_v=tuple(mv / 1000 for mv in status.cell_mv),
@@ -391,6 +397,29 @@ class Feedback:
             status=status.status,
         )
         topic.publish(sample, result.started_s)
+
+    def _judge_cells(self, cell_mv: tuple[int, ...]) -> None:
+        """A battery block that does not read as a pack, :data:`_IMPLAUSIBLE_READS` reads
+        in a row, is the ``battery_implausible`` fault (the profile's battery settings are
+        likely wrong); it clears on the first plausible read."""
+        state = self._state
+        fault = "battery_implausible"
+        if cells_plausible(cell_mv):
+            self._implausible = 0
+            if fault in state.faults:
+                state.faults.discard(fault)
+                state.publish("the battery block reads as a LiFePO4 pack again")
+            return
+        self._implausible += 1
+        if self._implausible >= _IMPLAUSIBLE_READS and fault not in state.faults:
+            state.faults.add(fault)
+            core = state.profile.core
+            cells = "/".join(map(str, cell_mv))
+            state.publish(
+                f"the battery block at RAM 0x{core.status_addr:02X} reads cells {cells} mV, "
+                "not a LiFePO4 pack: the battery settings (battery_addr, battery_layout) may "
+                "not be this robot's; `ohmni probe` finds them"
+            )
 
     # -- robot_state -----------------------------------------------------------------------
 
