@@ -51,7 +51,7 @@ async def test_with_the_assumed_profile_the_same_robot_does_not_drive() -> None:
         await asyncio.sleep(0.5)
         battery = robot.latest("tbcore_status")
         assert battery is None or battery.pack_v == 0.0  # nothing at 0xA0
-        with pytest.raises(MotionError):
+        with pytest.raises(MotionError, match=r"ohmni probe --allow-motion"):
             await robot.drive_distance(0.3)
         assert isinstance(robot, LocalRobot)
         assert robot.sim.pose.x == 0.0

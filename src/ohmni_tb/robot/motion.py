@@ -863,8 +863,9 @@ def _error(result: MotionResult, run: _Run, goal: str) -> MotionError:
         wheels = " and ".join(run.stalled)
         return WheelStallError(
             f"{goal}: the {wheels} wheel{'s' if len(run.stalled) > 1 else ''} did not turn "
-            f"for {STALL_S:g} s though commanded to (an obstacle?); the robot is stopped, "
-            f"after it {went} by odometry",
+            f"for {STALL_S:g} s though commanded to (an obstacle? on a new robot, boards "
+            "that take another wheel command: `ohmni probe --allow-motion`); the robot is "
+            f"stopped, after it {went} by odometry",
             result=result,
             wheels=run.stalled,
         )
