@@ -12,11 +12,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import json
 import logging
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Final
 
+from ohmni_tb._version import __version__
 from ohmni_tb.errors import (
     InvalidArgumentError,
     LeaseError,
@@ -28,6 +30,7 @@ from ohmni_tb.errors import (
     TransportError,
 )
 from ohmni_tb.robot.wire import (
+    PROTOCOL_VERSION,
     BatchMessage,
     Call,
     ErrorMessage,
@@ -416,7 +419,9 @@ async def open_websocket(
     try:
         try:
             async with asyncio.timeout(timeout_s):
-                hello = parse_server_message(await ws.recv())
+                first = await ws.recv()
+            _check_protocol(url, first)
+            hello = parse_server_message(first)
         except (TimeoutError, ValueError, OSError) as exc:
             raise TransportError(f"{url} did not greet as the ohmni daemon: {_why(exc)}") from exc
         except ConnectionClosed as exc:
@@ -427,6 +432,28 @@ async def open_websocket(
         await ws.close()
         raise
     return ws, hello
+
+
+def _check_protocol(url: str, first: str | bytes) -> None:
+    """Refuse a daemon of another protocol version, naming both (before its hello is
+    read as this version's: its fields may differ).
+
+    Raises:
+        TransportError: The hello names another protocol version.
+    """
+    try:
+        doc = json.loads(first)
+    except ValueError:
+        return  # not JSON: parse_server_message says so
+    if not isinstance(doc, dict) or doc.get("op") != "hello":
+        return
+    theirs = doc.get("protocol")
+    if theirs != PROTOCOL_VERSION:
+        raise TransportError(
+            f"the daemon at {url} speaks protocol {theirs!r} (ohmni_tb "
+            f"{doc.get('version', '?')}), this client protocol {PROTOCOL_VERSION} (ohmni_tb "
+            f"{__version__}): run the same ohmni_tb version on both sides"
+        )
 
 
 def _why(exc: BaseException) -> str:
