@@ -1,8 +1,8 @@
 """Every example in the README and docs/ runs as written (against the simulator).
 
-Python: every ```python block runs; the blocks of one page in order in one namespace, as a
-reader pasting them into one session would. The examples in module docstrings listed
-below run too.
+Python: every ```python block runs on its own, in a fresh namespace, as a reader who
+pastes that one block would run it (the blocks of a page in the page's order, so a file an
+earlier block wrote is there). The examples in module docstrings listed below run too.
 
 Commands: every ``ohmni …`` command a page shows in a code block — each line of a ```sh
 block, each ``$ ohmni …`` line of any other block — runs through the CLI in this process,
@@ -71,8 +71,8 @@ def test_doc_examples_run(
     if page not in REAL_TIME_PAGES:
         monkeypatch.setattr(asyncio, "run", run_virtual)
         monkeypatch.setattr(eventloop, "new_event_loop", VirtualClockLoop)
-    namespace: dict[str, object] = {"__name__": "__main__"}
     for i, code in enumerate(PAGES[page]):
+        namespace: dict[str, object] = {"__name__": "__main__"}
         # asyncio.run inside a block is fine: the test itself is synchronous.
         exec(compile(code, f"{page} block {i}", "exec"), namespace)  # the docs are ours
     capsys.readouterr()
