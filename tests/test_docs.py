@@ -7,11 +7,11 @@ earlier block wrote is there). The examples in module docstrings listed below ru
 Commands: every ``ohmni …`` command a page shows in a code block — each line of a ```sh
 block, each ``$ ohmni …`` line of any other block — runs through the CLI in this process,
 on the simulator's virtual time, and must end with exit code 0, or with the code its
-comment names (``# exit 2``). The commands of one page run in order in one fresh
-directory, with a config directory of their own (``XDG_CONFIG_HOME``) and no daemon, as a
-reader following the page in a new shell would: a file a command reads is one an earlier
-command of the page wrote. What is cut off: a pipe (``| head -3``) and a redirection
-(``> out.json``, ``< /dev/null``).
+comment names (``# exit 2``). The commands of one section of a page (a ``## `` heading) run
+in order in one fresh directory, with a config directory of their own (``XDG_CONFIG_HOME``)
+and no daemon, as a reader who jumped to that section would run them in a new shell: a
+file a command reads is one an earlier command of the section wrote. What is cut off: a
+pipe (``| head -3``) and a redirection (``> out.json``, ``< /dev/null``).
 
 A command is shown but not run when it cannot run on ``sim://`` here, and says why:
 
@@ -186,22 +186,33 @@ def _shown_command(page: str, line: str) -> ShownCommand | None:
     return ShownCommand(page, line, tuple(words[1:]), comment, exit_code, tuple(env.items()))
 
 
-def page_commands(path: Path) -> list[ShownCommand]:
-    """The ``ohmni`` commands of ``path``'s code blocks, in the page's order."""
+def page_commands(path: Path) -> dict[str, list[ShownCommand]]:
+    """The ``ohmni`` commands of ``path``'s code blocks by section (``## `` heading; ``""``
+    before the first), in the page's order."""
     page = str(path.relative_to(ROOT))
-    found = []
-    for fence in _FENCE.finditer(path.read_text(encoding="utf-8")):
-        for line in fence["body"].splitlines():
-            if fence["lang"] != "sh" and not line.startswith("$ "):
-                continue
-            shown = _shown_command(page, line)
-            if shown is not None:
-                found.append(shown)
+    found: dict[str, list[ShownCommand]] = {}
+    intro, *sections = re.split(r"^## ", path.read_text(encoding="utf-8"), flags=re.M)
+    for section in ["\n" + intro, *sections]:
+        heading, _, body = section.partition("\n")
+        for fence in _FENCE.finditer(body):
+            for line in fence["body"].splitlines():
+                if fence["lang"] != "sh" and not line.startswith("$ "):
+                    continue
+                shown = _shown_command(page, line)
+                if shown is not None:
+                    found.setdefault(heading, []).append(shown)
     return found
 
 
+#: (page, section) → the commands it shows.
+COMMAND_SECTIONS = {
+    (str(path.relative_to(ROOT)), heading): commands
+    for path in DOCS
+    for heading, commands in page_commands(path).items()
+}
 COMMAND_PAGES = {
-    str(path.relative_to(ROOT)): commands for path in DOCS if (commands := page_commands(path))
+    page: [c for (p, _), cs in COMMAND_SECTIONS.items() if p == page for c in cs]
+    for page, _ in COMMAND_SECTIONS
 }
 
 
@@ -237,10 +248,12 @@ def test_few_commands_are_shown_without_running() -> None:
 
 @pytest.mark.usefixtures("virtual_time")
 @pytest.mark.parametrize(
-    "page", sorted(p for p, cs in COMMAND_PAGES.items() if any(c.why_not_run is None for c in cs))
+    ("page", "section"),
+    [key for key, cs in COMMAND_SECTIONS.items() if any(c.why_not_run is None for c in cs)],
+    ids=lambda part: part or "top",
 )
 def test_doc_commands_run_on_the_simulator(
-    page: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    page: str, section: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)
     for name in list(os.environ):
@@ -248,7 +261,7 @@ def test_doc_commands_run_on_the_simulator(
             monkeypatch.delenv(name)
     env = {"XDG_CONFIG_HOME": str(tmp_path / "config"), "COLUMNS": "200"}
     runner = CliRunner()
-    for shown in COMMAND_PAGES[page]:
+    for shown in COMMAND_SECTIONS[page, section]:
         if shown.why_not_run is not None:
             continue
         result = runner.invoke(app, list(shown.argv), env={**env, **dict(shown.env)})
