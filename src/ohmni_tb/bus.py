@@ -804,8 +804,8 @@ class Bus:
         fit) the first time only.
 
         Raises:
-            The same as :meth:`transact`, except that :class:`DeadlineMissedError` and a
-            lost link come through the future.
+            OhmniError: The same as :meth:`transact`, except that
+                :class:`DeadlineMissedError` and a lost link come through the future.
         """
         slot = self._submit(
             packets,

@@ -9,7 +9,7 @@ Where a setting comes from, highest first::
                           $OHMNI_CONFIG                     must exist
                           ./ohmni.toml                      if it exists
                           $XDG_CONFIG_HOME/ohmni/ohmni.toml if it exists (~/.config/...)
-    defaults            DESIGN §4, via ohmni_tb.control.defaults and ohmni_tb.protocol
+    defaults            ohmni_tb.control.defaults and ohmni_tb.protocol
 
 The TOML file holds the settings at top level, or in a ``[robot]`` table::
 

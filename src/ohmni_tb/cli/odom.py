@@ -1,7 +1,8 @@
 """``ohmni odom``: stream the wheel odometry; ``ohmni odom reset``.
 
 The odometry is integrated by the Robot in the process that opened the port, from the
-wheel counts it reads at 50 Hz. Without a daemon (planned) every ``ohmni`` command opens
+wheel counts it reads at 50 Hz. With ``ohmni serve`` running both commands act on the
+daemon's Robot, whose odometry every client shares; without it every ``ohmni`` command opens
 the port itself, so each one starts at the origin: ``odom reset`` sets the pose of its own
 Robot only, and shows it.
 """

@@ -1,4 +1,5 @@
-"""Robot defaults from DESIGN §4, in one place so a measured robot changes one line.
+"""The robot's defaults (its geometry, limits and gains), in one place so a measured robot
+changes one line.
 
 The drive boards' own facts (the PWM range, the 14-bit motor position) are defined once,
 in :mod:`ohmni_tb.protocol.drive`, and only re-exported here under the names control uses.

@@ -30,7 +30,7 @@ class DeviceId(enum.IntEnum):
     BROADCAST = 0xFE
 
 
-#: The HerkuleX neck's safe raw range (DESIGN §4): beyond it the head hits its stops.
+#: The HerkuleX neck's safe raw range: beyond it the head hits its stops.
 NECK_RAW_RANGE: tuple[int, int] = (280, 650)
 
 #: The vendor API lets clients address ids 11..19 as accessories; which two the external
