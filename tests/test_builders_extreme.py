@@ -229,6 +229,7 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
             core.TbcoreStatus((a, 3300, 3300, 3300, 3300), b, True, c, (0, 0, 0, 0))
         ),
     ),
+    "core.cells_plausible": (2, lambda a, b: core.cells_plausible((a, b, 3300, 3300, 3300))),
     "core.percent_from_cells": (2, lambda a, b: core.percent_from_cells((a, b))),
     "core.set_light_ring": (3, core.set_light_ring),
     # protocol.worm_neck

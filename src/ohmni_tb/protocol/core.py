@@ -176,8 +176,14 @@ def cells_plausible(cell_mv: tuple[int, ...]) -> bool:
     """Whether ``cell_mv`` are five cells of one LiFePO4 pack: each
     :data:`CELL_MIN_MV`..:data:`CELL_MAX_MV`, at most :data:`CELL_SPREAD_MAX_MV` apart.
     Anything else (zeros, a spread of thousands) is not the battery block: the profile's
-    ``battery_addr`` or layout is wrong, or the read was."""
+    ``battery_addr`` or layout is wrong, or the read was.
+
+    Raises:
+        InvalidArgumentError: A cell voltage is not an int.
+    """
     cells = tuple(cell_mv)
+    for mv in cells:
+        _check_int("cell_mv", mv)
     return (
         len(cells) == CELL_COUNT
         and all(CELL_MIN_MV <= mv <= CELL_MAX_MV for mv in cells)
