@@ -135,3 +135,17 @@ def test_settings_that_only_hold_together_are_written_together(tmp_path: Path) -
     path.write_text("battery_length = 10\n")
     with pytest.raises(ConfigError, match="shorter than the tbcore layout"):
         RobotConfig.load(path)
+
+
+def test_a_setting_commented_out_by_config_init_is_set_in_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "ohmni.toml"
+    path.write_text(RobotConfig.example_file())
+    write_settings(path, {"wheel_form": "i_jog", "battery_addr": 0xB0})
+    lines = path.read_text().splitlines()
+    assert 'wheel_form = "i_jog"' in lines
+    assert "battery_addr = 176" in lines
+    assert "# wheel_form = " not in path.read_text()
+    # In its place, under its description: the line before it is still its comment.
+    at = lines.index("battery_addr = 176")
+    assert lines[at - 1].startswith("# ")
+    assert RobotConfig.load(path).profile().core.status_addr == 0xB0

@@ -200,6 +200,16 @@ def _set_line(
                 lines = list(lines)
                 lines[i] = f"{match['indent']}{match['key']}{match['eq']}{value}{comment}{eol}"
                 return lines
+    # A key commented out as `ohmni config init` writes it (`# key = default`): that line
+    # becomes the setting, under its description.
+    commented = re.compile(rf"^# {re.escape(key)} = [^\r\n]*(?P<eol>\r?\n)?$")
+    for start, end in spans:
+        for i in range(start, end):
+            found = commented.match(lines[i])
+            if found is not None:
+                lines = list(lines)
+                lines[i] = f"{key} = {value}{found['eol'] or ''}"
+                return lines
     # A new key: after the last setting of [robot] if the file has one, else of the top.
     start, end = robot_table if robot_table is not None else (0, first_table)
     at = end

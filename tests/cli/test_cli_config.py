@@ -103,3 +103,9 @@ def test_a_port_where_nothing_answers_is_an_error() -> None:
     assert result.code == 1
     assert f"error: nothing answered on {port}: no board of the robot replied" in words(result.out)
     assert "link connected" not in result.out
+
+
+def test_config_changed_says_so_when_nothing_is() -> None:
+    result = invoke("config", "--changed")
+    assert result.code == 0
+    assert "every setting is at its default" in result.out

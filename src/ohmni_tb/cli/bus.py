@@ -197,7 +197,8 @@ def monitor(
     on an adapter that listens to the line. Ctrl-C ends a live session. The boards'
     registers are read as the configured bus profile says (battery_addr, ...).
 
-    Example: ohmni bus monitor --capture robot.bin --json > decoded.ndjson
+    Example: ohmni record bus.mcap --raw --duration 2 --port sim:// ; ohmni bus monitor
+    --capture bus.mcap --json > decoded.ndjson
     """
     if (port is None) == (capture is None):
         raise typer.BadParameter("give exactly one of --port or --capture")

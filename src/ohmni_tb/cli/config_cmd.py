@@ -72,6 +72,9 @@ def show(
     console.print(
         f"config file: {escape(str(path)) if path is not None else 'none'}", highlight=False
     )
+    if not rows:
+        console.print("every setting is at its default", highlight=False)
+        return
     table = Table()
     for column in ("setting", "value", "from"):
         table.add_column(column)
