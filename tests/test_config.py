@@ -41,7 +41,7 @@ FIELDS = [
     "worm_min_raw", "worm_max_raw", "ext_servo_ids",
     "wheel_form", "right_mirrored", "drive_torque_addr", "battery_addr", "battery_length",
     "battery_layout", "worm_target_addr", "worm_feedback_addr",
-    "wheel_hz", "servo_hz", "core_hz", "new_neck_hz", "state_hz", "pid_debug",
+    "wheel_hz", "servo_hz", "core_hz", "new_neck_hz", "state_hz", "diagnostics_hz", "pid_debug",
     "frame_id_odom", "frame_id_baselink", "enable_broadcast_transform",
 ]  # fmt: skip
 

@@ -29,8 +29,8 @@ PUBLIC = {
         "DEFAULT_WRITE_TIMEOUT_S", "LostHandler", "ReceiveBuffer", "Receiver", "Transport",
     ],
     "ohmni_tb.protocol.devices": [
-        "DEFAULT_EXT_SERVO_IDS", "DEVICE_MAP", "NECK_RAW_RANGE", "DeviceId", "DeviceInfo",
-        "device_name",
+        "DEFAULT_EXT_SERVO_IDS", "DEVICE_MAP", "KNOWN_FIRMWARE_TAGS", "NECK_RAW_RANGE",
+        "DeviceId", "DeviceInfo", "device_name", "firmware_known",
     ],
     "ohmni_tb.protocol.drive": [
         "DRIVE_PROFILE", "MOTOR_POSITION_MODULUS", "PWM_LIMIT", "DriveProfile", "DriveTorque",
@@ -108,7 +108,8 @@ PUBLIC = {
     ],
     "ohmni_tb.robot": [
         "COMMAND_PRIORITY", "DEFAULT_QUEUE_SIZE", "STREAMS", "STREAM_NAMES", "BusFigures",
-        "HerkulexHandle", "Link", "LocalRobot", "MotionResult", "NeckHandle",
+        "DiagnosticEntry", "DiagnosticLevel", "DiagnosticsSample", "HerkulexHandle", "Link",
+        "LocalRobot", "MotionResult", "NeckHandle",
         "PidDebugSample", "RemoteRobot", "RemoteServo", "Robot", "RobotStateSample",
         "RobotStats", "Sample", "SampleStream", "ServoHandle", "ServoSample", "StreamSpec",
         "StreamStats", "Subscription", "TbcoreStatusSample", "WheelEncoderSample",
@@ -128,7 +129,7 @@ PUBLIC = {
         "DriveDistanceArgs", "DrivePwmArgs",
         "DriveWheelsArgs", "EnabledArgs", "ErrorCode", "ErrorMessage", "GoToArgs", "Hello",
         "LatestArgs", "LeaseMessage", "LightArgs", "Limits", "MethodSpec", "Motion",
-        "MoveArgs", "NoArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",
+        "MoveArgs", "NoArgs", "OdometryArgs", "PidArgs", "PoseArgs", "RateArgs", "ReleasePortArgs",
         "RequestError", "RestArgs", "Result", "RotateArgs", "SampleMessage",
         "ServerMessage", "ServoArgs", "ServoCommand", "ServoIdArgs", "ServoWriteArgs",
         "StreamArgs", "Subscribe", "TorqueArgs", "Unsubscribe", "WheelArgs", "WheelName",

@@ -557,6 +557,14 @@ class RobotConfig(BaseSettings):
         "Rate of the worm neck feedback reads (new_neck), Hz; 0 turns them off.",
     )
     state_hz: float = _setting(1.0, 0.1, 10, "Hz", "Rate of the robot_state stream, Hz.")
+    diagnostics_hz: float = _setting(
+        1.0,
+        0.1,
+        10,
+        "Hz",
+        "Rate of the diagnostics stream (each device's health and the link's), Hz.",
+        off="off",
+    )
     pid_debug: bool = Field(
         default=False,
         description="Publish the pid_debug stream: both wheels' PID terms every tick.",

@@ -7,15 +7,19 @@ public Node driver. The external servo ids are not public: 11 and 12 are **assum
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 __all__ = [
     "DEFAULT_EXT_SERVO_IDS",
     "DEVICE_MAP",
+    "KNOWN_FIRMWARE_TAGS",
     "NECK_RAW_RANGE",
     "DeviceId",
     "DeviceInfo",
     "device_name",
+    "firmware_known",
 ]
 
 
@@ -74,3 +78,21 @@ def device_name(sid: int) -> str:
     """A short name for ``sid``: the map's name, or ``sid<N>``."""
     info = DEVICE_MAP.get(sid)
     return info.name if info is not None else f"sid{sid}"
+
+
+#: The boards' firmware tags (EEP 0xF1, ASCII) the project knows, each with where it is
+#: known from: the simulator's, and only tags public sources show. A tag not listed is
+#: not wrong, only unseen: ``ohmni probe --share`` makes a report an owner can send.
+KNOWN_FIRMWARE_TAGS: Mapping[str, str] = MappingProxyType(
+    {
+        "stable": "public notes on the vendor's boards, read at EEP 0xF1",
+        "sim-drive-1.0": "the simulator's drive boards",
+        "sim-core-1.0": "the simulator's core board",
+        "sim-worm-1.0": "the simulator's worm-gear neck",
+    }
+)
+
+
+def firmware_known(tag: str | None) -> bool:
+    """Whether ``tag`` is one of :data:`KNOWN_FIRMWARE_TAGS` (``None``: unread, not known)."""
+    return tag is not None and tag in KNOWN_FIRMWARE_TAGS

@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from ohmni_tb.protocol.profile import BusProfile
     from ohmni_tb.robot.checks import Wheel
     from ohmni_tb.robot.samples import (
+        DiagnosticsSample,
         PidDebugSample,
         RobotStateSample,
         ServoSample,
@@ -303,6 +304,8 @@ class RobotStreams(abc.ABC):
     @overload
     def latest(self, name: Literal["pid_debug"]) -> PidDebugSample | None: ...
     @overload
+    def latest(self, name: Literal["diagnostics"]) -> DiagnosticsSample | None: ...
+    @overload
     def latest(self, name: str) -> Any: ...
     def latest(self, name: str) -> Any:
         """The newest sample of stream ``name``, or ``None`` before the first.
@@ -343,6 +346,10 @@ class RobotStreams(abc.ABC):
     def subscribe(
         self, name: Literal["pid_debug"], *, maxlen: int = ...
     ) -> SampleStream[PidDebugSample]: ...
+    @overload
+    def subscribe(
+        self, name: Literal["diagnostics"], *, maxlen: int = ...
+    ) -> SampleStream[DiagnosticsSample]: ...
     @overload
     def subscribe(self, name: str, *, maxlen: int = ...) -> SampleStream[Any]: ...
     def subscribe(self, name: str, *, maxlen: int = DEFAULT_QUEUE_SIZE) -> SampleStream[Any]:
@@ -672,11 +679,36 @@ class Robot(RobotStreams):
 
     @abc.abstractmethod
     def reset_odometry(self, x_m: float = 0.0, y_m: float = 0.0, yaw_rad: float = 0.0) -> None:
-        """Set the odometry pose (tb_control's ``reset_odom``).
+        """Set the odometry pose: back to the origin, or to the pose given (tb_control's
+        ``reset_wheel_odom``); as :meth:`set_odometry` otherwise.
 
         Raises:
             InvalidArgumentError: A value is not a finite number.
             OutOfRangeError: A value is beyond ±1e6 (m or rad: ``MAX_POSE_M``).
+            RobotClosedError: The robot is closed.
+        """
+
+    @abc.abstractmethod
+    def set_odometry(self, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """Set the odometry pose to (``x_m``, ``y_m``, ``yaw_rad``): diff_drive_controller's
+        ``~/set_odometry``, e.g. to put the robot where a map says it is.
+
+        ``wheel_odom`` goes on from that pose with its next sample (its covariance starts
+        again from zero, its speeds as they were). A motion goal under way ends
+        (:class:`~ohmni_tb.errors.MotionPreemptedError`, ``by="set_odometry"``: it steered
+        in the old frame) and the target goes to zero; a ``drive`` goes on. Through the
+        daemon it needs the control lease.
+
+        Args:
+            x_m: The position, m.
+            y_m: The position, m.
+            yaw_rad: The heading, rad (any angle: ``heading_rad`` takes it unwrapped,
+                ``yaw_rad`` wrapped into (−π, π]).
+
+        Raises:
+            InvalidArgumentError: A value is not a finite number; nothing changes.
+            OutOfRangeError: A value is beyond ±1e6 (m or rad: ``MAX_POSE_M``); nothing
+                changes.
             RobotClosedError: The robot is closed.
         """
 

@@ -145,7 +145,7 @@ def check_gains(gains: object) -> PidGains:
 
 
 def check_pose(x_m: float, y_m: float, yaw_rad: float) -> tuple[float, float, float]:
-    """The pose for ``Robot.reset_odometry``.
+    """The pose for ``Robot.set_odometry`` and ``Robot.reset_odometry``.
 
     Raises:
         InvalidArgumentError: A value is not a finite number.

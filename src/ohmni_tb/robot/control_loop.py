@@ -65,10 +65,12 @@ OVERSPEED_MARGIN_MPS = 0.03
 
 @dataclass(eq=False)
 class _Wheel:
-    """One wheel's PID and the PID's last step."""
+    """One wheel's PID, the PID's last step, and its steps whose output sat at the PWM
+    limit (the diagnostics' saturation time)."""
 
     pid: PidController
     last_step: PidStep | None = None
+    saturated_steps: int = 0
 
 
 class ControlLoop:
@@ -91,6 +93,8 @@ class ControlLoop:
         self._target = Twist()
         self._target_wheels = WheelSpeeds(0.0, 0.0)
         self._target_pwm = (0, 0)
+        # The twist asked for before any limit (wheel_odom's requested_*).
+        self._requested = Twist()
         # Each wheel's PID on or off (tb_control's enable_controllers, per wheel).
         self._enabled = [config.controllers, config.controllers]
         # Whether the twist target goes through the acceleration limiter (drive's ramped).
@@ -177,6 +181,7 @@ class ControlLoop:
         changed = self._mode != "twist" or self._target != limited.twist or self._ramped != ramped
         self._mode = "twist"
         self._target = limited.twist
+        self._requested = twist
         self._ramped = ramped
         self._commanded(changed)
         return limited
@@ -189,6 +194,7 @@ class ControlLoop:
         changed = self._mode != "wheels" or self._target_wheels != wheels
         self._mode = "wheels"
         self._target_wheels = wheels
+        self._requested = self._drive.twist(asked)
         self._commanded(changed)
         return wheels
 
@@ -197,6 +203,7 @@ class ControlLoop:
         changed = self._mode != "pwm" or self._target_pwm != (left, right)
         self._mode = "pwm"
         self._target_pwm = (left, right)
+        self._requested = Twist()  # open loop: no twist is followed
         self._commanded(changed)
 
     def stop(self) -> None:
@@ -244,6 +251,10 @@ class ControlLoop:
         """Whether each wheel's PID runs: (left, right)."""
         return self._enabled[0], self._enabled[1]
 
+    def saturated_steps(self) -> tuple[int, int]:
+        """Each wheel's PID steps so far whose output sat at the PWM limit: (left, right)."""
+        return self._wheels[0].saturated_steps, self._wheels[1].saturated_steps
+
     def gains_of(self, index: int) -> PidGains:
         """Wheel ``index``'s PID gains (0 left, 1 right)."""
         return self._wheels[index].pid.gains
@@ -274,6 +285,7 @@ class ControlLoop:
         self._target = Twist()
         self._target_wheels = WheelSpeeds(0.0, 0.0)
         self._target_pwm = (0, 0)
+        self._requested = Twist()
         # A stop ramps down at the deceleration limits, whatever the last drive was.
         self._ramped = True
         if self._mode == "pwm":
@@ -349,6 +361,8 @@ class ControlLoop:
             measured = speed_mps(index)
             step = wheel.pid.step(setpoint, 0.0 if measured is None else measured, dt)
             wheel.last_step = step
+            if step.saturated:
+                wheel.saturated_steps += 1
             outputs.append(round(step.output))
         self._pwm = self._governed(outputs[0], outputs[1])
         return self._pwm
@@ -398,6 +412,7 @@ class ControlLoop:
         ):
             return False
         state.watchdog_tripped = True
+        state.watchdog_trips += 1
         self.stop_targets()
         state.publish(f"watchdog: no drive command for {config.watchdog_s:g} s, stopping")
         return True
@@ -506,7 +521,7 @@ class ControlLoop:
         if "stale_feedback" in state.faults:
             state.faults.discard("stale_feedback")
             state.publish("wheel feedback is back")
-        self._counts.publish(counts, self._limiter.current)
+        self._counts.publish(counts, self._limiter.current, self._requested)
         debug = state.topics["pid_debug"]
         lw, rw = self._wheels
         if debug.enabled and lw.last_step is not None and rw.last_step is not None:

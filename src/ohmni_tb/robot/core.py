@@ -30,8 +30,8 @@ motion command preempt a motion goal under way (:mod:`~ohmni_tb.robot.motion`), 
 the work to parts of one job each, which share one
 :class:`~ohmni_tb.robot.state.RobotState`: :mod:`~ohmni_tb.robot.discovery`,
 :mod:`~ohmni_tb.robot.control_loop`, :mod:`~ohmni_tb.robot.wheels`,
-:mod:`~ohmni_tb.robot.feedback`, :mod:`~ohmni_tb.robot.guards` and
-:mod:`~ohmni_tb.robot.link`.
+:mod:`~ohmni_tb.robot.feedback`, :mod:`~ohmni_tb.robot.guards`,
+:mod:`~ohmni_tb.robot.diagnostics` and :mod:`~ohmni_tb.robot.link`.
 """
 
 from __future__ import annotations
@@ -70,6 +70,7 @@ from ohmni_tb.robot.checks import (
 )
 from ohmni_tb.robot.control_loop import ControlLoop
 from ohmni_tb.robot.devices import COMMAND_PRIORITY, ServoHandle, WormNeckHandle
+from ohmni_tb.robot.diagnostics import Diagnostics
 from ohmni_tb.robot.discovery import Discovery
 from ohmni_tb.robot.feedback import Feedback
 from ohmni_tb.robot.guards import Guards
@@ -108,6 +109,12 @@ class LocalRobot(Robot):
         self._discovery = Discovery(state, self._found)
         self._link = LinkKeeper(state, self._control, self._feedback, self._discovery)
         self._renumbering = Renumbering(state, self._feedback, self._reconfigure)
+        counts = self._counts
+        self._diagnostics = Diagnostics(
+            state,
+            self._control.saturated_steps,
+            lambda: (counts.wheels[0].rejected, counts.wheels[1].rejected),
+        )
         self._discovery.renumber = self._renumbering.servo
         self._discovery.zero_offset = self._zero_offset_set
         self._discovery.moved = self._renumbering.moved
@@ -193,6 +200,7 @@ class LocalRobot(Robot):
         await self._settings.load("the Robot opened")
         self._feedback.build()
         self._feedback.start()
+        self._diagnostics.start()
         self._link.start()
         self._discovery.arm()
         self._state.publish("opened")
@@ -215,6 +223,7 @@ class LocalRobot(Robot):
         state.closed = True
         state.closing = asyncio.current_task()
         self._motion.close()
+        self._diagnostics.close()
         self.exit_error = await self._link.close()
 
     @property
@@ -419,6 +428,14 @@ class LocalRobot(Robot):
         pose = check_pose(x_m, y_m, yaw_rad)
         # A goal steering by the odometry cannot go on in a new frame.
         self._motion.preempt("reset_odometry", stop=True)
+        self._counts.reset_odometry(*pose)
+
+    def set_odometry(self, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """Set the odometry pose to the one given (the contract: ohmni_tb.robot.api.Robot)."""
+        self._state.check_open()
+        pose = check_pose(x_m, y_m, yaw_rad)
+        # A goal steering by the odometry cannot go on in a new frame.
+        self._motion.preempt("set_odometry", stop=True)
         self._counts.reset_odometry(*pose)
 
     def _check_goal(self) -> None:

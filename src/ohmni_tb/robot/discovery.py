@@ -15,10 +15,10 @@ from typing import Any
 from ohmni_tb.bus import ReplyPacket
 from ohmni_tb.errors import BusTimeoutError, MalformedReplyError, OhmniError, StateError
 from ohmni_tb.herkulex import stat
-from ohmni_tb.protocol import Memory, Packet
+from ohmni_tb.protocol import Memory, Packet, ReadReply
 from ohmni_tb.protocol.core import read_status
 from ohmni_tb.protocol.devices import DeviceId
-from ohmni_tb.protocol.drive import read_count
+from ohmni_tb.protocol.drive import read_count, read_firmware_tag
 from ohmni_tb.protocol.worm_neck import read_feedback
 from ohmni_tb.robot.devices import ServoHandle, WormNeckHandle
 from ohmni_tb.robot.state import RobotState, ServoWatch
@@ -95,6 +95,18 @@ class Discovery:
         for sid in _DRIVES:
             if int(sid) not in state.present:
                 state.faults.add(f"drive_absent:{int(sid)}")
+        await self._read_tags()
+
+    async def _read_tags(self) -> None:
+        """Each board's firmware tag, while the line is still idle (at open): a tag's read
+        books the line for the longest reply it could get, which the schedule's control
+        slot might otherwise wait behind."""
+        state = self._state
+        tag_addr = state.profile.drive.tag_addr
+        for sid in (*_DRIVES, DeviceId.CORE, DeviceId.WORM_NECK):
+            if int(sid) in state.present:
+                reply = await self._answers(read_firmware_tag(sid, tag_addr))
+                state.firmware[int(sid)] = _tag(reply)
 
     def neck(self) -> ServoHandle | WormNeckHandle:
         """The neck's handle (``Robot.neck``).
@@ -137,6 +149,7 @@ class Discovery:
             try:
                 reply = await state.bus.read(sid, 0xF1, 0, Memory.EEP)
                 tags[sid.name.lower()] = reply.data.decode("ascii", errors="replace")
+                state.firmware[int(sid)] = tags[sid.name.lower()] or None
             except OhmniError:
                 tags[sid.name.lower()] = None
         models: dict[int, str | None] = {}
@@ -268,3 +281,13 @@ class Discovery:
                 self._found(sid)
             state.publish(f"device {sid} answers")
         self.arm()
+
+
+def _tag(reply: ReplyPacket | None) -> str | None:
+    """The firmware tag in a tag read's reply (``None``: no reply, or an empty tag)."""
+    if reply is None:
+        return None
+    try:
+        return ReadReply.parse(reply).data.decode("ascii", errors="replace") or None
+    except OhmniError:
+        return None

@@ -150,7 +150,13 @@ class Feedback:
         """
         state = self._state
         periodic = state.periodic.get(name)
-        if STREAMS[name].source != "polled":
+        spec = STREAMS[name]
+        if spec.source != "polled":
+            if enabled and topic.requested_hz <= 0:
+                raise StateError(
+                    f"stream {name!r} is off by its setting {spec.rate_setting}=0: open the "
+                    f"robot with {spec.rate_setting} above 0 to have it"
+                )
             topic.enabled = enabled  # the control slot and the state keep running
             return
         if periodic is None:

@@ -106,6 +106,7 @@ from ohmni_tb.robot.wire import (
     LatestArgs,
     LightArgs,
     MoveArgs,
+    OdometryArgs,
     PidArgs,
     PoseArgs,
     RateArgs,
@@ -494,6 +495,12 @@ class RemoteRobot(Robot):
         self._check_open()
         x, y, yaw = check_pose(x_m, y_m, yaw_rad)
         self._command("reset_odometry", PoseArgs(x_m=x, y_m=y, yaw_rad=yaw))
+
+    def set_odometry(self, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """:meth:`Robot.set_odometry <ohmni_tb.robot.api.Robot.set_odometry>`."""
+        self._check_open()
+        x, y, yaw = check_pose(x_m, y_m, yaw_rad)
+        self._command("set_odometry", OdometryArgs(x_m=x, y_m=y, yaw_rad=yaw))
 
     async def drive_distance(
         self,

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Literal
+from typing import Literal, TypeAlias
 
 from ohmni_tb.control.defaults import (
     CONTROL_HZ_RANGE,
@@ -33,6 +33,10 @@ __all__ = [
     "STREAMS",
     "STREAM_NAMES",
     "TWIST_COVARIANCE",
+    "DiagnosticEntry",
+    "DiagnosticLevel",
+    "DiagnosticValue",
+    "DiagnosticsSample",
     "Link",
     "PidDebugSample",
     "RobotStateSample",
@@ -150,8 +154,16 @@ class WheelOdomSample:
         linear_mps: Forward speed.
         angular_radps: Yaw rate, counter-clockwise positive.
         covariance: 3 × 3 covariance of (x, y, yaw), row-major.
-        commanded_linear_mps: The limited command the wheels were following.
+        commanded_linear_mps: The limited command the wheels were following: the twist
+            the limiter made of the request this control tick, within the speed and
+            acceleration limits (diff_drive_controller's ``publish_limited_velocity``);
+            0 while nothing drives or the PWM is open loop.
         commanded_angular_radps: Its yaw rate.
+        requested_linear_mps: The request it was made from: the last ``drive`` command
+            as given (``drive_wheels``: the twist of the wheel speeds asked), before any
+            limit; 0 after a stop (``stop()``, the watchdog, an emergency stop …) and
+            while the PWM is open loop.
+        requested_angular_radps: Its yaw rate.
         frame_id: The frame the pose is in (``frame_id_odom``; tb_control's
             ``header.frame_id``).
         child_frame_id: The robot's body frame (``frame_id_baselink``).
@@ -167,6 +179,8 @@ class WheelOdomSample:
     covariance: tuple[float, ...]
     commanded_linear_mps: float
     commanded_angular_radps: float
+    requested_linear_mps: float = 0.0
+    requested_angular_radps: float = 0.0
     frame_id: str = DEFAULT_ODOM_FRAME
     child_frame_id: str = DEFAULT_BASE_FRAME
 
@@ -372,6 +386,82 @@ class PidDebugSample:
     right: PidStep
 
 
+class DiagnosticLevel(enum.StrEnum):
+    """How a ``diagnostics`` entry stands (ROS's diagnostic levels), best first."""
+
+    #: Working as it should.
+    OK = "ok"
+    #: Working, but something is worth a look (the message says what).
+    WARN = "warn"
+    #: Not working: a fault, a silent or absent device, a lost link.
+    ERROR = "error"
+
+    @property
+    def rank(self) -> int:
+        """0, 1, 2 for OK, WARN, ERROR: the larger, the worse."""
+        return _LEVEL_RANK[self]
+
+    @classmethod
+    def worst(cls, levels: Iterable[DiagnosticLevel]) -> DiagnosticLevel:
+        """The worst of ``levels`` (``OK`` when there are none)."""
+        return max(levels, key=_LEVEL_RANK.__getitem__, default=cls.OK)
+
+
+_LEVEL_RANK: Mapping[DiagnosticLevel, int] = MappingProxyType(
+    {level: rank for rank, level in enumerate(DiagnosticLevel)}
+)
+#: A value of a ``diagnostics`` entry: a number, a word, a flag, or ``None`` (not known).
+DiagnosticValue: TypeAlias = bool | int | float | str | None
+
+
+@dataclass(frozen=True, slots=True)
+class DiagnosticEntry:
+    """One device's health, or the link's, in a ``diagnostics`` sample.
+
+    Attributes:
+        name: Which: ``left_drive``, ``right_drive``, ``core``, ``neck`` (HerkuleX or worm
+            gear: ``sid`` says which), ``ext1``, ``ext2`` (the external servos) or
+            ``link``.
+        sid: The device's bus id; ``None`` for the link.
+        level: OK, WARN or ERROR, by the thresholds of :mod:`ohmni_tb.robot.diagnostics`.
+        message: What stands out, in words (``"ok"`` when nothing does).
+        values: Its figures by name (docs/robot.md lists them): firmware, reply latency,
+            timeouts, battery cells, temperature, load …; ``None`` where not known.
+    """
+
+    name: str
+    sid: int | None
+    level: DiagnosticLevel
+    message: str
+    values: dict[str, DiagnosticValue]
+
+
+@dataclass(frozen=True, slots=True)
+class DiagnosticsSample:
+    """The robot's health (``diagnostics``, 1 Hz: ``diagnostics_hz``): one entry per device
+    the robot expects and one for the link.
+
+    Attributes:
+        stamp_s: When it was taken.
+        level: The worst level of the entries.
+        entries: Each device's entry (the drive boards, the core board, the neck, each
+            external servo), then the link's.
+        event: The levels that changed since the previous sample, in words (``None``
+            when none did).
+    """
+
+    stamp_s: float
+    level: DiagnosticLevel
+    entries: tuple[DiagnosticEntry, ...]
+    event: str | None = None
+
+    def entry(self, key: str | int) -> DiagnosticEntry | None:
+        """The entry named ``key`` (``"link"``, ``"core"`` …), or of the device with bus id
+        ``key``; ``None`` when there is none."""
+        field = "sid" if isinstance(key, int) and not isinstance(key, bool) else "name"
+        return next((e for e in self.entries if getattr(e, field) == key), None)
+
+
 Sample = (
     WheelEncoderSample
     | WheelOdomSample
@@ -380,6 +470,7 @@ Sample = (
     | WormNeckSample
     | RobotStateSample
     | PidDebugSample
+    | DiagnosticsSample
 )
 
 
@@ -394,8 +485,8 @@ class StreamSpec:
         source: Where its samples come from: ``"control"``, the control slot's wheel
             counts (its rate is the control tick's); ``"derived"``, computed from another
             stream's reads (:attr:`follows`); ``"polled"``, reads of its own on the
-            schedule; ``"state"``, the Robot's own state, on every change and at a
-            steady rate.
+            schedule; ``"state"``, the Robot's own state or health, at a steady rate
+            (``robot_state`` also on every change).
         rate_setting: The :class:`~ohmni_tb.config.RobotConfig` field with its rate.
         rate_range_hz: What :meth:`Robot.set_rate` takes for it, or None when its rate is
             not set on its own (a derived stream follows its source; the state's rate is
@@ -496,6 +587,7 @@ STREAMS: Mapping[str, StreamSpec] = _table(
         follows="wheel_encoder",
         tb_control="/tb_control/motor_pid_debug",
     ),
+    StreamSpec("diagnostics", DiagnosticsSample, "state", "diagnostics_hz", None),
 )
 #: Every stream's name, in schedule order.
 STREAM_NAMES: tuple[str, ...] = tuple(STREAMS)

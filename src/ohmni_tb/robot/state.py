@@ -59,6 +59,8 @@ class RobotState:
     link: Link = Link.CONNECTED
     estopped: bool = False
     watchdog_tripped: bool = False
+    #: Times the motion watchdog stopped the wheels since the Robot opened.
+    watchdog_trips: int = 0
     faults: set[str] = field(default_factory=set)
     #: ``herkulex``, ``worm`` or ``none``; the handle of the one found.
     neck_kind: str = "none"
@@ -68,6 +70,8 @@ class RobotState:
     #: Device ids looked for, and those that answered.
     expected: set[int] = field(default_factory=set)
     present: set[int] = field(default_factory=set)
+    #: The boards' firmware tags (EEP 0xF1) as read, by id (``None``: no answer, or empty).
+    firmware: dict[int, str | None] = field(default_factory=dict)
     closed: bool = False
     #: The task closing the Robot, and the one releasing its port (their own commands
     #: still go: the neck is rested or freed on the way).

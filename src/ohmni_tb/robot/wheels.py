@@ -98,9 +98,10 @@ class WheelCounts:
         right = rw.take(raw_right, t_right)
         return TakenCounts(left, right, raw_left, raw_right, t_left)
 
-    def publish(self, counts: TakenCounts, commanded: Twist) -> None:
+    def publish(self, counts: TakenCounts, commanded: Twist, requested: Twist) -> None:
         """``wheel_encoder`` and ``wheel_odom`` from one slot's counts (``commanded``: the
-        ramped velocity target, carried in the odometry sample)."""
+        limited velocity target, ``requested``: what it was limited from, both carried in
+        the odometry sample)."""
         topics = self._state.topics
         left, right, t_left = counts.left, counts.right, counts.stamp_s
         left_scale, right_scale = self._vel_raw_per_mps
@@ -136,6 +137,8 @@ class WheelCounts:
                 covariance=odometry.covariance_rows,
                 commanded_linear_mps=commanded.linear_mps,
                 commanded_angular_radps=commanded.angular_radps,
+                requested_linear_mps=requested.linear_mps,
+                requested_angular_radps=requested.angular_radps,
                 frame_id=self._frames[0],
                 child_frame_id=self._frames[1],
             )

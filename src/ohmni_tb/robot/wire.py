@@ -92,6 +92,7 @@ __all__ = [
     "Motion",
     "MoveArgs",
     "NoArgs",
+    "OdometryArgs",
     "PidArgs",
     "PoseArgs",
     "RateArgs",
@@ -140,8 +141,9 @@ __all__ = [
 #: Bumped on any change a peer of the previous version would misread (2: commands, lease;
 #: 3: strict types, ``hello`` says what the daemon serves; 4: the motion goals, and the
 #: Robot's own exception in ``error.raised``; 5: tb_control's sample fields, and the
-#: frame settings in ``config``, which a client of 4 refuses as unknown).
-PROTOCOL_VERSION: Final = 5
+#: frame settings in ``config``, which a client of 4 refuses as unknown; 6: the
+#: ``diagnostics`` topic, ``set_odometry``, and ``wheel_odom``'s requested twist).
+PROTOCOL_VERSION: Final = 6
 #: The environment variable a client takes the daemon's token from.
 TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: What a client may ask (``op``).
@@ -302,6 +304,14 @@ class PoseArgs(_Request):
     x_m: Number = 0.0
     y_m: Number = 0.0
     yaw_rad: Number = 0.0
+
+
+class OdometryArgs(_Request):
+    """``set_odometry``: the pose to set, every part of it."""
+
+    x_m: Number
+    y_m: Number
+    yaw_rad: Number
 
 
 class LightArgs(_Request):
@@ -538,6 +548,7 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     "enable_controllers": MethodSpec(EnabledArgs, True, "null", "enable_controllers"),
     "set_pid": MethodSpec(PidArgs, True, "null", "set_pid"),
     "reset_odometry": MethodSpec(PoseArgs, True, "null", "reset_odometry"),
+    "set_odometry": MethodSpec(OdometryArgs, True, "null", "set_odometry"),
     "light_ring": MethodSpec(LightArgs, True, "null", "light_ring", awaited=True),
     "enable_stream": MethodSpec(StreamArgs, True, "null", "enable_stream"),
     "set_rate": MethodSpec(RateArgs, True, "null", "set_rate"),
