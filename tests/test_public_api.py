@@ -161,7 +161,8 @@ PUBLIC = {
     ],
     "ohmni_tb.foxglove.control": [
          "LIMIT_PARAMETERS", "NECK_MOVE_SERVICE", "PARAMETER_PREFIX", "PID_PARAMETERS",
-         "RATE_STREAMS", "RESET_ODOM_SERVICE", "SERVICE_SCHEMAS", "RobotControl",
+         "RATE_STREAMS", "RESET_ODOM_SERVICE", "SERVICE_SCHEMAS", "SET_ODOMETRY_SERVICE",
+         "RobotControl",
     ],
     "ohmni_tb.foxglove.replay": ["MAX_SPEED", "McapReplay", "ReplayError", "raw_bus_bytes"],
     "ohmni_tb.foxglove.channels": [

@@ -50,9 +50,10 @@ def test_every_stream_has_a_json_channel_named_like_tb_control() -> None:
     json_topics = {spec.stream: spec.topic for spec in CHANNELS if spec.message_encoding == "json"}
     assert set(json_topics) == set(STREAM_NAMES)
     for stream, topic in json_topics.items():
-        expected = (
-            "/tb_control/wheel_odom/json" if stream == "wheel_odom" else f"/tb_control/{stream}"
-        )
+        expected = {
+            "wheel_odom": "/tb_control/wheel_odom/json",
+            "diagnostics": "/diagnostics",  # as ROS names it: not a tb_control topic
+        }.get(stream, f"/tb_control/{stream}")
         assert topic == expected
     assert [spec.topic for spec in channels_of("wheel_odom")] == [
         "/tf",

@@ -21,6 +21,7 @@ from ohmni_tb.foxglove.control import (
     NECK_MOVE_SERVICE,
     PID_PARAMETERS,
     RESET_ODOM_SERVICE,
+    SET_ODOMETRY_SERVICE,
     RobotControl,
 )
 
@@ -153,7 +154,12 @@ async def test_the_services_reset_odometry_and_move_the_neck(robot: Robot) -> No
     bridge, client = await connected(robot, writable=True)
     try:
         assert "services" in client.server_info["capabilities"]
-        assert set(client.services) == {UNLOCK_SERVICE, RESET_ODOM_SERVICE, NECK_MOVE_SERVICE}
+        assert set(client.services) == {
+            UNLOCK_SERVICE,
+            RESET_ODOM_SERVICE,
+            SET_ODOMETRY_SERVICE,
+            NECK_MOVE_SERVICE,
+        }
         request_schema = client.services[RESET_ODOM_SERVICE]["request"]
         assert request_schema["encoding"] == "json"
         assert request_schema["schemaEncoding"] == "jsonschema"
@@ -171,6 +177,25 @@ async def test_the_services_reset_odometry_and_move_the_neck(robot: Robot) -> No
         await asyncio.sleep(0.6)  # the move's playtime, and the servo settling
         neck = await next_sample(robot, "servo_neck")
         assert neck.position_raw == pytest.approx(420, abs=3)
+    finally:
+        await client.close()
+        await bridge.aclose()
+
+
+async def test_set_odometry_sets_the_pose_given_whole(robot: Robot) -> None:
+    bridge, client = await connected(robot, writable=True)
+    try:
+        schema = client.services[SET_ODOMETRY_SERVICE]["request"]
+        assert schema["encoding"] == "json"
+        pose = {"x_m": -2.0, "y_m": 0.75, "yaw_rad": -1.0}
+        assert await client.call_service(SET_ODOMETRY_SERVICE, pose) == pose
+        odom = await next_sample(robot, "wheel_odom")
+        assert (odom.x_m, odom.y_m, odom.yaw_rad) == pytest.approx((-2.0, 0.75, -1.0), abs=1e-3)
+        # Not the whole pose: refused, naming what is missing, and the pose stays.
+        refused = await client.call_service(SET_ODOMETRY_SERVICE, {"x_m": 5.0}, call_id=2)
+        assert "missing y_m, yaw_rad" in refused["failure"], refused
+        odom = await next_sample(robot, "wheel_odom")
+        assert odom.x_m == pytest.approx(-2.0, abs=1e-3)
     finally:
         await client.close()
         await bridge.aclose()

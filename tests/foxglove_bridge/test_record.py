@@ -45,6 +45,7 @@ RATES_HZ = {
     "/tb_control/servo_ext1": 30,
     "/tb_control/servo_ext2": 30,
     "/tb_control/robot_state": 1,
+    "/diagnostics": 1,
 }
 
 

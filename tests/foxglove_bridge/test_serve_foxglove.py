@@ -210,6 +210,7 @@ def test_parameters_and_services_change_the_robot_only_through_the_lease(
                 assert set(foxglove.services) == {
                     "/tb_control/unlock",
                     "/tb_control/reset_odom",
+                    "/tb_control/set_odometry",
                     "/tb_control/neck_move",
                 }
                 assert await foxglove.unlock(token) == {"unlocked": True}

@@ -26,6 +26,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "status",
         "One screen of the robot: battery, wheels, odometry, neck, servos, bus (--watch, --json).",
     ),
+    "diag": (
+        "ohmni_tb.cli.diag",
+        "diag",
+        "The robot's health: each device's and the link's level, what is wrong (--watch, --json).",
+    ),
     "drive": (
         "ohmni_tb.cli.drive",
         "drive",

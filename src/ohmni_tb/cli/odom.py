@@ -1,4 +1,4 @@
-"""``ohmni odom``: stream the wheel odometry; ``ohmni odom reset``.
+"""``ohmni odom``: stream the wheel odometry; ``ohmni odom reset``, ``ohmni odom set X Y YAW``.
 
 The odometry is integrated by the Robot in the process that opened the port, from the
 wheel counts it reads at 50 Hz. With ``ohmni serve`` running both commands act on the
@@ -107,7 +107,7 @@ def stream(
     starts at the origin, and `ohmni odom reset` resets the pose of its own process only.
 
     Examples: ohmni odom --port sim:// --count 5 ; ohmni odom --rate 50 --json --duration 10 ;
-    ohmni odom reset --x 1 --yaw 1.57 --port sim://
+    ohmni odom reset --x 1 --yaw 1.57 --port sim:// ; ohmni odom set 1 -0.5 1.57 --port sim://
     """
     ctx.obj = {"port": port, "direct": direct}
     if ctx.invoked_subcommand is not None:
@@ -249,7 +249,36 @@ def reset(
 
     Example: ohmni odom reset --x 1.5 --y -0.5 --yaw 1.5708 --port sim://
     """
-    for name, value in (("--x", x), ("--y", y)):
+    _check_pose(("--x", x), ("--y", y), ("--yaw", yaw))
+    _set_pose(ctx, "reset", x, y, yaw, as_json, port, direct)
+
+
+@app.command(name="set", context_settings={"ignore_unknown_options": True})
+def set_pose(
+    ctx: typer.Context,
+    x: Annotated[float, typer.Argument(metavar="X", help="x of the pose, metres.")],
+    y: Annotated[float, typer.Argument(metavar="Y", help="y of the pose, metres.")],
+    yaw: Annotated[float, typer.Argument(metavar="YAW", help="Heading, radians (±2π).")],
+    as_json: JsonOption = False,
+    port: PortOption = None,
+    direct: DirectOption = False,
+) -> None:
+    """Set the odometry pose to X Y YAW (metres, metres, radians) and print it.
+
+    The robot's set_odometry: to put the odometry where a map says the robot is. As
+    `ohmni odom reset --x X --y Y --yaw YAW`; a negative value needs no `--`. Through
+    ohmni serve (when it runs) it sets the daemon's odometry, which every client sees.
+
+    Example: ohmni odom set 1.5 -0.5 1.5708 --port sim://
+    """
+    _check_pose(("X", x), ("Y", y), ("YAW", yaw))
+    _set_pose(ctx, "set", x, y, yaw, as_json, port, direct)
+
+
+def _check_pose(*given: tuple[str, float]) -> None:
+    """The pose's values within the command's ranges: x, y ±10 km; yaw ±2π."""
+    (x_name, x), (y_name, y), (yaw_name, yaw) = given
+    for name, value in ((x_name, x), (y_name, y)):
         if not (math.isfinite(value) and abs(value) <= MAX_POSITION_M):
             raise typer.BadParameter(
                 f"{name}={value!r} is out of range: allowed "
@@ -257,30 +286,48 @@ def reset(
             )
     if not (math.isfinite(yaw) and abs(yaw) <= 2 * math.pi):
         raise typer.BadParameter(
-            f"--yaw={yaw!r} is out of range: allowed -6.2832..6.2832 rad (±2π)"
+            f"{yaw_name}={yaw!r} is out of range: allowed -6.2832..6.2832 rad (±2π)"
         )
+
+
+def _set_pose(
+    ctx: typer.Context,
+    verb: str,
+    x: float,
+    y: float,
+    yaw: float,
+    as_json: bool,
+    port: str | None,
+    direct: bool,
+) -> None:
+    """``odom reset`` and ``odom set``: the pose set on the robot, then printed."""
     parent = ctx.obj if isinstance(ctx.obj, dict) else {}
     port = port or parent.get("port")
     via = daemon_for(port, direct or bool(parent.get("direct")))
     where = via or resolve_port(port)
-    pose = run(lambda: _reset(where, via, x, y, yaw))
+    pose = run(lambda: _reset(where, via, x, y, yaw, verb=verb))
     if as_json:
         sys.stdout.write(json.dumps(pose, indent=2) + "\n")
         return
     sys.stdout.write(
-        f"odometry reset: x {pose['x_m']:+.3f} m  y {pose['y_m']:+.3f} m  "
+        f"odometry {verb}: x {pose['x_m']:+.3f} m  y {pose['y_m']:+.3f} m  "
         f"yaw {pose['yaw_rad']:+.4f} rad ({math.degrees(pose['yaw_rad']):+.2f}°)\n"
         + ("the daemon's odometry, for every client\n" if via else f"note: {_SCOPE}\n")
     )
 
 
-async def _reset(port: str, via: str | None, x: float, y: float, yaw: float) -> dict[str, Any]:
+async def _reset(
+    port: str, via: str | None, x: float, y: float, yaw: float, *, verb: str = "reset"
+) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     async with (
         open_robot(port, via=via, control=True, on_exit_neck="keep") as robot,
         robot.subscribe("wheel_odom", maxlen=8) as samples,
     ):
-        robot.reset_odometry(x, y, yaw)
+        if verb == "set":
+            robot.set_odometry(x, y, yaw)
+        else:
+            robot.reset_odometry(x, y, yaw)
         after = loop.time()
         try:
             async with asyncio.timeout(FIRST_SAMPLE_S):
@@ -292,6 +339,6 @@ async def _reset(port: str, via: str | None, x: float, y: float, yaw: float) -> 
         except TimeoutError:
             pass
     raise OdomError(
-        f"no wheel_odom sample within {FIRST_SAMPLE_S:g} s of the reset: do the drive "
+        f"no wheel_odom sample within {FIRST_SAMPLE_S:g} s of the {verb}: do the drive "
         "boards (ids 0 and 1) answer? (`ohmni info`)"
     )

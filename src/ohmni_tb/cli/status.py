@@ -1,4 +1,5 @@
-"""``ohmni status``: one screen of the robot — battery, wheels, odometry, neck, servos, bus.
+"""``ohmni status``: one screen of the robot — battery, wheels, odometry, neck, servos, bus,
+and each device's health (the ``diagnostics`` stream, as ``ohmni diag`` shows it).
 
 The Robot opens, every expected device is asked, and the command waits (up to
 :data:`FIRST_SAMPLE_S`) for the first sample of each stream that runs. ``--json`` prints
@@ -53,6 +54,8 @@ MEASURE_S: Final = 0.5
 _POLL_S = 0.02
 #: Streams that carry no device's readings.
 _NOT_DEVICES = frozenset({"robot_state", "pid_debug"})
+#: Streams with no bus reads of their own (left out of the bus table).
+_NOT_READ = _NOT_DEVICES | {"diagnostics"}
 _EXT_STREAMS = (("ext1", "servo_ext1"), ("ext2", "servo_ext2"))
 #: The exit code common.run gives Ctrl-C.
 _INTERRUPTED = 130
@@ -72,7 +75,7 @@ def status(
         ),
     ] = False,
 ) -> None:
-    """One screen of the robot: battery, wheels, odometry, neck, servos, firmware and bus.
+    """One screen of the robot: battery, wheels, odometry, neck, servos, firmware, bus, health.
 
     Each running stream's first sample is awaited (at most 1 s). Nothing moves.
 
@@ -259,7 +262,15 @@ def snapshot(robot: Robot, port: str, found: Mapping[str, Any]) -> dict[str, Any
         },
         "firmware": dict(found["firmware"]),
         "bus": _bus(stats),
+        "diagnostics": _diagnostics(robot),
     }
+
+
+def _diagnostics(robot: Robot) -> dict[str, Any] | None:
+    from ohmni_tb.cli.diag import diagnostics_json  # noqa: PLC0415  # with the snapshot
+
+    sample = robot.latest("diagnostics")
+    return None if sample is None else diagnostics_json(sample)
 
 
 def _servo(
@@ -436,7 +447,16 @@ def render(snap: Mapping[str, Any]) -> RenderableType:
             _panel("firmware", firmware_grid, "none"),
         ]
     )
-    return Group(header, panels, _servo_table(snap), *_bus_table(snap["bus"]))
+    return Group(header, panels, _servo_table(snap), *_bus_table(snap["bus"]), _health(snap))
+
+
+def _health(snap: Mapping[str, Any]) -> RenderableType:
+    from ohmni_tb.cli.diag import diagnostics_table  # noqa: PLC0415
+
+    data = snap.get("diagnostics")
+    if data is None:
+        return "[dim]health: no diagnostics sample yet (diagnostics_hz)[/dim]"
+    return diagnostics_table(data)
 
 
 def _servo_table(snap: Mapping[str, Any]) -> Table:
@@ -488,8 +508,8 @@ def _bus_table(bus: Mapping[str, Any]) -> tuple[Table, str]:
         return "-" if value is None else f"{value:.1f}"
 
     for name, s in bus["streams"].items():
-        if name in _NOT_DEVICES or not (s["enabled"] or s["samples"]):
-            continue  # robot_state and pid_debug are not read on the bus
+        if name in _NOT_READ or not (s["enabled"] or s["samples"]):
+            continue  # robot_state, pid_debug and diagnostics are not read on the bus
         table.add_row(
             name,
             f"{s['requested_hz']:.1f}",

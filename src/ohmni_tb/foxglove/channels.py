@@ -9,7 +9,9 @@ transform between the sample's frames (``frame_id_odom`` → ``frame_id_baselink
 ``odom`` → ``base_link`` by default) on ``/tf`` — unless ``enable_broadcast_transform``
 is off — and the pose on ``/tb_control/wheel_odom`` (its JSON on
 ``/tb_control/wheel_odom/json``). The Robot's state changes, in words, go
-to ``/tb_control/log`` as ``foxglove.Log`` for the Log panel.
+to ``/tb_control/log`` as ``foxglove.Log`` for the Log panel. The robot's health goes on
+``/diagnostics`` (as ROS names its diagnostics topic), its level changes in words on
+``/diagnostics/log`` as ``foxglove.Log``.
 
 Time: a sample's ``stamp_s`` is the event loop's monotonic clock; Foxglove and MCAP want
 wall-clock nanoseconds. :class:`WallClock` converts with one offset taken when
@@ -40,7 +42,14 @@ from foxglove.messages import (
 from pydantic import TypeAdapter
 
 from ohmni_tb.control.defaults import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
-from ohmni_tb.robot.samples import STREAMS, RobotStateSample, Sample, WheelOdomSample
+from ohmni_tb.robot.samples import (
+    STREAMS,
+    DiagnosticLevel,
+    DiagnosticsSample,
+    RobotStateSample,
+    Sample,
+    WheelOdomSample,
+)
 
 __all__ = [
     "BASE_FRAME",
@@ -134,6 +143,19 @@ CHANNELS: Final[tuple[ChannelSpec, ...]] = (
         "foxglove.Log",
         "protobuf",
         "what changed in the Robot's state, in words (robot_state samples with an event)",
+    ),
+    _json_channel(
+        "diagnostics",
+        "/diagnostics",
+        "the robot's health (DiagnosticsSample): each device's and the link's level, "
+        "message and figures",
+    ),
+    ChannelSpec(
+        "/diagnostics/log",
+        "diagnostics",
+        "foxglove.Log",
+        "protobuf",
+        "the health's level changes, in words (diagnostics samples with an event)",
     ),
 )
 
@@ -268,8 +290,28 @@ def _encode_log(sample: RobotStateSample, ns: int) -> bytes | None:
     ).encode()
 
 
+#: A diagnostics level as a Log's level.
+_LOG_LEVELS: Final = {
+    DiagnosticLevel.OK: LogLevel.Info,
+    DiagnosticLevel.WARN: LogLevel.Warning,
+    DiagnosticLevel.ERROR: LogLevel.Error,
+}
+
+
+def _encode_diagnostics_log(sample: DiagnosticsSample, ns: int) -> bytes | None:
+    if sample.event is None:
+        return None
+    return Log(
+        timestamp=_timestamp(ns),
+        level=_LOG_LEVELS[sample.level],
+        message=sample.event,
+        name="ohmni_tb.diagnostics",
+    ).encode()
+
+
 _ENCODERS: Final[dict[str, Encoder]] = {
     "/tf": _encode_transform,
     f"{_PREFIX}/wheel_odom": _encode_pose,
     f"{_PREFIX}/log": _encode_log,
+    "/diagnostics/log": _encode_diagnostics_log,
 }

@@ -14,6 +14,8 @@ Services (JSON requests and responses, schemas advertised):
 
 - ``/tb_control/reset_odom``: ``{"x_m": 0, "y_m": 0, "yaw_rad": 0}`` (each optional) →
   the pose odometry now starts from;
+- ``/tb_control/set_odometry``: ``{"x_m": 1.5, "y_m": -0.5, "yaw_rad": 1.57}`` (each
+  required: diff_drive_controller's ``~/set_odometry``) → the pose set;
 - ``/tb_control/neck_move``: ``{"raw": 400}`` or ``{"rad": 0.1}``, with ``playtime_s``
   (HerkuleX neck; a worm-gear neck takes ``raw`` alone) → ``{"moved": true}``.
 
@@ -48,6 +50,7 @@ __all__ = [
     "RATE_STREAMS",
     "RESET_ODOM_SERVICE",
     "SERVICE_SCHEMAS",
+    "SET_ODOMETRY_SERVICE",
     "RobotControl",
 ]
 
@@ -67,6 +70,7 @@ RATE_STREAMS: Final = tuple(name for name, spec in STREAMS.items() if spec.polle
 LIMIT_PARAMETERS: Final = ("max_linear_mps", "max_angular_radps", "max_wheel_mps", "watchdog_s")
 
 RESET_ODOM_SERVICE: Final = "/tb_control/reset_odom"
+SET_ODOMETRY_SERVICE: Final = "/tb_control/set_odometry"
 NECK_MOVE_SERVICE: Final = "/tb_control/neck_move"
 
 
@@ -79,6 +83,7 @@ _POSE: Final = _object({"x_m": _NUMBER, "y_m": _NUMBER, "yaw_rad": _NUMBER})
 #: Each service's (request, response) JSON Schema.
 SERVICE_SCHEMAS: Final[dict[str, tuple[dict[str, Any], dict[str, Any]]]] = {
     RESET_ODOM_SERVICE: (_POSE, _POSE),
+    SET_ODOMETRY_SERVICE: ({**_POSE, "required": ["x_m", "y_m", "yaw_rad"]}, _POSE),
     NECK_MOVE_SERVICE: (
         _object({"raw": {"type": "integer"}, "rad": _NUMBER, "playtime_s": _NUMBER}),
         _object({"moved": {"type": "boolean"}}),
@@ -184,10 +189,18 @@ class RobotControl:
             raise InvalidArgumentError(
                 f"{service} takes a JSON object with {', '.join(allowed)}, not {request[:80]!r}"
             )
-        if service == RESET_ODOM_SERVICE:
+        if service in (RESET_ODOM_SERVICE, SET_ODOMETRY_SERVICE):
+            if service == SET_ODOMETRY_SERVICE and set(allowed) - set(args):
+                raise InvalidArgumentError(
+                    f"{service} takes x_m, y_m and yaw_rad, all three; missing "
+                    f"{', '.join(sorted(set(allowed) - set(args)))}"
+                )
             pose = {key: number(key, args.get(key, 0.0)) for key in allowed}
             await self._change()
-            self._robot.reset_odometry(**pose)
+            if service == SET_ODOMETRY_SERVICE:
+                self._robot.set_odometry(**pose)
+            else:
+                self._robot.reset_odometry(**pose)
             await self._confirm()
             return json.dumps(pose).encode()
         raw, rad = args.get("raw"), args.get("rad")

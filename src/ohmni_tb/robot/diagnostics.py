@@ -192,6 +192,7 @@ class Diagnostics:
         self._before = _Before(state.loop.time())
         self._due_s = state.loop.time() + self.period_s * FIRST_SAMPLE_SHARE
         self._timer = state.loop.call_at(self._due_s, self._tick)
+        self._spawn_reads()
 
     def close(self) -> None:
         """Publish no more."""
