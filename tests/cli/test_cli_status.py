@@ -50,6 +50,7 @@ TOP_KEYS = {
     "servos",
     "firmware",
     "bus",
+    "diagnostics",
 }
 BATTERY_KEYS = {
     "cell_v",
@@ -109,6 +110,8 @@ BUS_KEYS = {
     "reconnects",
     "streams",
 }
+DIAGNOSTICS_KEYS = {"level", "event", "entries"}
+ENTRY_KEYS = {"name", "sid", "level", "message", "values"}
 STREAM_KEYS = {
     "enabled",
     "requested_hz",
@@ -150,9 +153,14 @@ def check_schema(data: dict[str, Any]) -> None:
         "new_neck",
         "robot_state",
         "pid_debug",
+        "diagnostics",
     }
     for stream in data["bus"]["streams"].values():
         assert set(stream) == STREAM_KEYS
+    health = data["diagnostics"]
+    assert health is None or set(health) == DIAGNOSTICS_KEYS
+    for entry in [] if health is None else health["entries"]:
+        assert set(entry) == ENTRY_KEYS
 
 
 # -- one status -----------------------------------------------------------------------------

@@ -467,6 +467,10 @@ BAD_CALLS: list[tuple[str, Callable[[Robot], object]]] = [
     ("pid out of range", lambda r: r.set_pid(PidGains(kp=1e9, ki=0.0, kd=0.0))),
     ("pid not gains", lambda r: r.set_pid({"kp": 1})),  # type: ignore[arg-type]  # on purpose
     ("pose too far", lambda r: r.reset_odometry(2e6, 0.0, 0.0)),
+    ("set pose too far", lambda r: r.set_odometry(0.0, 0.0, -2e6)),
+    ("set pose nan", lambda r: r.set_odometry(math.nan, 0.0, 0.0)),
+    ("set pose not a number", lambda r: r.set_odometry(0.0, "1", 0.0)),  # type: ignore[arg-type]  # on purpose
+    ("rate of the health", lambda r: r.set_rate("diagnostics", 2.0)),
     ("rate out of range", lambda r: r.set_rate("wheel_encoder", 500.0)),
     ("rate of an event stream", lambda r: r.set_rate("robot_state", 5.0)),
     ("rate of no stream", lambda r: r.set_rate("odom", 5.0)),

@@ -96,6 +96,25 @@ def test_odom_reset_resets_the_daemons_odometry_for_every_client(via: str) -> No
     assert first["x_m"] == pytest.approx(1.5, abs=1e-3)
 
 
+def test_odom_set_sets_the_daemons_odometry_for_every_client(via: str) -> None:
+    result = invoke("odom", "set", "-2.5", "0.75", "-1")
+    assert result.code == 0, result.out
+    assert "odometry set: x -2.500 m  y +0.750 m  yaw -1.0000 rad" in result.stdout
+    assert "the daemon's odometry, for every client" in result.stdout
+    odom = odometry(via)
+    assert (odom["x_m"], odom["y_m"], odom["yaw_rad"]) == pytest.approx((-2.5, 0.75, -1), abs=1e-3)
+
+
+def test_diag_goes_through_the_daemon(via: str) -> None:
+    result = invoke("diag", "--json")
+    assert result.code == 0, result.out
+    assert f"via the daemon at {via}" in result.out
+    health = json.loads(result.stdout)
+    assert health["port"] == via
+    assert health["level"] == "ok", health
+    assert [e["name"] for e in health["entries"]][-1] == "link"
+
+
 def test_a_neck_move_stays_for_the_next_command(via: str) -> None:
     moved = invoke("neck", "--raw", "420", "--playtime", "0.3", "--yes", "--json")
     assert moved.code == 0, moved.out

@@ -125,6 +125,7 @@ async def test_a_command_without_the_lease_is_refused_to_that_client_and_moves_n
             ("light_ring", {"hue": 1, "saturation": 2, "value": 3}),
             ("set_pid", {"kp": 1.0, "ki": 0.0, "kd": 0.0}),
             ("reset_odometry", {"x_m": 5.0}),
+            ("set_odometry", {"x_m": 5.0, "y_m": 1.0, "yaw_rad": 0.5}),
             ("enable_stream", {"topic": "tbcore_status", "enabled": False}),
             ("release", {}),
         ]

@@ -143,6 +143,26 @@ async def test_an_odometry_pose_out_of_range_is_refused_and_the_pose_stays(
     await ws.close()
 
 
+async def test_set_odometry_takes_the_whole_pose_or_nothing(
+    robot: Robot, server: RobotServer
+) -> None:
+    ws = await raw(server.url)
+    await call(ws, 1, "acquire")
+    pose = {"x_m": -1.5, "y_m": 2.5, "yaw_rad": 0.75}
+    assert (await call(ws, 2, "set_odometry", **pose)) == {"op": "result", "id": 2, "data": None}
+    error = await call(ws, 3, "set_odometry", x_m=4.0, y_m=4.0)
+    assert (error["code"], error["id"]) == ("bad_message", 3), error
+    assert "yaw_rad: Field required" in error["message"]
+    error = await call(ws, 4, "set_odometry", x_m=4.0, y_m=4.0, yaw_rad=-2e6)
+    assert (error["code"], error["id"]) == ("bad_value", 4), error
+    assert "yaw_rad=-2000000.0 is out of range" in error["message"]
+    await asyncio.sleep(0.1)
+    odom = robot.latest("wheel_odom")
+    assert odom is not None
+    assert (odom.x_m, odom.y_m, odom.yaw_rad) == pytest.approx((-1.5, 2.5, 0.75), abs=1e-3)
+    await ws.close()
+
+
 async def test_stats_is_computed_once_for_the_callers_of_one_interval(server: RobotServer) -> None:
     first, second = await raw(server.url), await raw(server.url)
     for ws in (first, second):

@@ -18,7 +18,15 @@ from ohmni_tb.foxglove.channels import (
     channels_of,
     encoder_for,
 )
-from ohmni_tb.robot import STREAM_NAMES, Link, RobotStateSample, WheelOdomSample
+from ohmni_tb.robot import (
+    STREAM_NAMES,
+    DiagnosticEntry,
+    DiagnosticLevel,
+    DiagnosticsSample,
+    Link,
+    RobotStateSample,
+    WheelOdomSample,
+)
 from ohmni_tb.robot.samples import STREAMS
 from ohmni_tb.robot.wire import sample_from_json, sample_json
 from ohmni_tb.sim.clock import run_virtual
@@ -171,6 +179,28 @@ def test_a_state_change_goes_to_the_log_and_a_periodic_state_does_not() -> None:
         "foxglove.Log", encode(quiet.__class__(**{**_fields(quiet), "event": "opened"}), 0) or b""
     )
     assert back["level"] == 2  # INFO
+
+
+def test_a_health_level_change_goes_to_the_diagnostics_log_at_its_level() -> None:
+    spec = spec_of("/diagnostics/log")
+    assert spec.stream == "diagnostics"
+    encode = encoder_for(spec)
+    silent = DiagnosticEntry(
+        "ext1", 11, DiagnosticLevel.ERROR, "silent: 9 requests in a row unanswered", {}
+    )
+    link = DiagnosticEntry("link", None, DiagnosticLevel.OK, "ok", {"state": "connected"})
+    steady = DiagnosticsSample(3.0, DiagnosticLevel.ERROR, (silent, link))
+    assert encode(steady, 0) is None  # nothing changed: nothing to log
+    event = "ext1 ok → error: silent: 9 requests in a row unanswered"
+    changed = DiagnosticsSample(2.0, DiagnosticLevel.ERROR, (silent, link), event)
+    descriptors = Descriptors.parse(channel_schema(spec).data)
+    log = descriptors.decode("foxglove.Log", encode(changed, 7_000_000_000) or b"")
+    assert log["message"] == event
+    assert log["name"] == "ohmni_tb.diagnostics"
+    assert log["level"] == 4  # ERROR
+    assert log["timestamp"] == {"seconds": 7}
+    recovered = DiagnosticsSample(4.0, DiagnosticLevel.OK, (link,), "ext1 error → ok: ok")
+    assert descriptors.decode("foxglove.Log", encode(recovered, 0) or b"")["level"] == 2  # INFO
 
 
 def _fields(sample: RobotStateSample) -> dict[str, Any]:

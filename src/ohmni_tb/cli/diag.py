@@ -36,7 +36,7 @@ from ohmni_tb.errors import StateError
 if TYPE_CHECKING:
     from rich.table import Table
 
-    from ohmni_tb.robot import DiagnosticsSample, Robot
+    from ohmni_tb.robot import DiagnosticsSample, Robot, SampleStream
 
 __all__ = ["FIGURES", "FIRST_SAMPLE_MARGIN_S", "diag", "diagnostics_json", "diagnostics_table"]
 
@@ -148,12 +148,17 @@ async def _watch(robot: Robot, url: str, *, as_json: bool) -> None:
                         return  # the reader went away (`| head`)
                 else:
                     console.print(diagnostics_table(data))
-                sample = await anext(samples, None)
+                sample = await _next(samples)
     except (KeyboardInterrupt, asyncio.CancelledError):
         task = asyncio.current_task()
         if task is not None:
             while task.cancelling():
                 task.uncancel()
+
+
+async def _next(samples: SampleStream[DiagnosticsSample]) -> DiagnosticsSample | None:
+    """The next sample (``None``: the Robot closed)."""
+    return await anext(samples, None)
 
 
 def diagnostics_json(sample: DiagnosticsSample) -> dict[str, Any]:
