@@ -3,6 +3,7 @@ set``, against the simulator on virtual time."""
 
 from __future__ import annotations
 
+import itertools
 import json
 from typing import Any
 
@@ -92,7 +93,7 @@ def test_diag_watch_prints_each_sample_and_ctrl_c_ends_it_with_0(
     assert len(lines) == 4  # the first sample, then one a second
     assert all(line["level"] == "ok" for line in lines)
     stamps = [sample.stamp_s for sample in seen if sample is not None]
-    assert [round(b - a, 3) for a, b in zip(stamps, stamps[1:], strict=False)] == [1.0, 1.0]
+    assert [round(b - a, 3) for a, b in itertools.pairwise(stamps)] == [1.0, 1.0]
 
 
 @pytest.mark.usefixtures("virtual_time")

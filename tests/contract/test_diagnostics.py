@@ -5,6 +5,7 @@ within 2 s), ``set_odometry``, and ``wheel_odom``'s requested and limited twist.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -233,7 +234,7 @@ def test_wheel_odom_shows_the_request_and_what_the_limiter_made_of_it(kind: str)
     commanded = [s.commanded_linear_mps for s in driving]
     assert all(0.0 < c <= 1.0 for c in commanded)
     assert commanded == sorted(commanded)
-    steps = [b - a for a, b in zip(commanded, commanded[1:], strict=False) if b > a]
+    steps = [b - a for a, b in itertools.pairwise(commanded) if b > a]
     assert max(steps) == pytest.approx(0.5 / 50, rel=0.05)
     assert 0.4 < commanded[-1] < 0.55  # 1 s at 0.5 m/s²
     # Stopped: nothing requested, and the limiter brakes down to zero.

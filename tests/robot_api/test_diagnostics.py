@@ -64,7 +64,7 @@ async def test_an_unknown_firmware_tag_is_warn_and_says_how_to_report_it() -> No
     right = entry(sample, "right_drive")
     assert right.level is WARN
     assert right.message == f"firmware tag '2021-03-04-rc2' is {UNKNOWN_FIRMWARE}"
-    assert "`ohmni probe --share`" in right.message
+    assert "`ohmni probe --share FILE`" in right.message
     assert right.values["firmware"] == "2021-03-04-rc2"
     assert right.values["firmware_known"] is False
     assert entry(sample, "left_drive").values["firmware_known"] is True

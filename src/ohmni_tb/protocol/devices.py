@@ -82,7 +82,7 @@ def device_name(sid: int) -> str:
 
 #: The boards' firmware tags (EEP 0xF1, ASCII) the project knows, each with where it is
 #: known from: the simulator's, and only tags public sources show. A tag not listed is
-#: not wrong, only unseen: ``ohmni probe --share`` makes a report an owner can send.
+#: not wrong, only unseen: ``ohmni probe --share FILE`` makes a report an owner can send.
 KNOWN_FIRMWARE_TAGS: Mapping[str, str] = MappingProxyType(
     {
         "stable": "public notes on the vendor's boards, read at EEP 0xF1",

@@ -100,7 +100,7 @@ PID_SATURATION_WARN_SHARE: Final = 0.5
 #: enough for every device to have answered a few reads, early enough for ``ohmni status``.
 FIRST_SAMPLE_SHARE: Final = 0.5
 #: What an unknown firmware tag's entry says (WARN), after the tag.
-UNKNOWN_FIRMWARE: Final = "not one the project knows: `ohmni probe --share` and report it"
+UNKNOWN_FIRMWARE: Final = "not one the project knows: `ohmni probe --share FILE` and report it"
 
 #: The HerkuleX models this driver knows, by EEP 0.
 _MODELS: Final = {int(model): model.name for model in Model}
@@ -144,6 +144,17 @@ class _Before:
     checksum_errors: int = 0
     saturated: tuple[int, int] = (0, 0)
     levels: dict[str, DiagnosticLevel] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class _Period:
+    """What one sample is built from: the bus's counters now, and the counters of the
+    previous sample and of this one (the figures of the last period are their
+    difference)."""
+
+    bus: BusStats
+    before: _Before
+    after: _Before
 
 
 class Diagnostics:
@@ -229,15 +240,12 @@ class Diagnostics:
             checksum_errors=bus.decoder.checksum_errors,
             saturated=self._saturated_steps(),
         )
-        entries = [
-            *self._device_entries(bus, before, after),
-            self._link_entry(bus, before, after),
-        ]
+        period = _Period(bus, before, after)
+        entries = [*self._device_entries(period), self._link_entry(period)]
         entries = _with_faults(entries, sorted(state.faults))
         after.levels = {entry.name: entry.level for entry in entries}
         changes = [
-            f"{entry.name} {before.levels.get(entry.name, _OK)} → {entry.level}: "
-            f"{entry.message}"
+            f"{entry.name} {before.levels.get(entry.name, _OK)} → {entry.level}: {entry.message}"
             for entry in entries
             if entry.level is not before.levels.get(entry.name, _OK)
         ]
@@ -249,22 +257,20 @@ class Diagnostics:
             event="; ".join(changes) or None,
         )
 
-    def _device_entries(
-        self, bus: BusStats, before: _Before, after: _Before
-    ) -> list[DiagnosticEntry]:
+    def _device_entries(self, period: _Period) -> list[DiagnosticEntry]:
         state = self._state
         config = state.config
         entries = []
         for index, name in enumerate(("left_drive", "right_drive")):
-            entries.append(self._drive_entry(name, index, bus, before, after))
+            entries.append(self._drive_entry(name, index, period))
         if int(DeviceId.CORE) in state.expected:
-            entries.append(self._core_entry(bus, before, after))
+            entries.append(self._core_entry(period))
         neck_sid = self._neck_sid()
         if neck_sid is not None:
-            entries.append(self._neck_entry(neck_sid, bus, before, after))
+            entries.append(self._neck_entry(neck_sid, period))
         for ext, sid in zip(("ext1", "ext2"), config.ext_servo_ids, strict=False):
             stream = EXT_STREAMS[0 if ext == "ext1" else 1]
-            entries.append(self._servo_entry(ext, sid, stream, bus, before, after))
+            entries.append(self._servo_entry(ext, sid, stream, period))
         return entries
 
     def _neck_sid(self) -> int | None:
@@ -283,12 +289,13 @@ class Diagnostics:
     # -- what every device has -----------------------------------------------------------
 
     def _bus_findings(
-        self, sid: int, bus: BusStats, before: _Before, after: _Before
+        self, sid: int, period: _Period
     ) -> tuple[list[_Finding], dict[str, DiagnosticValue]]:
         """A device's reply figures from the bus's counters: present, silent, timeouts,
         latency."""
         state = self._state
-        stats: DeviceStats | None = bus.devices.get(sid)
+        before, after = period.before, period.after
+        stats: DeviceStats | None = period.bus.devices.get(sid)
         present = sid in state.present
         values: dict[str, DiagnosticValue] = {"present": present, "timeout_share": None}
         findings: list[_Finding] = []
@@ -360,31 +367,31 @@ class Diagnostics:
 
     # -- each kind of device ---------------------------------------------------------------
 
-    def _drive_entry(
-        self, name: str, index: int, bus: BusStats, before: _Before, after: _Before
-    ) -> DiagnosticEntry:
+    def _drive_entry(self, name: str, index: int, period: _Period) -> DiagnosticEntry:
         sid = _BOARDS[name]
-        findings, values = self._bus_findings(sid, bus, before, after)
+        findings, values = self._bus_findings(sid, period)
         self._board_firmware(sid, findings, values)
+        before, after = period.before, period.after
         span_s = after.stamp_s - before.stamp_s
         control = self._state.periodic.get("wheel_encoder")
-        steps = (
-            span_s / control.period_s if control is not None and control.period_s > 0 else 0.0
-        )
+        steps = span_s / control.period_s if control is not None and control.period_s > 0 else 0.0
         saturated = after.saturated[index] - before.saturated[index]
         share = min(1.0, saturated / steps) if steps > 0 else 0.0
         values["pid_saturated_share"] = round(share, 3)
         values["rejected_counts"] = self._rejected_counts()[index]
         if share > PID_SATURATION_WARN_SHARE:
             findings.append(
-                (_WARN, f"PID at the PWM limit {share:.0%} of the last period: the wheel "
-                 "asks more than its motor gives (a slope, a load, a blocked wheel?)")
+                (
+                    _WARN,
+                    f"PID at the PWM limit {share:.0%} of the last period: the wheel "
+                    "asks more than its motor gives (a slope, a load, a blocked wheel?)",
+                )
             )
         return _entry(name, sid, findings, values)
 
-    def _core_entry(self, bus: BusStats, before: _Before, after: _Before) -> DiagnosticEntry:
+    def _core_entry(self, period: _Period) -> DiagnosticEntry:
         sid = int(DeviceId.CORE)
-        findings, values = self._bus_findings(sid, bus, before, after)
+        findings, values = self._bus_findings(sid, period)
         self._board_firmware(sid, findings, values)
         battery: TbcoreStatusSample | None = self._state.topics["tbcore_status"].latest
         if battery is None or not battery.cell_v:
@@ -407,12 +414,10 @@ class Diagnostics:
                 findings.append((_WARN, f"cells {spread} mV apart: the pack is out of balance"))
         return _entry("core", sid, findings, values)
 
-    def _neck_entry(
-        self, sid: int, bus: BusStats, before: _Before, after: _Before
-    ) -> DiagnosticEntry:
+    def _neck_entry(self, sid: int, period: _Period) -> DiagnosticEntry:
         state = self._state
         if state.neck_kind == "worm":
-            findings, values = self._bus_findings(sid, bus, before, after)
+            findings, values = self._bus_findings(sid, period)
             self._board_firmware(sid, findings, values)
             values["kind"] = "worm"
             sample: WormNeckSample | None = state.topics["new_neck"].latest
@@ -420,7 +425,7 @@ class Diagnostics:
             values["stalled"] = None if sample is None else sample.stalled
             return _entry("neck", sid, findings, values)
         if state.neck_kind == "none":
-            findings, values = self._bus_findings(sid, bus, before, after)
+            findings, values = self._bus_findings(sid, period)
             config = state.config
             looked = {
                 "auto": f"HerkuleX at {config.neck_id}, worm gear at {int(DeviceId.WORM_NECK)}",
@@ -430,21 +435,19 @@ class Diagnostics:
             findings = [(_ERROR, f"absent: no neck answered (looked for {looked})")]
             values["kind"] = None
             return _entry("neck", sid, findings, values)
-        return self._servo_entry("neck", sid, "servo_neck", bus, before, after, kind="herkulex")
+        return self._servo_entry("neck", sid, "servo_neck", period, kind="herkulex")
 
     def _servo_entry(
         self,
         name: str,
         sid: int,
         stream: str,
-        bus: BusStats,
-        before: _Before,
-        after: _Before,
+        period: _Period,
         *,
         kind: str | None = None,
     ) -> DiagnosticEntry:
         state = self._state
-        findings, values = self._bus_findings(sid, bus, before, after)
+        findings, values = self._bus_findings(sid, period)
         if kind is not None:
             values["kind"] = kind
         read = self._models.get(sid)
@@ -479,8 +482,9 @@ class Diagnostics:
             findings.append((_WARN, f"loaded: PWM {pwm} of {_FULL_PWM}"))
         return _entry(name, sid, findings, values)
 
-    def _link_entry(self, bus: BusStats, before: _Before, after: _Before) -> DiagnosticEntry:
+    def _link_entry(self, period: _Period) -> DiagnosticEntry:
         state = self._state
+        bus = period.bus
         findings: list[_Finding] = []
         link = state.link
         if link is Link.LOST:
@@ -495,7 +499,7 @@ class Diagnostics:
                 )
             )
         checksum = bus.decoder.checksum_errors
-        new_checksum = checksum - before.checksum_errors
+        new_checksum = checksum - period.before.checksum_errors
         if new_checksum > 0:
             findings.append(
                 (_WARN, f"{new_checksum} frames failed their checksum in the last period: noise?")
@@ -592,7 +596,9 @@ def _with_faults(entries: list[DiagnosticEntry], faults: list[str]) -> list[Diag
     owned: dict[int, list[str]] = {}
     for fault in faults:
         _, _, tail = fault.partition(":")
-        index = by_sid.get(int(tail)) if tail.isdigit() else by_name.get(_FAULT_OWNERS.get(fault, ""))
+        index = (
+            by_sid.get(int(tail)) if tail.isdigit() else by_name.get(_FAULT_OWNERS.get(fault, ""))
+        )
         if index is None:
             index = by_name["link"]
         owned.setdefault(index, []).append(fault)
@@ -614,5 +620,7 @@ def _flag_names(flags: StatusError) -> str:
     """The set bits' names, ``|``-joined (``""``: none)."""
     value = int(flags)
     return "|".join(
-        member.name for member in StatusError if member.name and member.value and value & member.value
+        member.name
+        for member in StatusError
+        if member.name and member.value and value & member.value
     )
