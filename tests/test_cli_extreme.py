@@ -90,6 +90,7 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("neck",): {"raw": "400", "playtime": "0.2"},
     ("odom",): {"rate": "20", "duration": "0.2", "count": "2"},
     ("odom", "reset"): {"x": "0.5", "y": "-0.5", "yaw": "1"},
+    ("odom", "set"): {"x": "0.5", "y": "-0.5", "yaw": "1"},
     # Asks a daemon on a port where none listens: never a developer's own daemon.
     ("serve",): {"handoff": "1", "listen": "127.0.0.1:1"},
     # A file of its own, replaced each time (FILE is text: not fuzzed).

@@ -753,7 +753,9 @@ class _Queue:
         self.items: deque[str] = deque()
         self.maxlen = 64
         self.interval_s = 0.0
-        self.next_due_s = 0.0
+        # Before any sample: the first one goes, and the cap counts from it (a clock that
+        # starts near 0, as a virtual one, would otherwise let the second follow too soon).
+        self.next_due_s = -math.inf
         self.every = 1
         self._since_sent = 0
         #: Samples lost since the client's last one (told in that topic's next sample).
