@@ -113,6 +113,9 @@ _FAULT_OWNERS: Final = {
     "link_lost": "link",
     "stale_feedback": "link",
 }
+#: The external servos' entries, in the order of ``ext_servo_ids`` (their streams'
+#: order: ``servo_ext1``, ``servo_ext2``).
+_EXT_NAMES: Final = tuple(stream.removeprefix("servo_") for stream in EXT_STREAMS)
 #: The boards (a firmware tag at EEP 0xF1) by entry name.
 _BOARDS: Final = {
     "left_drive": int(DeviceId.LEFT_DRIVE),
@@ -181,7 +184,7 @@ class Diagnostics:
         self._reads: asyncio.Task[None] | None = None
         self._models: dict[int, _Model] = {}
         self._load_pwm: dict[int, int] = {}
-        #: Devices seen silent by the reads: their firmware is read again when they answer.
+        #: Servos seen silent by the reads: their model is read again once they answer.
         self._silenced: set[int] = set()
         self._before: _Before | None = None
 
@@ -268,9 +271,8 @@ class Diagnostics:
         neck_sid = self._neck_sid()
         if neck_sid is not None:
             entries.append(self._neck_entry(neck_sid, period))
-        for ext, sid in zip(("ext1", "ext2"), config.ext_servo_ids, strict=False):
-            stream = EXT_STREAMS[0 if ext == "ext1" else 1]
-            entries.append(self._servo_entry(ext, sid, stream, period))
+        for ext, sid in zip(_EXT_NAMES, config.ext_servo_ids, strict=False):
+            entries.append(self._servo_entry(ext, sid, period))
         return entries
 
     def _neck_sid(self) -> int | None:
@@ -435,13 +437,12 @@ class Diagnostics:
             findings = [(_ERROR, f"absent: no neck answered (looked for {looked})")]
             values["kind"] = None
             return _entry("neck", sid, findings, values)
-        return self._servo_entry("neck", sid, "servo_neck", period, kind="herkulex")
+        return self._servo_entry("neck", sid, period, kind="herkulex")
 
     def _servo_entry(
         self,
         name: str,
         sid: int,
-        stream: str,
         period: _Period,
         *,
         kind: str | None = None,
