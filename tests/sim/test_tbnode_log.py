@@ -243,7 +243,10 @@ def test_a_robots_traffic_logged_converted_and_decoded_by_the_monitor(tmp_path: 
     for sid, raw in ((0, encoder.left_raw), (1, encoder.right_raw)):
         reads = [e for e in events if e["sid"] == sid and e["text"] == "RAM_READ count len 4"]
         replies = [e for e in events if e["sid"] == sid and e["cmd"] == Command.RAM_READ | 0x40]
-        assert len(reads) == len(replies) == stats.devices[sid].requests
+        # Every request to the board: the count reads, and its firmware tag read at open.
+        tag = [e for e in events if e["sid"] == sid and e["text"] == "EEP_READ firmware_tag len 0"]
+        assert len(reads) == len(replies)
+        assert len(reads) + len(tag) == stats.devices[sid].requests
         wire_ms = ((9 + 15) * _BYTE_S + _TURNAROUND_S) * 1e3
         assert [e["latency_ms"] for e in replies] == pytest.approx(
             [wire_ms] * len(replies), abs=2e-3
@@ -257,9 +260,20 @@ def test_a_robots_traffic_logged_converted_and_decoded_by_the_monitor(tmp_path: 
         f"{'docked' if battery.docked else 'undocked'}, {battery.percent} %"
     )
     core = [e["text"] for e in events if e["sid"] == 20]
-    assert core.count("RAM_READ status (assumed) len 18") == stats.devices[20].requests
+    # The status reads, and the core board's firmware tag read at open.
+    assert (
+        core.count("RAM_READ status (assumed) len 18") + core.count("EEP_READ firmware_tag len 0")
+        == stats.devices[20].requests
+    )
     assert status in core
-    assert rows[20]["rate_hz"] == pytest.approx(10, rel=0.15)
+    # The battery stream's rate, from the times the log gave its reads (the monitor's
+    # per-device rate counts the tag read at open too).
+    times = [
+        e["t_s"]
+        for e in events
+        if e["sid"] == 20 and e["text"] == "RAM_READ status (assumed) len 18"
+    ]
+    assert (len(times) - 1) / (times[-1] - times[0]) == pytest.approx(10, rel=0.15)
 
     # The same log as raw bytes: the same packets, without times.
     raw_bytes = tmp_path / "bus.bin"
