@@ -29,6 +29,7 @@ frozen objects (:meth:`RobotConfig.drive`, :meth:`RobotConfig.pid_gains`, ...).
 from __future__ import annotations
 
 import difflib
+import json
 import logging
 import os
 import tomllib
@@ -666,7 +667,7 @@ class RobotConfig(BaseSettings):
         ]
         for name, info in cls.model_fields.items():
             lines.extend(f"# {text}" for text in _wrapped(info.description or "", 86))
-            lines += [f"# {name} = {_toml_value(info.default)}", ""]
+            lines += [f"# {name} = {toml_value(name, info.default)}", ""]
         return "\n".join(lines)
 
     @classmethod
@@ -997,6 +998,31 @@ _KIND_ERRORS = {
 }
 
 
+def toml_value(name: str, value: object) -> str:
+    """``value`` as a TOML value (what :func:`toml_settings` reads back as the same):
+    a bool, a number, a string, or a list of integers (the servo ids).
+
+    Raises:
+        ConfigError: A kind of value a setting never holds; the message names it.
+    """
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)  # the shortest text that reads back as the same number
+    if isinstance(value, str):
+        # A JSON string is a TOML basic string: the same quotes and escapes.
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)) and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in value
+    ):
+        return "[" + ", ".join(str(v) for v in value) + "]"
+    raise ConfigError(
+        f"{name}={value!r}: a setting is a number, a string, a boolean or a list of integers"
+    )
+
+
 def toml_settings(text: str, path: object) -> dict[str, Any]:
     """A config file's text parsed as TOML.
 
@@ -1173,17 +1199,6 @@ def _existing(path: Path, why: str) -> Path:
     if not path.is_file():
         raise ConfigError(f"config file is not a file: {path}{why}")
     return path
-
-
-def _toml_value(value: object) -> str:
-    """A default as a TOML value."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, tuple):
-        return "[" + ", ".join(map(str, value)) + "]"
-    if isinstance(value, int | float):
-        return repr(value)  # the shortest text that reads back as the same number
-    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def _wrapped(text: str, width: int) -> list[str]:

@@ -17,7 +17,6 @@ built on it. Values are numbers, strings, booleans or lists of integers::
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -25,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ohmni_tb.config import CONFIG_ENV, RobotConfig, config_paths, toml_settings
+from ohmni_tb.config import CONFIG_ENV, RobotConfig, config_paths, toml_settings, toml_value
 from ohmni_tb.errors import ConfigError
 
 __all__ = [
@@ -129,7 +128,7 @@ def write_settings(
             editor does not change safely (the message says which: set it by hand).
     """
     _check_values(values)
-    shown = {key: _toml_value(key, value) for key, value in values.items()}
+    shown = {key: toml_value(key, value) for key, value in values.items()}
 
     created = not path.exists()
     if created:
@@ -248,26 +247,6 @@ def _check_values(values: Mapping[str, SettingValue]) -> None:
     """Each value as RobotConfig takes it from a file, or a ConfigError naming it."""
     for key, value in values.items():
         RobotConfig.check_setting(key, _as_read(value))
-
-
-def _toml_value(key: str, value: object) -> str:
-    """``value`` as a TOML value, or a ConfigError for a kind the file cannot hold."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, str):
-        # A JSON string is a TOML basic string: the same quotes and escapes.
-        return json.dumps(value)
-    if isinstance(value, (list, tuple)) and all(
-        isinstance(v, int) and not isinstance(v, bool) for v in value
-    ):
-        return "[" + ", ".join(str(v) for v in value) + "]"
-    raise ConfigError(
-        f"{key}={value!r}: write_settings writes numbers, strings, booleans and lists of integers"
-    )
 
 
 def _as_read(value: object) -> object:

@@ -10,6 +10,7 @@ that differ, the report as JSON and the report to share (:func:`shareable`).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import statistics
 from collections.abc import Iterable, Mapping, Sequence
@@ -263,18 +264,8 @@ class AdapterInfo:
     sysfs_path: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """For JSON."""
-        return {
-            "port": self.port,
-            "usb": self.usb,
-            "tty": self.tty,
-            "latency_timer_ms": self.latency_timer_ms,
-            "low_latency": self.low_latency,
-            "usb_id": self.usb_id,
-            "product": self.product,
-            "serial_number": self.serial_number,
-            "sysfs_path": self.sysfs_path,
-        }
+        """For JSON: every field, by name."""
+        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True, slots=True)
