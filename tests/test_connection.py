@@ -227,6 +227,81 @@ def test_a_link_without_a_baud_rate_is_not_pipelined() -> None:
     assert exchange.expires_at == pytest.approx(c.turnaround_s + c.timeout_s)
 
 
+# -- a clock in whole milliseconds ---------------------------------------------------------
+
+
+def _ms(t: float) -> float:
+    """What a clock in whole milliseconds (uvloop's loop.time()) reads at ``t``."""
+    return math.floor(t * 1000 + 1e-9) / 1000
+
+
+def _on_a_millisecond_clock(c: BusConnection, count: int) -> tuple[int, int, float]:
+    """Reads on a true timeline, stamped by a clock in whole milliseconds: the device
+    answers 0.5 ms after each request. Returns the replies taken, those refused as
+    early, and the shortest true quiet between a reply's end and the next request."""
+    true_t = 0.0104
+    taken = early = 0
+    quiet = math.inf
+    reply_end = -math.inf
+    for k in range(count):
+        request = read_count(k % 2)
+        # The owner waits until its own clock says the line is free (and the request's
+        # look-alike answered or given up), then sends.
+        while True:
+            stamp = _ms(true_t)
+            c.poll(stamp)
+            if stamp + 1e-12 >= max(c.free_at, c.blocked_until(request, stamp)):
+                break
+            true_t = stamp + 0.001
+        quiet = min(quiet, true_t - reply_end)
+        exchange = c.send(request, stamp)
+        reply_end = true_t + (request.size + 15) * BYTE_S + 0.0005
+        for event in c.receive_data(encode_packet(count_reply(k % 2, k)), _ms(reply_end)):
+            taken += isinstance(event, ReplyReceived)
+            early += isinstance(event, StrayPacket) and event.kind is StrayKind.EARLY
+        # The owner comes back a little later; an unanswered request is waited out.
+        true_t = reply_end + 0.000137 * (k % 7)
+        if not exchange.done:
+            true_t = max(true_t, exchange.expires_at)
+    return taken, early, quiet
+
+
+def test_a_clock_in_whole_milliseconds_takes_every_reply_and_keeps_the_guard() -> None:
+    # Told its clock's step, the connection allows for stamps up to a step behind.
+    c = conn(clock_resolution_s=0.001)
+    taken, early, quiet = _on_a_millisecond_clock(c, 200)
+    assert (taken, early) == (200, 0)
+    assert quiet >= GUARD  # never talked over the end of a reply
+    stats = c.stats(10.0)
+    assert sum(d.timeouts for d in stats.devices.values()) == 0
+    # Not told, it takes good replies for another request's, come too early.
+    taken, early, _ = _on_a_millisecond_clock(conn(), 200)
+    assert early == 200
+    assert taken == 0
+
+
+def test_a_coarse_clock_widens_the_windows_by_its_step_and_nothing_else() -> None:
+    exact, coarse = conn(), conn(clock_resolution_s=0.001)
+    a, b = exact.send(read_count(0), 1.0), coarse.send(read_count(0), 1.0)
+    assert b.reply_earliest_s == a.reply_earliest_s  # a lower bound stays one
+    assert b.wire_end_s == pytest.approx(a.wire_end_s + 0.001)
+    assert b.window_end_s == pytest.approx(a.window_end_s + 0.001)
+    assert b.expires_at == pytest.approx(a.expires_at + 0.001)
+    assert coarse.free_at == pytest.approx(exact.free_at + 0.001)
+    # A reply stamped half a step before it could have been complete is still taken...
+    early_stamp = a.reply_earliest_s - 0.0005
+    assert only(coarse.receive_data(encode_packet(count_reply(0, 1)), early_stamp), ReplyReceived)
+    assert only(exact.receive_data(encode_packet(count_reply(0, 1)), early_stamp), StrayPacket)
+    # ... and the line frees a guard after the latest the reply can really have come.
+    assert coarse.free_at == pytest.approx(early_stamp + 0.001 + GUARD)
+
+
+@pytest.mark.parametrize("bad", [-0.001, 0.5, math.nan])
+def test_a_clock_resolution_out_of_range_is_refused(bad: float) -> None:
+    with pytest.raises(OutOfRangeError, match="clock_resolution_s"):
+        conn(clock_resolution_s=bad)
+
+
 # -- which reply answers which request -----------------------------------------------------
 
 

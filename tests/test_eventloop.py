@@ -17,6 +17,8 @@ import selectors
 import socket
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -28,11 +30,12 @@ from ohmni_tb.errors import ConfigError, OutOfRangeError
 from ohmni_tb.eventloop import (
     MILLISECOND_S,
     PreciseEpollSelector,
+    line_clock,
     new_event_loop,
     timer_resolution_s,
 )
 from ohmni_tb.robot import core
-from ohmni_tb.sim.clock import run_virtual
+from ohmni_tb.sim.clock import VirtualClockLoop, run_virtual
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="epoll is Linux's")
 
@@ -98,6 +101,64 @@ def test_timer_resolution_tells_the_loops_apart() -> None:
     finally:
         poll_loop.close()
         select_loop.close()
+
+
+def _uvloop_factory() -> Callable[[], asyncio.AbstractEventLoop]:
+    uvloop = pytest.importorskip("uvloop", reason="uvloop is an optional test dependency")
+    factory: Callable[[], asyncio.AbstractEventLoop] = uvloop.new_event_loop
+    return factory
+
+
+def test_uvloop_timers_count_whole_milliseconds_and_the_line_clock_does_not() -> None:
+    async def main() -> tuple[float, float, float, list[float]]:
+        loop = asyncio.get_running_loop()
+        clock = line_clock()
+        # uvloop's own time is the monotonic clock in whole milliseconds...
+        behind = max(time.monotonic() - loop.time() for _ in range(200))
+        late: list[float] = []
+        for k in range(30):
+            # ... and its timers round their delay to the millisecond: set on the line
+            # clock's grid, none fires before its time.
+            when = clock.now() + 0.0002 + 0.00037 * (k % 5)
+            fired: asyncio.Future[float] = loop.create_future()
+            clock.call_at(when, lambda f=fired: f.set_result(clock.now()))  # type: ignore[misc]
+            late.append(await fired - when)
+        return timer_resolution_s(), clock.grid_s, behind, late
+
+    with asyncio.Runner(loop_factory=_uvloop_factory()) as runner:
+        resolution, grid, behind, late = runner.run(main())
+    assert resolution == MILLISECOND_S
+    assert grid == MILLISECOND_S
+    assert 0.0 <= behind < 2 * MILLISECOND_S
+    assert min(late) >= 0.0
+
+
+def test_the_line_clock_is_the_monotonic_clock_or_the_loops_own_time() -> None:
+    async def clock() -> tuple[Callable[[], float], float, float]:
+        chosen = line_clock()
+        return chosen.now, chosen.resolution_s, chosen.grid_s
+
+    # asyncio's loops: their own time() is time.monotonic, read without the method call.
+    assert asyncio.run(clock()) == (time.monotonic, 0.0, 0.0)
+    assert ohmni_tb.run(clock()) == (time.monotonic, 0.0, 0.0)
+    # Virtual time: the loop's own clock, exact.
+    now, resolution, grid = run_virtual(clock())
+    assert (resolution, grid) == (0.0, 0.0)
+    assert getattr(now, "__self__", None) is not None
+    assert isinstance(now.__self__, VirtualClockLoop)  # type: ignore[attr-defined]
+
+    class CoarseVirtualLoop(VirtualClockLoop):
+        """Virtual time read in whole milliseconds, and saying so."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self._clock_resolution = MILLISECOND_S
+
+        def time(self) -> float:
+            return int(super().time() * 1000) / 1000
+
+    with asyncio.Runner(loop_factory=CoarseVirtualLoop) as runner:
+        assert runner.run(clock())[1:] == (MILLISECOND_S, 0.0)
 
 
 def test_run_returns_the_result_on_a_precise_loop_and_closes_it() -> None:

@@ -62,6 +62,7 @@ from ohmni_tb.errors import (
     StateError,
     TransportError,
 )
+from ohmni_tb.eventloop import LineClock, line_clock
 from ohmni_tb.protocol import (
     BROADCAST_ID,
     MAX_PACKET_SIZE,
@@ -399,6 +400,9 @@ class Bus:
         self.close_timeout_s = float(close_timeout_s)
         self._reopen = reopen
         self._loop: asyncio.AbstractEventLoop | None = None
+        # The line's time (ohmni_tb.eventloop.line_clock): chosen for the loop at start.
+        self._clock: LineClock | None = None
+        self._now: Callable[[], float] = _not_started
         self._waiting: list[_Part] = []
         # Every slot whose caller still waits, wherever its packets are.
         self._active: set[Slot] = set()
@@ -469,6 +473,9 @@ class Bus:
         if self._started:
             return
         self._loop = asyncio.get_running_loop()
+        self._clock = clock = line_clock(self._loop)
+        self._now = clock.now
+        self._conn.clock_resolution_s = clock.resolution_s
         self._lost = asyncio.Event()
         self._transport.start_receiving(self._on_data, self._on_lost)
         self._started = True
@@ -559,6 +566,19 @@ class Bus:
     def connection(self) -> BusConnection:
         """The sans-IO line state this bus drives."""
         return self._conn
+
+    @property
+    def clock(self) -> LineClock:
+        """The clock the bus keeps the line's time with, in the loop's time base
+        (:func:`~ohmni_tb.eventloop.line_clock`): its stamps, and timers that never fire
+        early.
+
+        Raises:
+            BusClosedError: The bus is not started.
+        """
+        if self._clock is None:
+            raise BusClosedError("the bus is not started: use `async with Bus(...)`")
+        return self._clock
 
     async def wait_lost(self) -> TransportError:
         """Wait until the link is lost and return why (at once if it is lost now).
@@ -955,7 +975,7 @@ class Bus:
     @property
     def stats(self) -> BusStats:
         """A snapshot of every counter."""
-        now = self._loop.time() if self._loop is not None else 0.0
+        now = self._now() if self._loop is not None else 0.0
         line = self._conn.stats(now)
         waits = sorted(self._waits)
         return BusStats(
@@ -1042,7 +1062,7 @@ class Bus:
             self._checked[id(given)] = cast(tuple[Packet, ...], given)
         self._check_usable()
         loop = self._loop_()
-        now = loop.time()
+        now = self._now()
         slot = Slot(
             packets,
             wants,
@@ -1092,7 +1112,7 @@ class Bus:
         packet = slot.packets[index]
         retry_in = slot.refused[index]
         if retry_in is not None:
-            now = self._loop_().time()
+            now = self._now()
             raise DeviceUnavailableError(
                 sid=packet.sid,
                 cmd=packet.cmd,
@@ -1154,10 +1174,10 @@ class Bus:
                 self._taps.remove(tap)
 
     def _on_data(self, data: bytes) -> None:
-        loop = self._loop
-        if loop is None or self._closed:
+        if self._closed or self._loop is None:
             return
-        now = loop.time()
+        # Stamped as it is read: the line's clock, whatever the loop's own resolution.
+        now = self._now()
         if self._taps:
             self._tapped(False, data, now)
         events = self._conn.receive_data(data, now)
@@ -1177,8 +1197,7 @@ class Bus:
         """The link is down (lost, or released when not ``loss``): fail what waits."""
         if self._failure is not None or self._closed:
             return
-        loop = self._loop
-        now = loop.time() if loop is not None else 0.0
+        now = self._now() if self._loop is not None else 0.0
         self._failure = exc
         if loss:
             self._link_losses += 1
@@ -1223,7 +1242,9 @@ class Bus:
         if when == math.inf:
             return
         self._wake_at = when
-        self._wake = self._loop_().call_at(when, self._on_wake)
+        clock = self._clock
+        assert clock is not None  # armed only once started
+        self._wake = clock.call_at(when, self._on_wake)
 
     def _progress(self) -> asyncio.Future[None]:
         if self._urgent_done is None or self._urgent_done.done():
@@ -1246,7 +1267,7 @@ class Bus:
         try:
             while True:
                 self._again = False
-                self._run(loop.time())
+                self._run(self._now())
                 if not self._again:
                     break
         finally:
@@ -1420,7 +1441,7 @@ class Bus:
         loop = self._loop_()
         exchange = self._conn.send(
             packet,
-            loop.time(),
+            self._now(),
             expect_reply=expect,
             timeout_s=slot.timeout_s,
             attempt=attempt,
@@ -1441,7 +1462,7 @@ class Bus:
             # Its reply could not be told from another's: send it and ignore the answer.
             expect = False
         loop = self._loop_()
-        exchange = conn.send(packet, loop.time(), expect_reply=expect)
+        exchange = conn.send(packet, self._now(), expect_reply=expect)
         if expect:
             conn.abandon(exchange)
         if self._write(exchange, loop) and urgent.future is not None and not urgent.future.done():
@@ -1458,7 +1479,7 @@ class Bus:
         except TransportError as exc:
             self._on_lost(exc)
             return False
-        now = loop.time()
+        now = self._now()
         self._conn.written(exchange, now)
         if self._taps:
             self._tapped(True, exchange.frame, now)
@@ -1483,7 +1504,7 @@ class Bus:
         if slot.future.done() or slot.cancelled:
             return
         packet = slot.packets[index]
-        now = self._loop_().time()
+        now = self._now()
         may_retry = (
             event.reason is not MissingReason.LINK_LOST
             and is_idempotent(packet)
@@ -1495,6 +1516,10 @@ class Bus:
             slot.settle(index, None)
             return
         self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
+
+
+def _not_started() -> float:
+    raise BusClosedError("the bus is not started: use `async with Bus(...)`")
 
 
 #: Packet tuples remembered as checked (``Bus._checked``); more, and it starts over.

@@ -19,6 +19,7 @@ import pytest
 
 from ohmni_tb.bus import Bus, ReplyPacket
 from ohmni_tb.errors import DeadlineMissedError, OutOfRangeError
+from ohmni_tb.eventloop import line_clock
 from ohmni_tb.protocol import Packet
 from ohmni_tb.protocol.drive import read_count
 from ohmni_tb.robot.schedule import MAX_IN_FLIGHT, CycleResult, Periodic
@@ -219,6 +220,7 @@ class FakeBus:
         fail: BaseException | None = None,
     ) -> None:
         self.loop = loop
+        self.clock = line_clock(loop)
         self.busy_s = busy_s
         self.stall_s = stall_s
         self.fail = fail

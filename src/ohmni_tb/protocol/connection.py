@@ -54,6 +54,11 @@ The rules:
   :meth:`~BusConnection.refusal` says to fail requests to it at once, except probes: the
   first 0.125 s after it opened, then at doubling gaps up to one every
   ``probe_interval_s``; its first reply closes the breaker.
+* **A coarse clock is allowed for.** Every ``now`` may be up to ``clock_resolution_s``
+  earlier than the truth (a clock that counts whole milliseconds reads up to one behind):
+  a reply is early only when it came more than that before its request could have been
+  answered, and every time the line is held (a request's reply window, the guard after a
+  reply, a hold) ends that much later. With an exact clock (the default, 0) nothing moves.
 * **Nothing dropped silently.** Echoes of our own requests, other masters' requests,
   early, late, unmatched replies and replies to abandoned requests are each counted, per
   device where there is one, beside the decoder's own counters.
@@ -549,6 +554,8 @@ class BusConnection:
             probes have backed off (the first goes 0.125 s after it opens).
         caution_s: How long junk on the line makes a pipelined connection wait for each
             reply before the next request (0: never).
+        clock_resolution_s: How much earlier than the truth the owner's ``now`` may be
+            (its clock's step: 0.001 for one in whole milliseconds; 0: exact).
 
     Raises:
         OutOfRangeError: A setting is out of range; the message names it.
@@ -568,6 +575,7 @@ class BusConnection:
         breaker_quiet_s: float = DEFAULT_BREAKER_QUIET_S,
         probe_interval_s: float = DEFAULT_PROBE_INTERVAL_S,
         caution_s: float = DEFAULT_CAUTION_S,
+        clock_resolution_s: float = 0.0,
     ) -> None:
         if baudrate is not None and (
             isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0
@@ -579,6 +587,7 @@ class BusConnection:
         check_seconds("breaker_quiet_s", breaker_quiet_s, 0.0, 3600.0)
         check_seconds("probe_interval_s", probe_interval_s, 0.001, 3600.0)
         check_seconds("caution_s", caution_s, 0.0, 60.0)
+        check_seconds("clock_resolution_s", clock_resolution_s, 0.0, 0.1)
         integer("breaker_timeouts", breaker_timeouts, 1, 1000)
         self.baudrate = baudrate
         self.byte_s = 0.0 if baudrate is None else BITS_PER_BYTE / baudrate
@@ -591,6 +600,7 @@ class BusConnection:
         self.breaker_quiet_s = float(breaker_quiet_s)
         self.probe_interval_s = float(probe_interval_s)
         self.caution_s = float(caution_s)
+        self.clock_resolution_s = float(clock_resolution_s)
         self._decoder = PacketDecoder(max_size=max_packet_size, commands=commands)
         self._outstanding: ReplyMatcher[Exchange] = ReplyMatcher()
         self._keys: dict[tuple[int, int, int], Exchange] = {}
@@ -768,7 +778,8 @@ class BusConnection:
         if expect_reply and (key in self._keys or self._holds.get(key, -math.inf) > now + _EPS):
             raise StateError(f"an identical request is outstanding or held: {packet!r}")
         byte_s = self.byte_s
-        wire_end = now + len(frame) * byte_s
+        # A coarse clock may read behind: the bytes may have gone that much later.
+        wire_end = now + self.clock_resolution_s + len(frame) * byte_s
         device = self._device(packet.sid)
         device.requests += 1
         if attempt:
@@ -785,7 +796,7 @@ class BusConnection:
                 attempt=attempt,
                 sent_at=now,
                 wire_end_s=wire_end,
-                reply_earliest_s=wire_end + smallest * byte_s,
+                reply_earliest_s=now + (len(frame) + smallest) * byte_s,
                 window_end_s=window_end,
                 expires_at=window_end + timeout,
                 token=token,
@@ -962,7 +973,13 @@ class BusConnection:
             # for one reply window.
             self._foreign += 1
             _, largest = reply_size_range(packet, max_packet_size=self.max_packet_size)
-            busy_until = now + self.turnaround_s + largest * self.byte_s + self.guard_s
+            busy_until = (
+                now
+                + self.clock_resolution_s
+                + self.turnaround_s
+                + largest * self.byte_s
+                + self.guard_s
+            )
             self._free_at = max(self._free_at, busy_until)
             events.append(StrayPacket(packet, now, StrayKind.FOREIGN_REQUEST))
             return
@@ -977,7 +994,7 @@ class BusConnection:
                 self._stray(packet, now, StrayKind.TWIN, events)
                 self._miss(exchange, MissingReason.AMBIGUOUS, now, events)
                 return
-            if now + _EPS < exchange.reply_earliest_s:
+            if now + self.clock_resolution_s + _EPS < exchange.reply_earliest_s:
                 # Its request's bytes and its own could not both have crossed the line
                 # yet: this is another request's reply that merely looks the same, and
                 # more of those may queue ahead of its own.
@@ -1004,7 +1021,9 @@ class BusConnection:
                 self._outstanding.add(exchange.packet, exchange)
                 exchange._held_reply = packet
                 exchange._held_at = now
-                exchange._confirm_at = now + self._window_s(packet.sid, packet.size)
+                exchange._confirm_at = (
+                    now + self.clock_resolution_s + self._window_s(packet.sid, packet.size)
+                )
                 return
             self._answer(exchange, packet, now, events)
             return
@@ -1039,7 +1058,9 @@ class BusConnection:
         key = _reply_key(packet)
         # Its sender may have more of these queued: its look stays suspect and held.
         self._suspect.add(key)
-        hold = now + self._window_s(packet.sid, packet.size) + self.timeout_s
+        hold = (
+            now + self.clock_resolution_s + self._window_s(packet.sid, packet.size) + self.timeout_s
+        )
         self._holds[key] = max(self._holds.get(key, -math.inf), hold)
         device = self._device(packet.sid)
         device.unmatched += 1
@@ -1065,7 +1086,7 @@ class BusConnection:
         if exchange is self._last:
             # The reply is in, so the line went quiet no later than now, whatever the
             # budget said.
-            self._free_at = min(self._free_at, now + self.guard_s)
+            self._free_at = min(self._free_at, now + self.clock_resolution_s + self.guard_s)
         if exchange.abandoned:
             device.abandoned += 1
             self._abandoned += 1
@@ -1083,7 +1104,7 @@ class BusConnection:
         self._keys.pop(key, None)
         # A device slower than its budget may still answer: an identical request waits
         # one more window, in which that answer is recognised as late.
-        hold = now + (exchange.expires_at - exchange.wire_end_s)
+        hold = now + self.clock_resolution_s + (exchange.expires_at - exchange.wire_end_s)
         self._holds[key] = max(self._holds.get(key, -math.inf), hold)
         self._suspect.add(key)
         exchange._state = _State.MISSING
@@ -1107,7 +1128,7 @@ class BusConnection:
             device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
             device.next_probe_at = now + device.probe_gap
         if exchange is self._last and self._free_at == math.inf:
-            self._free_at = now + self.guard_s
+            self._free_at = now + self.clock_resolution_s + self.guard_s
         if not exchange.abandoned:
             events.append(ReplyMissing(exchange, reason))
 

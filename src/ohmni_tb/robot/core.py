@@ -555,7 +555,8 @@ def _warn_if_coarse_timers(transport: Transport) -> None:
         return
     _coarse_timers_told = True
     _log.warning(
-        "this event loop's timers fire up to 1 ms late (asyncio's epoll waits in whole "
-        "milliseconds): behind a USB adapter that holds replies the servo streams can miss "
-        "their rates; run the program with ohmni_tb.run(main()) instead of asyncio.run"
+        "this event loop's timers fire up to 1 ms late (asyncio's epoll waits, and uvloop "
+        "counts its timers, in whole milliseconds): behind a USB adapter that holds replies "
+        "the servo streams can miss their rates; run the program with ohmni_tb.run(main()) "
+        "instead of asyncio.run"
     )

@@ -116,7 +116,7 @@ class Periodic:
         self.stop()
         self._t0 = t0 + self.phase_s
         self._k = 0
-        now = asyncio.get_running_loop().time()
+        now = self.bus.clock.now()
         if now > self._t0:
             self._k = math.ceil((now - self._t0) / self.period_s - 1e-9)
         self.running = True
@@ -130,7 +130,7 @@ class Periodic:
             self._timer.cancel()
             self._timer = None
         if self._ahead_due:
-            now = asyncio.get_running_loop().time()
+            now = self.bus.clock.now()
             for slot, due in list(self._ahead_due.items()):
                 if slot.started_at is None and due > now:
                     self._withdraw(slot)
@@ -173,7 +173,7 @@ class Periodic:
         self.bus.cancel(slot)  # its on_done is not called
         self._in_flight.discard(slot)
         due = self._ahead_due.pop(slot, None)
-        if due is not None and due > asyncio.get_running_loop().time():
+        if due is not None and due > self.bus.clock.now():
             self._k -= 1  # a cycle queued ahead, not yet due: it is the next one again
 
     def _resume(self) -> None:
@@ -190,14 +190,14 @@ class Periodic:
         return self._t0 + k * self.period_s
 
     def _arm(self) -> None:
-        loop = asyncio.get_running_loop()
-        self._timer = loop.call_at(self._due(self._k), self._fire)
+        # The bus's clock: the line's time, and a timer that does not fire before it.
+        self._timer = self.bus.clock.call_at(self._due(self._k), self._fire)
 
     def _fire(self) -> None:
         self._timer = None
         if not self.running:
             return
-        self._cycle(asyncio.get_running_loop().time())
+        self._cycle(self.bus.clock.now())
 
     def _cycle(self, now: float) -> None:
         """Submit the next due cycle (at its time, or ahead of it), and arm the timer
@@ -275,4 +275,4 @@ class Periodic:
                 and not self._in_flight
             ):
                 # The next cycle, queued now for its due time.
-                self._cycle(asyncio.get_running_loop().time())
+                self._cycle(self.bus.clock.now())
