@@ -512,6 +512,92 @@ def test_a_failed_probe_reopens_the_breaker() -> None:
     assert c.refusal(12, t) == pytest.approx(probe_at + 0.25 - t)
 
 
+# -- a prompt line waits for its replies ---------------------------------------------------
+
+
+def _answered(c: BusConnection, count: int, t: float, *, late_s: float = -0.0004) -> float:
+    """``count`` reads of both wheel counts, each reply seen ``late_s`` after the line
+    was free by the model (negative: before); returns the time after the last."""
+    for k in range(count):
+        exchange = c.send(read_count(k % 2), t)
+        seen = exchange.window_end_s + GUARD + late_s
+        [got] = only(c.receive_data(encode_packet(count_reply(k % 2, k)), seen), ReplyReceived)
+        assert got.exchange is exchange
+        t = max(c.free_at, seen)
+    return t
+
+
+def test_a_prompt_line_waits_for_a_late_reply_instead_of_talking_over_it() -> None:
+    c = conn()
+    t = _answered(c, 15, 0.0)
+    before = c.prompt  # not yet: 16 replies tell
+    t = _answered(c, 1, t)
+    assert (before, c.prompt) == (False, True)
+    exchange = c.send(read_count(0), t)
+    model = exchange.window_end_s + GUARD
+    # The reply is late (its host was busy): the line stays taken past the model's time...
+    assert c.free_at == math.inf
+    assert c.urgent_free_at == pytest.approx(model)  # a stop still goes on the model
+    with pytest.raises(StateError, match="busy"):
+        c.send(read_count(1), model + 0.003)
+    # ... until it comes, 3 ms late: a guard after it, the next request may go.
+    late = model + 0.003
+    [got] = only(c.receive_data(encode_packet(count_reply(0, 7)), late), ReplyReceived)
+    assert got.exchange is exchange
+    assert c.free_at == pytest.approx(late + GUARD)
+
+
+def test_a_stop_on_a_prompt_line_goes_on_the_models_time() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), _answered(c, 16, 0.0))
+    model = exchange.window_end_s + GUARD
+    with pytest.raises(StateError, match="busy"):
+        c.send(wheel_command(0, 0), model - 0.0001, urgent=True)
+    stop = c.send(wheel_command(0, 0), model, urgent=True)
+    assert stop.sent_at == model
+
+
+def test_a_prompt_line_waits_out_a_missing_reply_then_goes_on_the_model_for_that_device() -> None:
+    c = conn()
+    t = _answered(c, 16, 0.0)
+    silent = c.send(read_request(3, 0x30, 2), t)
+    assert c.free_at == math.inf
+    [missing] = only(c.poll(silent.expires_at), ReplyMissing)
+    assert missing.exchange is silent
+    assert c.free_at == pytest.approx(silent.expires_at + GUARD)
+    # A miss in the last 16: the line goes on the model's time again, for every device.
+    assert not c.prompt
+    again = c.send(read_request(3, 0x31, 2), c.free_at)
+    assert c.free_at == pytest.approx(again.window_end_s + GUARD)
+
+
+def test_replies_an_adapter_holds_keep_the_line_on_the_models_time() -> None:
+    # Replies seen after the line was free by the model, as a rule: a USB adapter's
+    # latency timer holds them, and waiting for each would cost its latency every time.
+    c = conn()
+    t = 0.0
+    for k in range(40):
+        exchange = c.send(read_count(k % 2), t)
+        assert c.free_at == pytest.approx(exchange.window_end_s + GUARD)
+        seen = exchange.window_end_s + GUARD + 0.004
+        only(c.receive_data(encode_packet(count_reply(k % 2, k)), seen), ReplyReceived)
+        t = exchange.window_end_s + GUARD
+    assert not c.prompt
+    # A few late replies among prompt ones leave it prompt.
+    t = _answered(c, 12, t + 0.1)
+    t = _answered(c, 4, t, late_s=0.002)
+    assert c.prompt
+
+
+def test_an_unpipelined_or_cautious_line_is_unchanged_by_promptness() -> None:
+    u = conn(pipelined=False)
+    for k in range(20):
+        exchange = u.send(read_count(k % 2), k * 0.01)
+        assert u.free_at == math.inf
+        assert u.urgent_free_at == math.inf
+        u.receive_data(encode_packet(count_reply(k % 2, k)), exchange.window_end_s)
+
+
 # -- junk makes the line cautious ------------------------------------------------------
 
 

@@ -24,6 +24,18 @@ The rules:
   seen the reply yet: a USB adapter's latency then delays the delivery of replies, not
   the rate. Once a reply is seen and nothing was sent after it, the line is free a guard
   later, whatever the budget said.
+* **A prompt line waits for a late reply.** While the last 16 requests were all answered
+  and most of their replies reached the host before the line was free by the model (no
+  adapter holds them), a reply later than that is its device's, or that device's host's,
+  lateness (a simulator its host did not schedule in time): a request to a device that
+  answered its last one then holds the line until its reply is seen or missing, as
+  request at a time, instead of the next one talking over a reply still on the wire.
+  The reply frees the line a guard after it is seen, as always, so a reply in time costs
+  nothing more. While replies come late as a rule (a USB adapter's latency timer holds
+  them), or go missing (a noisy line: waiting out each one would cost a timeout), and
+  for a device whose last request went unanswered, requests go on the model's time. A
+  stop (:attr:`~BusConnection.urgent_free_at`) goes on the model's time whatever the
+  line.
 * **Junk makes the line cautious.** The model is only as good as the timing it assumes:
   a device that answers later than its budget, or a host whose bytes reach the wire later
   than it wrote them, makes the next request talk over a reply, and a collision leaves
@@ -137,12 +149,19 @@ _LATENCY_WINDOW = 1024
 _RECENT_SENT = 8
 #: Frames remembered ready-encoded (periodic requests repeat; each is encoded once).
 _FRAME_CACHE_SIZE = 512
+#: Requests behind a prompt line: it is prompt while all of the last ones were answered
+#: and fewer than half of their replies came after it was free by the model.
+_PROMPT_WINDOW = 16
 #: Window of the sliding figures (utilisation, transactions per second).
 _RATE_WINDOW_S = 1.0
 #: Holds kept before expired ones are swept (corrupted addresses make new keys).
 _MAX_HOLDS = 64
 #: Float slack when comparing model times.
 _EPS = 1e-9
+
+#: A request's outcome, for a prompt line (0: answered in time).
+_LATE = 1
+_MISSED = 2
 
 _IDEMPOTENT = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})
 _READS = frozenset({Command.RAM_READ, Command.EEP_READ})
@@ -611,6 +630,14 @@ class BusConnection:
         self._ack_policy: dict[int, int] = {}
         self._devices: dict[int, _Device] = {}
         self._free_at = -math.inf
+        # When a stop may go: the model's time, even while a prompt line waits for a reply.
+        self._urgent_free_at = -math.inf
+        # The last requests' outcomes: whether each reply was seen after the line was free
+        # by the model, or missing; and how many of each among them.
+        self._outcomes: deque[int] = deque(maxlen=_PROMPT_WINDOW)
+        self._late_count = 0
+        self._miss_count = 0
+        self._prompt = False
         self._cautious_until = -math.inf
         self._cautions = 0
         self._last: Exchange | None = None
@@ -674,6 +701,18 @@ class BusConnection:
     def free_at(self) -> float:
         """When the next request may start (``inf`` while waiting for a reply unpipelined)."""
         return self._free_at
+
+    @property
+    def urgent_free_at(self) -> float:
+        """When a stop may start (:meth:`send` with ``urgent``): the model's time, also
+        while a prompt line waits for a reply (``inf`` only while cautious or unpipelined)."""
+        return self._urgent_free_at
+
+    @property
+    def prompt(self) -> bool:
+        """Whether the line is prompt: requests to devices that answer wait for their
+        replies (module docstring)."""
+        return self._prompt
 
     @property
     def outstanding(self) -> int:
@@ -743,6 +782,7 @@ class BusConnection:
         timeout_s: float | None = None,
         attempt: int = 0,
         token: object = None,
+        urgent: bool = False,
     ) -> Exchange:
         """Start a transaction now: return the exchange, whose ``frame`` the owner writes.
 
@@ -754,6 +794,8 @@ class BusConnection:
             timeout_s: This request's own timeout (past its reply's latest wire time).
             attempt: 0 for a first try; more for a retry (counted).
             token: Anything the owner wants back with the events.
+            urgent: A stop: it may go at :attr:`urgent_free_at` (the model's time)
+                rather than :attr:`free_at`.
 
         Raises:
             OutOfRangeError: The packet cannot be encoded; nothing changed.
@@ -770,8 +812,9 @@ class BusConnection:
             expect_reply = False
         elif expect_reply is None:
             expect_reply = self.expects_reply(packet)
-        if now + _EPS < self._free_at:
-            raise StateError(f"the line is busy for {self._free_at - now:.6f} s more")
+        free = self._urgent_free_at if urgent else self._free_at
+        if now + _EPS < free:
+            raise StateError(f"the line is busy for {free - now:.6f} s more")
         timeout = self.timeout_s if timeout_s is None else timeout_s
         check_seconds("timeout_s", timeout, 0.0005, 10.0)
         key = _reply_key(packet)
@@ -810,7 +853,10 @@ class BusConnection:
                 device.next_probe_at = now + device.probe_gap
                 device.probes += 1
             pipelined = self.pipelined and now + _EPS >= self._cautious_until
-            free_at = window_end + self.guard_s if pipelined else math.inf
+            urgent_free_at = free_at = window_end + self.guard_s if pipelined else math.inf
+            if pipelined and self._prompt and device.consecutive == 0:
+                # A prompt line waits for a device that answers (it may be late).
+                free_at = math.inf
             self._reserved.add(now, window_end - now + self.guard_s)
         else:
             exchange = Exchange(
@@ -826,9 +872,10 @@ class BusConnection:
                 token=token,
                 _state=_State.SENT,
             )
-            free_at = wire_end + self.guard_s
+            urgent_free_at = free_at = wire_end + self.guard_s
             self._reserved.add(now, wire_end - now + self.guard_s)
         self._free_at = free_at
+        self._urgent_free_at = urgent_free_at
         self._last = exchange
         self._recent.append(packet)
         return exchange
@@ -851,6 +898,8 @@ class BusConnection:
             end = exchange.window_end_s if exchange.expect_reply else exchange.wire_end_s
             if self._free_at != math.inf:
                 self._free_at = max(self._free_at, end + self.guard_s)
+            if self._urgent_free_at != math.inf:
+                self._urgent_free_at = max(self._urgent_free_at, end + self.guard_s)
 
     def abandon(self, exchange: Exchange) -> None:
         """The owner no longer waits for ``exchange``'s reply (its time on the line stays)."""
@@ -924,7 +973,7 @@ class BusConnection:
         self._decoder.reset()
         self._holds.clear()
         self._suspect.clear()
-        self._free_at = now
+        self._free_at = self._urgent_free_at = now
         self._last = None
         return events
 
@@ -981,6 +1030,7 @@ class BusConnection:
                 + self.guard_s
             )
             self._free_at = max(self._free_at, busy_until)
+            self._urgent_free_at = max(self._urgent_free_at, busy_until)
             events.append(StrayPacket(packet, now, StrayKind.FOREIGN_REQUEST))
             return
         self._note_busy(now, packet.size * self.byte_s)
@@ -1083,10 +1133,13 @@ class BusConnection:
         device.consecutive = 0
         device.breaker = BreakerState.CLOSED
         self._answers.add(now, 1.0)
+        self._note_outcome(_LATE if now > exchange.window_end_s + self.guard_s + _EPS else 0)
         if exchange is self._last:
             # The reply is in, so the line went quiet no later than now, whatever the
             # budget said.
-            self._free_at = min(self._free_at, now + self.clock_resolution_s + self.guard_s)
+            quiet = now + self.clock_resolution_s + self.guard_s
+            self._free_at = min(self._free_at, quiet)
+            self._urgent_free_at = min(self._urgent_free_at, quiet)
         if exchange.abandoned:
             device.abandoned += 1
             self._abandoned += 1
@@ -1096,6 +1149,22 @@ class BusConnection:
             packet.sid, packet.cmd, packet.data, sent_at=exchange.sent_at, received_at=now
         )
         events.append(ReplyReceived(exchange, reply))
+
+    def _note_outcome(self, outcome: int) -> None:
+        """A request was answered in time (0), late (``_LATE``) or not (``_MISSED``)."""
+        window = self._outcomes
+        if len(window) == _PROMPT_WINDOW:
+            gone = window[0]
+            self._late_count -= gone == _LATE
+            self._miss_count -= gone == _MISSED
+        window.append(outcome)
+        self._late_count += outcome == _LATE
+        self._miss_count += outcome == _MISSED
+        self._prompt = (
+            len(window) == _PROMPT_WINDOW
+            and not self._miss_count
+            and 2 * self._late_count < _PROMPT_WINDOW
+        )
 
     def _miss(
         self, exchange: Exchange, reason: MissingReason, now: float, events: list[Event]
@@ -1109,6 +1178,7 @@ class BusConnection:
         self._suspect.add(key)
         exchange._state = _State.MISSING
         exchange.missing = reason
+        self._note_outcome(_MISSED)
         device = self._device(exchange.packet.sid)
         device.timeouts += 1
         if device.consecutive == 0:
@@ -1127,8 +1197,11 @@ class BusConnection:
             device.breaker = BreakerState.OPEN
             device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
             device.next_probe_at = now + device.probe_gap
-        if exchange is self._last and self._free_at == math.inf:
-            self._free_at = now + self.clock_resolution_s + self.guard_s
+        if exchange is self._last:
+            if self._free_at == math.inf:
+                self._free_at = now + self.clock_resolution_s + self.guard_s
+            if self._urgent_free_at == math.inf:
+                self._urgent_free_at = now + self.clock_resolution_s + self.guard_s
         if not exchange.abandoned:
             events.append(ReplyMissing(exchange, reason))
 
