@@ -255,7 +255,9 @@ def test_the_robots_schedule_keeps_its_rates_on_every_loop(loop_name: str) -> No
     async def run(
         path: str,
     ) -> tuple[dict[str, float], dict[str, float], dict[str, int], dict[str, int]]:
-        async with LocalRobot.open(path, on_exit_neck="keep") as robot:
+        # The longest reply timeout there is: the simulator is a process of its own, which
+        # a machine busy with other work may not run for tens of milliseconds.
+        async with LocalRobot.open(path, on_exit_neck="keep", usb_latency_ms=32) as robot:
             await asyncio.sleep(0.5)  # every stream running
             start, bus0 = robot.stats(), robot.bus.stats
             t0 = time.perf_counter()
@@ -276,14 +278,15 @@ def test_the_robots_schedule_keeps_its_rates_on_every_loop(loop_name: str) -> No
 
         counts = {
             field: counted(field)
-            for field in ("requests", "replies", "timeouts", "early", "unmatched")
+            for field in ("requests", "replies", "timeouts", "early", "late", "unmatched")
         }
+        counts["junk_bytes"] = bus1.decoder.bytes_discarded - bus0.decoder.bytes_discarded
         return rates, requested, missed, counts
 
     with sim_on_pty() as (path, _), asyncio.Runner(loop_factory=factory) as runner:
         rates, requested, missed, counts = runner.run(run(path))
     assert set(rates) == set(_POLLED)
-    assert set(missed.values()) == {0}, (missed, counts)
+    assert set(missed.values()) == {0}, f"{missed} {counts}"
     for name, hz in rates.items():
         assert hz >= _KEPT * requested[name], (name, hz, rates)
     # Every request answered, and every good reply taken: none refused as early (the

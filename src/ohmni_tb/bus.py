@@ -138,9 +138,9 @@ DEFAULT_CLOSE_TIMEOUT_S = 0.5
 _WAIT_WINDOW = 1024
 #: While bytes wait in the port, look again this often.
 _BACKLOG_POLL_S = 0.001
-#: On a loop whose timers wait in whole milliseconds, a wait for the line up to this long
-#: (the guard after a reply: 0.2 ms by default) is slept inline (Bus._wait_inline).
-_INLINE_WAIT_MAX_S = 0.0003
+#: On a loop whose timers wait in whole milliseconds, the last this long of a wait for the
+#: line is slept inline rather than left to the timer (Bus._wait_inline).
+_INLINE_WAIT_MAX_S = MILLISECOND_S
 _EPS = 1e-9
 
 #: Opens a fresh transport for :meth:`Bus.reconnect`.
@@ -1306,11 +1306,12 @@ class Bus:
                 break
             self._stall_since = None
             if self._urgent:
-                if now + _EPS < conn.urgent_free_at:
-                    if conn.urgent_free_at - now <= self._inline_wait_s:
-                        now = self._wait_inline(conn.urgent_free_at)
+                line_at = conn.urgent_free_at
+                if now + _EPS < line_at:
+                    if line_at - now <= self._inline_wait_s:
+                        now = self._wait_inline(line_at)
                         continue
-                    wake = min(wake, conn.urgent_free_at)
+                    wake = min(wake, line_at - self._inline_wait_s)
                     break
                 self._send_urgent(self._urgent.popleft(), now)
                 if not self._urgent:
@@ -1329,9 +1330,14 @@ class Bus:
                     # The scan counts the line's freeing for the parts that may go then,
                     # not for a cycle queued ahead of its time (it has a time of its own).
                     next_at = min(next_at, self._scan(now, choose=False)[1])
-                if next_at <= conn.free_at + _EPS and conn.free_at - now <= self._inline_wait_s:
-                    now = self._wait_inline(conn.free_at)
-                    continue
+                line_at = conn.free_at
+                if next_at <= line_at + _EPS:
+                    # Something goes when the line frees: on a loop with millisecond
+                    # timers, the last of the wait is slept (_wait_inline).
+                    if line_at - now <= self._inline_wait_s:
+                        now = self._wait_inline(line_at)
+                        continue
+                    next_at = min(next_at, line_at - self._inline_wait_s)
                 wake = min(wake, next_at)
                 break
             part = self._current
@@ -1347,12 +1353,13 @@ class Bus:
         self._arm(wake)
 
     def _wait_inline(self, until: float) -> float:
-        """Sleep until ``until`` (a fraction of a millisecond away) and return the time.
+        """Sleep until ``until`` (at most a millisecond away) and return the time.
 
-        Only on a loop whose timers wait in whole milliseconds (``_inline_wait_s``): the
-        guard after a reply, on a timer, would leave the line idle for a millisecond each
-        time, and a schedule that books the line to 81 % does not have a millisecond
-        per transaction to spare. The loop waits the fraction with it.
+        Only on a loop whose timers wait in whole milliseconds (``_inline_wait_s``): its
+        timer is set that much before the line frees, and the rest is slept here. On a
+        timer alone each request would start up to a millisecond late, and a schedule
+        that books the line to 81 % does not have a millisecond per transaction to
+        spare; the loop's other work waits that fraction instead.
         """
         time.sleep(max(0.0, until - self._now()))
         return self._now()

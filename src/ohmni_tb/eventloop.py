@@ -21,8 +21,12 @@ waits in milliseconds) :func:`new_event_loop` is asyncio's default.
 ``ohmni`` commands and ``ohmni serve`` run on it; a program that embeds the
 :class:`~ohmni_tb.robot.Robot` gets it with ``ohmni_tb.run(main())`` in place of
 ``asyncio.run(main())`` (or ``asyncio.Runner(loop_factory=new_event_loop)``). The Robot
-works on any loop; :func:`timer_resolution_s` says what its timers get, and the Robot
-logs a warning, once, when it opens a serial port on a millisecond loop.
+works on any loop: on one whose timers wait in whole milliseconds
+(:func:`timer_resolution_s`: asyncio's default, uvloop) the bus sets its timer a
+millisecond before the line frees and sleeps the rest in the loop, so the schedule keeps
+its rates there too, at the cost of up to a millisecond of the loop's time per request
+sent on a timer; the Robot logs a warning, once, when it opens a serial port on such a
+loop.
 
 Whatever the loop, the bus keeps the line's time with a :class:`LineClock`
 (:func:`line_clock`): the moment a reply is read and a request written, to the

@@ -25,17 +25,18 @@ The rules:
   the rate. Once a reply is seen and nothing was sent after it, the line is free a guard
   later, whatever the budget said.
 * **A prompt line waits for a late reply.** While the last 16 requests were all answered
-  and most of their replies reached the host before the line was free by the model (no
-  adapter holds them), a reply later than that is its device's, or that device's host's,
-  lateness (a simulator its host did not schedule in time): a request to a device that
-  answered its last one then holds the line until its reply is seen or missing, as
-  request at a time, instead of the next one talking over a reply still on the wire.
-  The reply frees the line a guard after it is seen, as always, so a reply in time costs
-  nothing more. While replies come late as a rule (a USB adapter's latency timer holds
-  them), or go missing (a noisy line: waiting out each one would cost a timeout), and
-  for a device whose last request went unanswered, requests go on the model's time. A
-  stop (:attr:`~BusConnection.urgent_free_at`) goes on the model's time whatever the
-  line.
+  and over a quarter of their replies reached the host before the line was free by the
+  model (no adapter holds them: one whose latency timer is 16 ms hands over nearly every
+  reply later), a reply later than that is its device's lateness, or the host's (a
+  simulator its host did not schedule in time, a host busy elsewhere): a request to a
+  device that answered its last one then holds the line until its reply is seen or
+  missing, as request at a time, instead of the next one talking over a reply still on
+  the wire. The reply frees the line a guard after it is seen, as always, so a reply in
+  time costs nothing more. While replies come late as a rule (three quarters of them or
+  more: a USB adapter's latency timer holds them), or go missing (a noisy line: waiting
+  out each would cost a timeout), and for a device whose last request went unanswered,
+  requests go on the model's time. A stop (:attr:`~BusConnection.urgent_free_at`) goes
+  on the model's time whatever the line.
 * **Junk makes the line cautious.** The model is only as good as the timing it assumes:
   a device that answers later than its budget, or a host whose bytes reach the wire later
   than it wrote them, makes the next request talk over a reply, and a collision leaves
@@ -150,8 +151,9 @@ _RECENT_SENT = 8
 #: Frames remembered ready-encoded (periodic requests repeat; each is encoded once).
 _FRAME_CACHE_SIZE = 512
 #: Requests behind a prompt line: it is prompt while all of the last ones were answered
-#: and fewer than half of their replies came after it was free by the model.
+#: and fewer than three quarters of their replies came after it was free by the model.
 _PROMPT_WINDOW = 16
+_HELD_AS_A_RULE = 12
 #: Window of the sliding figures (utilisation, transactions per second).
 _RATE_WINDOW_S = 1.0
 #: Holds kept before expired ones are swept (corrupted addresses make new keys).
@@ -1163,7 +1165,7 @@ class BusConnection:
         self._prompt = (
             len(window) == _PROMPT_WINDOW
             and not self._miss_count
-            and 2 * self._late_count < _PROMPT_WINDOW
+            and self._late_count < _HELD_AS_A_RULE
         )
 
     def _miss(

@@ -546,7 +546,8 @@ def _warn_if_coarse_timers(transport: Transport) -> None:
 
     Behind an adapter that holds replies, every request of the schedule goes out on a
     timer, and each one late by up to a millisecond does not fit a line booked to 81 %
-    (ohmni_tb.eventloop). The simulator in this process delivers at once: not told.
+    (ohmni_tb.eventloop): the bus sleeps the last millisecond of those waits in the loop
+    instead. The simulator in this process delivers at once: not told.
     """
     global _coarse_timers_told  # noqa: PLW0603  # once per process, not per Robot
     if _coarse_timers_told or not isinstance(transport, SerialTransport):
@@ -556,7 +557,7 @@ def _warn_if_coarse_timers(transport: Transport) -> None:
     _coarse_timers_told = True
     _log.warning(
         "this event loop's timers fire up to 1 ms late (asyncio's epoll waits, and uvloop "
-        "counts its timers, in whole milliseconds): behind a USB adapter that holds replies "
-        "the servo streams can miss their rates; run the program with ohmni_tb.run(main()) "
-        "instead of asyncio.run"
+        "counts its timers, in whole milliseconds): the bus sleeps the last millisecond of "
+        "its waits for the line in the loop, which the program's other work waits for; run "
+        "the program with ohmni_tb.run(main()) instead of asyncio.run to give it back"
     )
