@@ -141,6 +141,9 @@ _BACKLOG_POLL_S = 0.001
 #: On a loop whose timers wait in whole milliseconds, the last this long of a wait for the
 #: line is slept inline rather than left to the timer (Bus._wait_inline).
 _INLINE_WAIT_MAX_S = MILLISECOND_S
+#: A wait for the line this short is waited out in the loop on any real clock: shorter
+#: than what a pass of the event loop and its wake-up cost (Bus._wait_inline).
+_SPIN_S = 0.00005
 _EPS = 1e-9
 
 #: Opens a fresh transport for :meth:`Bus.reconnect`.
@@ -181,17 +184,25 @@ class Slot:
 
     Public attributes: :attr:`future` (resolves to one reply or ``None`` per packet, as
     :meth:`Bus.transact` returns, or to its exception), :attr:`started_at` (the loop time
-    its first packet was written, ``None`` until then) and :attr:`packets`.
+    its first packet was written, ``None`` until then), :attr:`packets`, and, once it
+    has completed (:attr:`finished`), :attr:`results` (one reply or ``None`` per packet)
+    or :attr:`error`; :attr:`tag` holds whatever the submitter attached. A slot that has
+    completed can be queued again with :meth:`Bus.resubmit`.
     """
 
     __slots__ = (
+        "_error",
+        "_future",
+        "_loop",
+        "_owner",
         "active",
         "attempts",
         "cancelled",
         "deadline",
         "exchanges",
         "expect",
-        "future",
+        "finished",
+        "given",
         "on_done",
         "packets",
         "priority",
@@ -203,6 +214,7 @@ class Slot:
         "started",
         "started_at",
         "submitted_at",
+        "tag",
         "timeout_s",
     )
 
@@ -217,7 +229,8 @@ class Slot:
         timeout_s: float | None,
         seq: int,
         submitted_at: float,
-        future: asyncio.Future[list[ReplyPacket | None]],
+        loop: asyncio.AbstractEventLoop,
+        owner: object = None,
     ) -> None:
         self.packets = packets
         self.expect = expect
@@ -227,7 +240,12 @@ class Slot:
         self.timeout_s = timeout_s
         self.seq = seq
         self.submitted_at = submitted_at
-        self.future = future
+        self._loop = loop
+        self._owner = owner  # the bus it runs on
+        # Made when first asked for (Slot.future): a stream's slots, which report
+        # through on_done, never need one.
+        self._future: asyncio.Future[list[ReplyPacket | None]] | None = None
+        self._error: BaseException | None = None
         self.results: list[ReplyPacket | None] = [None] * len(packets)
         self.attempts = [0] * len(packets)
         self.refused: list[float | None] = [None] * len(packets)
@@ -236,9 +254,36 @@ class Slot:
         self.started = False
         self.started_at: float | None = None
         self.on_done: Callable[[Slot], None] | None = None
+        #: Withdrawn (Bus.cancel, or its future cancelled).
         self.cancelled = False
+        #: Completed, failed or withdrawn: nothing more happens to it.
+        self.finished = False
+        self.tag: object = None
+        #: The sequence it was submitted as (resubmit() keeps it when passed again).
+        self.given: Sequence[Packet] = ()
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
         self.active: set[Slot] | None = None
+
+    @property
+    def future(self) -> asyncio.Future[list[ReplyPacket | None]]:
+        """Resolves to :attr:`results`, or to :attr:`error`; cancelled when withdrawn."""
+        future = self._future
+        if future is None:
+            future = self._future = self._loop.create_future()
+            if self.finished:
+                if self.cancelled:
+                    future.cancel()
+                elif self._error is not None:
+                    future.set_exception(self._error)
+                else:
+                    future.set_result(self.results)
+        return future
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why it failed (:class:`~ohmni_tb.errors.DeadlineMissedError`, a lost link…),
+        or ``None``."""
+        return self._error
 
     def replace_unsent(self, index: int, packet: Packet) -> None:
         """Put ``packet`` in place of packet ``index``, which must expect no reply, before
@@ -260,20 +305,37 @@ class Slot:
         self.packets[index] = packet
 
     def settle(self, index: int, result: ReplyPacket | None) -> None:
+        if self.finished:
+            return
         self.results[index] = result
         self.remaining -= 1
         if self.remaining <= 0:
-            self._leave()
-            if not self.future.done():
-                self.future.set_result(self.results)
-                self._notify()
+            self._finish()
+            future = self._future
+            if future is not None and not future.done():
+                future.set_result(self.results)
+            self._notify()
 
     def fail(self, exc: BaseException) -> None:
-        self._leave()
-        if not self.future.done():
-            self.future.set_exception(exc)
-            self._notify()
         self.remaining = 0
+        if self.finished:
+            return
+        self._finish()
+        self._error = exc
+        future = self._future
+        if future is not None and not future.done():
+            future.set_exception(exc)
+        self._notify()
+
+    def withdraw(self) -> None:
+        """Mark it withdrawn: finished, its future (if any) cancelled, no callback."""
+        self.cancelled = True
+        self.on_done = None
+        if not self.finished:
+            self._finish()
+        future = self._future
+        if future is not None and not future.done():
+            future.cancel()
 
     def _notify(self) -> None:
         on_done = self.on_done
@@ -285,7 +347,8 @@ class Slot:
         except Exception:
             _log.exception("a slot's on_done callback failed")
 
-    def _leave(self) -> None:
+    def _finish(self) -> None:
+        self.finished = True
         if self.active is not None:
             self.active.discard(self)
             self.active = None
@@ -417,6 +480,9 @@ class Bus:
         self._urgent_done: asyncio.Future[None] | None = None
         self._wake: asyncio.TimerHandle | None = None
         self._wake_at = math.inf
+        # The reply timeouts' own timer (_arm_expiry).
+        self._expiry: asyncio.TimerHandle | None = None
+        self._expiry_at = math.inf
         self._pumping = False
         self._again = False
         self._seq = 0
@@ -427,8 +493,11 @@ class Bus:
         self._lost: asyncio.Event | None = None
         self._taps: list[Tap] = []
         #: Tuples of packets already found encodable, by id (the tuple is kept, so the
-        #: id is not reused): a stream's same reads every cycle are checked once.
-        self._checked: dict[int, tuple[Packet, ...]] = {}
+        #: id is not reused), with which of them wait for a reply under the ACK policies
+        #: of that version: a stream's same reads every cycle are checked once.
+        self._checked: dict[int, tuple[tuple[Packet, ...], list[bool], int]] = {}
+        # Bytes may wait in the port since the last write (its backlog is looked at then).
+        self._backlogged = False
         self._stall_since: float | None = None
         self._waits: deque[float] = deque(maxlen=_WAIT_WINDOW)
         self._slots = 0
@@ -482,7 +551,10 @@ class Bus:
         self._clock = clock = line_clock(self._loop)
         self._now = clock.now
         coarse = timer_resolution_s(self._loop) >= MILLISECOND_S
-        self._inline_wait_s = _INLINE_WAIT_MAX_S if coarse else 0.0
+        # Waits it may make in the loop (_wait_inline): never on virtual time, whose
+        # clock only moves when the loop waits.
+        real = clock.now is time.monotonic
+        self._inline_wait_s = _INLINE_WAIT_MAX_S if coarse and real else _SPIN_S if real else 0.0
         self._conn.clock_resolution_s = clock.resolution_s
         self._lost = asyncio.Event()
         self._transport.start_receiving(self._on_data, self._on_lost)
@@ -711,6 +783,7 @@ class Bus:
             )
         self._failure = None
         self._stall_since = None
+        self._backlogged = False
         self._lost = asyncio.Event()
         transport.start_receiving(self._on_data, self._on_lost)
         self._reconnects += 1
@@ -818,6 +891,7 @@ class Bus:
         timeout_s: float | None = None,
         on_done: Callable[[Slot], None] | None = None,
         not_before: float | None = None,
+        tag: object = None,
     ) -> Slot:
         """Queue ``packets`` as one atomic slot and return at once: :meth:`transact`
         without a task.
@@ -829,7 +903,8 @@ class Bus:
         Cancelling the future, or :meth:`cancel`, withdraws the slot (what has gone out
         stays out). A stream that sends the same packets every cycle can pass the same
         tuple each time: the bus checks that its packets encode (and that their replies
-        fit) the first time only.
+        fit) the first time only; once its slot has completed, :meth:`resubmit` queues
+        that slot again. ``tag`` is set as :attr:`Slot.tag` before anything can complete.
 
         Raises:
             The same as :meth:`transact`, except that :class:`DeadlineMissedError` and a
@@ -844,25 +919,86 @@ class Bus:
             timeout_s=timeout_s,
             on_done=on_done,
             not_before=not_before,
+            tag=tag,
         )
-        if on_done is None:
+        if on_done is None and not slot.finished:
             slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
+        return slot
+
+    def resubmit(
+        self,
+        slot: Slot,
+        packets: Sequence[Packet] | None = None,
+        *,
+        deadline: float | None = None,
+        not_before: float | None = None,
+        on_done: Callable[[Slot], None] | None = None,
+        tag: object = None,
+    ) -> Slot:
+        """Queue a slot from :meth:`submit` that has completed once more, as a new slot:
+        a stream's next cycle, without making one.
+
+        It keeps its priority, retries and timeout; it goes with its packets as they
+        were submitted (or ``packets``), a fresh ``deadline`` and ``not_before``,
+        ``on_done`` and ``tag``, and starts over (its results, start time and future
+        are new). Returns ``slot``.
+
+        Raises:
+            StateError: The slot has not completed, or is another bus's.
+            The same as :meth:`submit` for ``packets``, ``deadline`` and ``not_before``.
+        """
+        if not slot.finished or slot._owner is not self:
+            raise StateError("only a slot of this bus that has completed can be queued again")
+        given = slot.given if packets is None else packets
+        wants = slot.expect if given is slot.given else self._wants(given, None)
+        for name, value in (("deadline", deadline), ("not_before", not_before)):
+            # A float that is finite (x - x is 0.0 for those only): no call for the others.
+            if value is not None and (type(value) is not float or value - value != 0.0):
+                _check_loop_time(name, value)
+        if self._closed or self._closing or self._failure is not None:
+            self._check_usable()
+        now = self._now()
+        count = len(given)
+        slot.given = given
+        slot.packets = list(given)
+        slot.expect = wants
+        slot.deadline = deadline
+        self._seq += 1
+        slot.seq = self._seq
+        slot.submitted_at = now
+        slot._future = None
+        slot._error = None
+        slot.results = [None] * count
+        slot.attempts = [0] * count
+        slot.refused = [None] * count
+        slot.exchanges = []
+        slot.remaining = count
+        slot.started = False
+        slot.started_at = None
+        slot.cancelled = False
+        slot.finished = False
+        slot.on_done = on_done
+        slot.tag = tag
+        slot.active = self._active
+        self._active.add(slot)
+        ready_at = -math.inf if not_before is None else not_before
+        self._waiting.append(
+            _Part(slot, list(range(count)), seq=slot.seq, submitted_at=now, ready_at=ready_at)
+        )
+        self._pump()
         return slot
 
     def cancel(self, slot: Slot) -> None:
         """Withdraw a slot from :meth:`submit` (what has gone out stays out)."""
-        if slot.future.done():
+        if slot.finished:
             return
-        slot.on_done = None
-        slot.future.cancel()
-        if not slot.cancelled:
-            self._cancel(slot)
+        self._cancel(slot)
 
     def _withdraw_if_cancelled(
         self, slot: Slot
     ) -> Callable[[asyncio.Future[list[ReplyPacket | None]]], None]:
         def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
-            if future.cancelled() and not slot.cancelled:
+            if future.cancelled() and not slot.cancelled and future is slot._future:
                 self._cancel(slot)
 
         return done
@@ -1027,12 +1163,11 @@ class Bus:
         fail_fast: bool = False,
         on_done: Callable[[Slot], None] | None = None,
         not_before: float | None = None,
+        tag: object = None,
     ) -> Slot:
         conn = self._conn
         given = packets
-        checked = type(given) is tuple and self._checked.get(id(given)) is given
-        packets = list(packets)
-        if not packets:
+        if not given:
             raise InvalidArgumentError("transact() needs at least one packet")
         if isinstance(priority, bool) or not isinstance(priority, int):
             raise InvalidArgumentError(f"priority must be an int, not {priority!r}")
@@ -1042,12 +1177,73 @@ class Bus:
             check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         _check_loop_time("deadline", deadline)
         _check_loop_time("not_before", not_before)
+        wants = self._wants(given, expect)
+        self._check_usable()
+        now = self._now()
+        slot = Slot(
+            list(given),
+            wants,
+            priority=priority,
+            deadline=deadline,
+            retries=extra,
+            timeout_s=timeout_s,
+            seq=self._next_seq(),
+            submitted_at=now,
+            loop=self._loop_(),
+            owner=self,
+        )
+        slot.given = given
+        if fail_fast and wants[0]:
+            # A request to a device known to be gone fails at once (a probe may still go).
+            first = slot.packets[0]
+            retry_in = conn.refusal(first.sid, now)
+            if retry_in is not None:
+                self._refused += 1
+                raise DeviceUnavailableError(
+                    sid=first.sid,
+                    cmd=first.cmd,
+                    silent_s=conn.silent_for(first.sid, now),
+                    retry_in_s=retry_in,
+                )
+        # Before the pump below, which may already settle it (a deadline it cannot meet).
+        slot.on_done = on_done
+        slot.tag = tag
+        slot.active = self._active
+        self._active.add(slot)
+        ready_at = -math.inf if not_before is None else float(not_before)
+        self._waiting.append(
+            _Part(
+                slot,
+                list(range(len(given))),
+                seq=slot.seq,
+                submitted_at=now,
+                ready_at=ready_at,
+            )
+        )
+        self._pump()
+        return slot
+
+    def _wants(self, given: Sequence[Packet], expect: list[bool] | None) -> list[bool]:
+        """Check ``given`` can go as one slot; return which packets wait for a reply.
+
+        A tuple seen before is not checked again (a stream's same packets every cycle).
+
+        Raises:
+            OutOfRangeError: A packet cannot be encoded, or a read's reply would not fit.
+            InvalidArgumentError: A STAT to broadcast, or two replies that look alike.
+        """
+        tupled = type(given) is tuple and expect is None
+        version = self._conn.policy_version
+        if tupled:
+            known = self._checked.get(id(given))
+            if known is not None and known[0] is given and known[2] == version:
+                return known[1]
+        conn = self._conn
         wants: list[bool] = []
         keys: set[tuple[int, int, bytes]] = set()
-        for i, packet in enumerate(packets):
-            if not checked:
-                conn.frame(packet)  # raises OutOfRangeError before anything is queued
-                _check_reply_fits(packet, conn.max_packet_size)
+        for i, packet in enumerate(given):
+            conn.frame(packet)  # raises OutOfRangeError before anything is queued
+            _check_reply_fits(packet, conn.max_packet_size)
             if packet.sid == BROADCAST_ID:
                 if packet.cmd == Command.STAT:
                     raise InvalidArgumentError(
@@ -1064,50 +1260,11 @@ class Bus:
                         f"one slot cannot wait for two replies that look alike: {packet!r}"
                     )
                 keys.add(key)
-        if not checked and type(given) is tuple:
+        if tupled:
             if len(self._checked) >= _CHECKED_MAX:
                 self._checked.clear()
-            self._checked[id(given)] = cast(tuple[Packet, ...], given)
-        self._check_usable()
-        loop = self._loop_()
-        now = self._now()
-        slot = Slot(
-            packets,
-            wants,
-            priority=priority,
-            deadline=deadline,
-            retries=extra,
-            timeout_s=timeout_s,
-            seq=self._next_seq(),
-            submitted_at=now,
-            future=loop.create_future(),
-        )
-        if fail_fast and wants[0]:
-            # A request to a device known to be gone fails at once (a probe may still go).
-            retry_in = conn.refusal(packets[0].sid, now)
-            if retry_in is not None:
-                self._refused += 1
-                raise DeviceUnavailableError(
-                    sid=packets[0].sid,
-                    cmd=packets[0].cmd,
-                    silent_s=conn.silent_for(packets[0].sid, now),
-                    retry_in_s=retry_in,
-                )
-        # Before the pump below, which may already settle it (a deadline it cannot meet).
-        slot.on_done = on_done
-        slot.active = self._active
-        self._active.add(slot)
-        self._waiting.append(
-            _Part(
-                slot,
-                list(range(len(packets))),
-                seq=slot.seq,
-                submitted_at=now,
-                ready_at=-math.inf if not_before is None else float(not_before),
-            )
-        )
-        self._pump()
-        return slot
+            self._checked[id(given)] = (cast(tuple[Packet, ...], given), wants, version)
+        return wants
 
     async def _await(self, slot: Slot) -> list[ReplyPacket | None]:
         try:
@@ -1133,15 +1290,14 @@ class Bus:
         )
 
     def _cancel(self, slot: Slot) -> None:
-        slot.cancelled = True
+        for exchange in slot.exchanges:
+            if not exchange.done:
+                self._conn.abandon(exchange)
+        slot.withdraw()  # finished: lets go of its exchanges (Slot._finish)
         self._active.discard(slot)
         self._waiting = [p for p in self._waiting if p.slot is not slot]
         if self._current is not None and self._current.slot is slot:
             self._current = None
-        for exchange in slot.exchanges:
-            if not exchange.done:
-                self._conn.abandon(exchange)
-        slot.exchanges = []  # no cycle left through the tokens (Slot._leave)
         self._pump()
 
     def _next_seq(self) -> int:
@@ -1189,13 +1345,15 @@ class Bus:
         if self._taps:
             self._tapped(False, data, now)
         events = self._conn.receive_data(data, now)
-        # The slots these settle may queue more (a stream's next cycle): their
-        # submissions wait for the one pass below instead of each making its own.
-        pumping, self._pumping = self._pumping, True
-        try:
-            self._handle(events)
-        finally:
-            self._pumping = pumping
+        if events:
+            # The slots these settle may queue more (a stream's next cycle): their
+            # submissions wait for the one pass below instead of each making its own,
+            # and the next request goes from here, the reply's own callback.
+            pumping, self._pumping = self._pumping, True
+            try:
+                self._handle(events)
+            finally:
+                self._pumping = pumping
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:
@@ -1233,18 +1391,47 @@ class Bus:
             self._wake.cancel()
             self._wake = None
             self._wake_at = math.inf
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
+            self._expiry_at = math.inf
+
+    def _on_expiry(self) -> None:
+        self._expiry = None
+        self._expiry_at = math.inf
+        self._pump()
+
+    def _arm_expiry(self, when: float | None) -> None:
+        """Make the reply-timeout timer fire by ``when`` (the connection's next deadline).
+
+        A timer of its own, apart from the line's: a reply's timeout is set for every
+        request and almost never needed, so the one set for an earlier request is left
+        to fire (it finds nothing due, and sets the next) rather than moved for each.
+        """
+        if self._closed or when is None:
+            return
+        if self._expiry is not None:
+            if self._expiry_at <= when + _EPS:
+                return
+            self._expiry.cancel()
+        self._expiry_at = when
+        clock = self._clock
+        assert clock is not None  # armed only once started
+        self._expiry = clock.call_at(when, self._on_expiry)
 
     def _arm(self, when: float) -> None:
         """Make the one timer fire at ``when`` (``inf``: not at all).
 
-        ``when`` is the whole of what the engine waits for, so a timer set earlier for
-        something that has since happened is moved rather than left to wake the loop
-        for nothing.
+        ``when`` is the whole of what the engine waits for. A timer set for later is
+        moved; one set for sooner is left, and looks again when it fires.
         """
         if self._closed:
             return
         if self._wake is not None:
-            if abs(self._wake_at - when) <= _EPS:
+            if self._wake_at <= when + _EPS:
+                # It fires no later than needed, and looks again then: moving it would
+                # cost more than that look (a reply's timeout, set for each request and
+                # mostly not needed, is always later than the one before).
                 return
             self._cancel_wake()
         if when == math.inf:
@@ -1283,12 +1470,14 @@ class Bus:
 
     def _run(self, now: float) -> None:
         conn = self._conn
-        self._handle(conn.poll(now))
+        events = conn.poll(now)
+        if events:
+            self._handle(events)
         # What those events queued, the loop below sees: no second pass for it.
         self._again = False
         wake = math.inf
         while self._failure is None and not self._closed:
-            backlog = self._transport.backlog
+            backlog = self._transport.backlog if self._backlogged else 0
             if backlog:
                 # The port has not taken the last bytes: the wire model is off until it
                 # does, and a port that never does has lost its peer.
@@ -1304,6 +1493,7 @@ class Bus:
                     return
                 wake = min(wake, now + _BACKLOG_POLL_S)
                 break
+            self._backlogged = False
             self._stall_since = None
             if self._urgent:
                 line_at = conn.urgent_free_at
@@ -1323,17 +1513,20 @@ class Bus:
                 # Choose only when the line is free: a slot that arrives meanwhile with a
                 # higher priority must still be able to go first. With nothing waiting
                 # there is nothing to wake for; a new slot pumps by itself.
+                line_at = conn.free_at
                 next_at = math.inf
                 if self._current is not None:
-                    next_at = conn.free_at  # its next packet
-                if self._waiting:
+                    next_at = line_at  # its next packet
+                if self._waiting and line_at != math.inf:
                     # The scan counts the line's freeing for the parts that may go then,
                     # not for a cycle queued ahead of its time (it has a time of its own).
+                    # While the line waits for a reply, the reply (or its timeout) pumps
+                    # next, and the scan is done then: nothing can start before.
                     next_at = min(next_at, self._scan(now, choose=False)[1])
-                line_at = conn.free_at
                 if next_at <= line_at + _EPS:
                     # Something goes when the line frees: on a loop with millisecond
-                    # timers, the last of the wait is slept (_wait_inline).
+                    # timers, the last of the wait is slept (_wait_inline); the last
+                    # few tens of microseconds (of the guard after a reply) on any.
                     if line_at - now <= self._inline_wait_s:
                         now = self._wait_inline(line_at)
                         continue
@@ -1347,22 +1540,29 @@ class Bus:
                     wake = min(wake, next_at)
                     break
             self._send_next(part, now)
-        deadline = conn.next_deadline()
-        if deadline is not None:
-            wake = min(wake, deadline)
+        self._arm_expiry(conn.next_deadline())
         self._arm(wake)
 
     def _wait_inline(self, until: float) -> float:
-        """Sleep until ``until`` (at most a millisecond away) and return the time.
+        """Wait until ``until`` in the loop's own time and return the time then.
 
-        Only on a loop whose timers wait in whole milliseconds (``_inline_wait_s``): its
-        timer is set that much before the line frees, and the rest is slept here. On a
-        timer alone each request would start up to a millisecond late, and a schedule
-        that books the line to 81 % does not have a millisecond per transaction to
-        spare; the loop's other work waits that fraction instead.
+        A wait of a few tens of microseconds (``_SPIN_S``: the last of the guard after a
+        reply, when the reply's own callback is ready to send) is waited out: a timer
+        would cost a pass of the event loop, its wake-up included, which takes longer
+        than that. On a loop whose timers wait in whole milliseconds the last
+        millisecond of a wait is slept (``_inline_wait_s``): its timer is set that much
+        before the line frees. On a timer alone each request would start up to a
+        millisecond late, and a schedule that books the line to 81 % does not have a
+        millisecond per transaction to spare; the loop's other work waits that
+        fraction instead.
         """
-        time.sleep(max(0.0, until - self._now()))
-        return self._now()
+        now = self._now
+        left = until - now()
+        if left > _SPIN_S:
+            time.sleep(left)
+        while now() < until:
+            pass
+        return now()
 
     def _scan(self, now: float, *, choose: bool) -> tuple[_Part | None, float]:
         """One pass over the waiting parts.
@@ -1391,7 +1591,7 @@ class Bus:
         gone: list[_Part] = []
         for part in self._waiting:
             slot = part.slot
-            if slot.future.done():
+            if slot.finished:
                 gone.append(part)
                 continue
             deadline = slot.deadline
@@ -1431,7 +1631,7 @@ class Bus:
             dropped = {id(part) for part in gone}
             self._waiting = [part for part in self._waiting if id(part) not in dropped]
             self._again = True
-        if best is None or best_key is None or best.slot.future.done():
+        if best is None or best_key is None or best.slot.finished:
             return None, max(wake, now)
         self._waiting.remove(best)
         if best_key[0] and any(p.slot.priority > best.slot.priority for p in self._waiting):
@@ -1472,16 +1672,16 @@ class Bus:
                 return
         attempt = slot.attempts[index]
         slot.attempts[index] = attempt + 1
-        loop = self._loop_()
         exchange = self._conn.send(
             packet,
             self._now(),
             expect_reply=expect,
             timeout_s=slot.timeout_s,
             attempt=attempt,
-            token=(slot, index),
+            # Its slot, which packet, and which cycle of a slot sent again (resubmit).
+            token=(slot, index, slot.seq),
         )
-        if not self._write(exchange, loop):
+        if not self._write(exchange):
             return
         if expect:
             slot.exchanges.append(exchange)
@@ -1495,35 +1695,40 @@ class Bus:
         if expect and conn.blocked_until(packet, now) > now + _EPS:
             # Its reply could not be told from another's: send it and ignore the answer.
             expect = False
-        loop = self._loop_()
         exchange = conn.send(packet, self._now(), expect_reply=expect, urgent=True)
         if expect:
             conn.abandon(exchange)
-        if self._write(exchange, loop) and urgent.future is not None and not urgent.future.done():
+        if self._write(exchange) and urgent.future is not None and not urgent.future.done():
             urgent.future.set_result(None)
 
-    def _write(self, exchange: Exchange, loop: asyncio.AbstractEventLoop) -> bool:
+    def _write(self, exchange: Exchange) -> bool:
         """Write ``exchange``'s frame; tell the connection when the write returned.
 
         The exchange was registered, with the time just before, so that no reply can
         arrive unexpected; the time just after bounds when the bytes left.
         """
+        transport = self._transport
         try:
-            self._transport.write_nowait(exchange.frame)
+            transport.write_nowait(exchange.frame)
         except TransportError as exc:
             self._on_lost(exc)
             return False
         now = self._now()
         self._conn.written(exchange, now)
+        if transport.backlog:
+            self._backlogged = True
         if self._taps:
             self._tapped(True, exchange.frame, now)
         return True
 
     def _handle(self, events: list[Event]) -> None:
         for event in events:
-            if isinstance(event, ReplyReceived):
-                slot, index = cast(tuple[Slot, int], event.exchange.token)
-                slot.settle(index, event.reply)
+            # Exact types, tested without a call (the events are final classes).
+            if event.__class__ is ReplyReceived:
+                token: tuple[Slot, int, int] = event.exchange.token  # type: ignore[assignment]  # _send_next sets it
+                slot, index, seq = token
+                if slot.seq == seq:  # not a reply of the slot's previous cycle
+                    slot.settle(index, event.reply)
             elif isinstance(event, ReplyMissing):
                 self._missing(event)
             elif isinstance(event, StrayPacket):
@@ -1533,9 +1738,9 @@ class Bus:
         token = event.exchange.token
         if not isinstance(token, tuple):
             return
-        slot, index = token
+        slot, index, seq = token
         assert isinstance(slot, Slot)
-        if slot.future.done() or slot.cancelled:
+        if slot.finished or slot.seq != seq:
             return
         packet = slot.packets[index]
         now = self._now()

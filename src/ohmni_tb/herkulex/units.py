@@ -88,6 +88,13 @@ def angle_deg_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
             ``zero_offset_raw`` is not an int.
         OutOfRangeError: ``zero_offset_raw`` is outside −512..511.
     """
+    # An int position and offset in range (a servo's feedback) pass without a call.
+    if (
+        type(pos_raw) is int
+        and type(zero_offset_raw) is int
+        and -CENTRE_RAW <= zero_offset_raw <= POSITION_MAX_RAW - CENTRE_RAW
+    ):
+        return (pos_raw - CENTRE_RAW - zero_offset_raw) * DEG_PER_COUNT
     raw = finite("pos_raw", pos_raw)
     offset = check_zero_offset_raw(zero_offset_raw)
     return (raw - CENTRE_RAW - offset) * DEG_PER_COUNT
@@ -190,6 +197,8 @@ def voltage_v_from_raw(voltage_raw: int) -> float:
     Raises:
         InvalidArgumentError: ``voltage_raw`` is not a number, NaN or infinite.
     """
+    if type(voltage_raw) is int:  # a register's value: nothing to check
+        return voltage_raw * VOLT_PER_COUNT
     return finite("voltage_raw", voltage_raw) * VOLT_PER_COUNT
 
 
