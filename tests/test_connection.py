@@ -169,6 +169,19 @@ def test_a_read_holds_the_line_for_its_budget_and_delivers_its_times(feed: Feede
     assert stats.wire_busy_s == pytest.approx(24 * BYTE_S)
 
 
+def test_after_a_reply_seen_the_line_frees_by_its_own_guard_and_the_model_keeps_its() -> None:
+    c = conn(reply_guard_s=3 * BYTE_S / 10)  # three bit times
+    exchange = c.send(read_count(0), 1.0)
+    assert c.free_at == pytest.approx(exchange.window_end_s + GUARD)  # the model's
+    seen = exchange.reply_earliest_s + 0.0002
+    only(c.receive_data(encode_packet(count_reply(0, 1)), seen), ReplyReceived)
+    assert c.free_at == pytest.approx(seen + 3 * BYTE_S / 10)
+    command = wheel_command(10, 10)
+    write = c.send(command, c.free_at)
+    assert c.free_at == pytest.approx(write.wire_end_s + GUARD)  # no reply: the model's
+    assert conn().reply_guard_s == GUARD  # not told: the guard
+
+
 def test_the_line_is_refused_before_it_is_free() -> None:
     c = conn()
     c.send(read_count(0), 0.0)
@@ -680,6 +693,8 @@ def test_caution_off_or_unpipelined_changes_nothing() -> None:
         ({"baudrate": 0}, "baudrate"),
         ({"timeout_s": 0.0}, "timeout_s"),
         ({"guard_s": -1.0}, "guard_s"),
+        ({"reply_guard_s": -1.0}, "reply_guard_s"),
+        ({"reply_guard_s": math.inf}, "reply_guard_s"),
         ({"turnaround_s": math.nan}, "turnaround_s"),
         ({"breaker_timeouts": 0}, "breaker_timeouts"),
         ({"probe_interval_s": 0.0}, "probe_interval_s"),

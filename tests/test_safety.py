@@ -392,12 +392,17 @@ def test_the_demo_says_loudly_when_the_drive_boards_go_silent_mid_run(
 
 def _lossy_demo(capsys: pytest.CaptureFixture[str]) -> str:
     """The demo's own coroutine in virtual time on a line losing 3 % of its bytes (the
-    same every run); its output, words unwrapped."""
+    same every run); its output, words unwrapped.
+
+    On this line about half the seeds confirm the stop within the demo's timeout (the
+    others say it is not confirmed, as they must): which half depends on the exact
+    timing of every transaction. This seed is one that confirms.
+    """
     from ohmni_tb.cli.demo import _demo
 
     # The neck's part, after the drive, may lose its commands on this line too.
     with contextlib.suppress(OhmniError):
-        run_virtual(_demo("sim://?drop=0.03&seed=3&ext=none", True))
+        run_virtual(_demo("sim://?drop=0.03&seed=4&ext=none", True))
     return _words(capsys.readouterr().out)
 
 

@@ -402,7 +402,9 @@ class Bus:
         timeout_s: How long past a reply's latest time on the wire it is still waited
             for: the adapter's and the host's receive latency.
         retries: Extra attempts for reads and STAT.
-        guard_s: Quiet between transactions.
+        guard_s: Quiet between transactions, by the cost model.
+        reply_guard_s: Quiet after a reply is seen before the next request goes: its
+            sender's line-driver turnaround (``None``: ``guard_s``).
         turnaround_s: The longest a device takes to start its reply (per device:
             :meth:`set_turnaround`).
         max_packet_size: The largest packet sent or accepted (223 HerkuleX, 64 Ohmni).
@@ -430,6 +432,7 @@ class Bus:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
         guard_s: float = DEFAULT_GUARD_S,
+        reply_guard_s: float | None = None,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         max_packet_size: int = MAX_PACKET_SIZE,
         commands: Iterable[int] | None = None,
@@ -451,6 +454,7 @@ class Bus:
             baudrate=transport.baudrate,
             turnaround_s=turnaround_s,
             guard_s=guard_s,
+            reply_guard_s=reply_guard_s,
             timeout_s=timeout_s,
             max_packet_size=max_packet_size,
             commands=commands,

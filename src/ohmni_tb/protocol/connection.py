@@ -22,8 +22,9 @@ The rules:
   turnaround budget, its reply's bytes and a guard (:mod:`ohmni_tb.protocol.timing`).
   The next request may go when that time is up by the model, even if the host has not
   seen the reply yet: a USB adapter's latency then delays the delivery of replies, not
-  the rate. Once a reply is seen and nothing was sent after it, the line is free a guard
-  later, whatever the budget said.
+  the rate. Once a reply is seen and nothing was sent after it, the line is free
+  ``reply_guard_s`` later (the guard unless told otherwise), whatever the budget said:
+  the reply's sender has finished, and only needs to turn its line driver around.
 * **A prompt line waits for a late reply.** While the last 16 requests were all answered
   and over a quarter of their replies reached the host before the line was free by the
   model (no adapter holds them: one whose latency timer is 16 ms hands over nearly every
@@ -587,7 +588,11 @@ class BusConnection:
         baudrate: Line speed; ``None`` for a link without one (then nothing is
             pipelined: the next request waits for the reply or its timeout).
         turnaround_s: Default device turnaround budget (:meth:`set_turnaround` per device).
-        guard_s: Quiet between transactions.
+        guard_s: Quiet between transactions, by the cost model.
+        reply_guard_s: Quiet after a reply the owner has seen before the next request:
+            the time its sender takes to turn its line driver around (``None``: the
+            guard). A few bit times are enough for a device; the cost model keeps
+            ``guard_s``.
         timeout_s: How long past a reply's latest wire time it is still waited for.
         max_packet_size: The largest packet sent or accepted; a length-0 read budgets it.
         commands: Command codes the decoder accepts (default: the nine HerkuleX ones).
@@ -621,6 +626,7 @@ class BusConnection:
         baudrate: int | None = None,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         guard_s: float = DEFAULT_GUARD_S,
+        reply_guard_s: float | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         max_packet_size: int = MAX_PACKET_SIZE,
         commands: Iterable[int] | None = None,
@@ -637,6 +643,8 @@ class BusConnection:
             raise OutOfRangeError("baudrate", baudrate, 1, 4_000_000, "baud")
         check_seconds("turnaround_s", turnaround_s, 0.0, 1.0)
         check_seconds("guard_s", guard_s, 0.0, 1.0)
+        if reply_guard_s is not None:
+            check_seconds("reply_guard_s", reply_guard_s, 0.0, 1.0)
         check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         check_seconds("breaker_quiet_s", breaker_quiet_s, 0.0, 3600.0)
         check_seconds("probe_interval_s", probe_interval_s, 0.001, 3600.0)
@@ -647,6 +655,7 @@ class BusConnection:
         self.byte_s = 0.0 if baudrate is None else BITS_PER_BYTE / baudrate
         self.turnaround_s = float(turnaround_s)
         self.guard_s = float(guard_s)
+        self.reply_guard_s = self.guard_s if reply_guard_s is None else float(reply_guard_s)
         self.timeout_s = float(timeout_s)
         self.max_packet_size = max_packet_size
         self.pipelined = bool(pipelined) and baudrate is not None
@@ -1262,7 +1271,7 @@ class BusConnection:
         if exchange is self._last:
             # The reply is in, so the line went quiet no later than now, whatever the
             # budget said.
-            quiet = now + self.clock_resolution_s + self.guard_s
+            quiet = now + self.clock_resolution_s + self.reply_guard_s
             self.free_at = min(self.free_at, quiet)
             self.urgent_free_at = min(self.urgent_free_at, quiet)
         if exchange.abandoned:

@@ -166,7 +166,12 @@ class LocalRobot(Robot):
             transport = await open_transport(port if port is not None else config.port)
         _warn_if_coarse_timers(transport)
         reopen = transport.reopen if transport.can_reopen else None
-        bus = Bus(transport, timeout_s=config.bus_timeout_s(), reopen=reopen)
+        bus = Bus(
+            transport,
+            timeout_s=config.bus_timeout_s(),
+            reply_guard_s=_reply_guard_s(transport.baudrate),
+            reopen=reopen,
+        )
         bus.start()
         robot: LocalRobot | None = None
         try:
@@ -539,6 +544,16 @@ def _reopener(url: str) -> Reopen:
 
 
 _coarse_timers_told = False
+
+#: After a reply it has seen, the Robot's bus sends the next request once the reply's
+#: sender can have turned its line driver around: a few bit times after its stop bit
+#: (the cost model keeps its 0.2 ms guard). The reply's own callback then sends it.
+_REPLY_GUARD_BITS = 3
+
+
+def _reply_guard_s(baudrate: int | None) -> float | None:
+    """The quiet the Robot's bus keeps after a reply it has seen (``None``: the guard)."""
+    return None if not baudrate else _REPLY_GUARD_BITS / baudrate
 
 
 def _warn_if_coarse_timers(transport: Transport) -> None:
