@@ -310,11 +310,23 @@ class Slot:
         self.results[index] = result
         self.remaining -= 1
         if self.remaining <= 0:
-            self._finish()
+            # _finish() and _notify(), written out: every cycle of every stream ends here.
+            self.finished = True
+            active = self.active
+            if active is not None:
+                active.discard(self)
+                self.active = None
+            self.exchanges = []
             future = self._future
             if future is not None and not future.done():
                 future.set_result(self.results)
-            self._notify()
+            on_done = self.on_done
+            if on_done is not None:
+                self.on_done = None
+                try:
+                    on_done(self)
+                except Exception:
+                    _log.exception("a slot's on_done callback failed")
 
     def fail(self, exc: BaseException) -> None:
         self.remaining = 0
@@ -1474,9 +1486,10 @@ class Bus:
 
     def _run(self, now: float) -> None:
         conn = self._conn
-        events = conn.poll(now)
-        if events:
-            self._handle(events)
+        if now + _EPS >= conn.poll_at:
+            events = conn.poll(now)
+            if events:
+                self._handle(events)
         # What those events queued, the loop below sees: no second pass for it.
         self._again = False
         wake = math.inf
@@ -1544,8 +1557,15 @@ class Bus:
                     wake = min(wake, next_at)
                     break
             self._send_next(part, now)
-        self._arm_expiry(conn.next_deadline())
-        self._arm(wake)
+        # The soonest a reply's timeout (or a half frame) can be due: a lower bound, so a
+        # timer set for it may find nothing due, and set the next.
+        deadline = conn.poll_at
+        # The timers are moved only when they would fire too late (_arm, _arm_expiry):
+        # most passes leave them as they are, without the calls.
+        if deadline != math.inf and (self._expiry is None or deadline + _EPS < self._expiry_at):
+            self._arm_expiry(deadline)
+        if self._wake is None or wake + _EPS < self._wake_at:
+            self._arm(wake)
 
     def _wait_inline(self, until: float) -> float:
         """Wait until ``until`` in the loop's own time and return the time then.

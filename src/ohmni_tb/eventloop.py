@@ -95,7 +95,8 @@ if hasattr(selectors, "EpollSelector"):
 
         def __init__(self) -> None:
             super().__init__()
-            self._precise = self.fileno() < _FD_SETSIZE
+            self._epoll_fd = self.fileno()
+            self._precise = self._epoll_fd < _FD_SETSIZE
 
         @property
         def precise(self) -> bool:
@@ -105,7 +106,7 @@ if hasattr(selectors, "EpollSelector"):
         def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
             if self._precise and timeout is not None and timeout > 0:
                 # Only the wait: the events are read below, by epoll, as always.
-                select.select([self.fileno()], [], [], timeout)
+                select.select([self._epoll_fd], [], [], timeout)
                 timeout = 0
             return super().select(timeout)
 

@@ -615,6 +615,9 @@ class BusConnection:
         urgent_free_at: When a stop may start (:meth:`send` with ``urgent``): the
             model's time, also while a prompt line waits for a reply (``inf`` only while
             cautious or not pipelined).
+        poll_at: No :meth:`poll` has work to do before this time: an owner polls when it
+            comes (a lower bound, made exact by each :meth:`poll` that works and by
+            :meth:`next_deadline`).
 
     Raises:
         OutOfRangeError: A setting is out of range; the message names it.
@@ -677,8 +680,7 @@ class BusConnection:
         self.policy_version = 0
         self._devices: dict[int, _Device] = {}
         self.free_at = -math.inf
-        # No poll() has work before this (a lower bound; next_deadline() makes it exact).
-        self._deadline = math.inf
+        self.poll_at = math.inf
         # When a stop may go: the model's time, even while a prompt line waits for a reply.
         self.urgent_free_at = -math.inf
         # The last requests' outcomes: whether each reply was seen after the line was free
@@ -937,7 +939,7 @@ class BusConnection:
             self._keys[key] = exchange
             if holds:
                 holds.pop(key, None)
-            self._deadline = min(self._deadline, exchange.expires_at)
+            self.poll_at = min(self.poll_at, exchange.expires_at)
             if device.breaker is BreakerState.OPEN:
                 device.breaker = BreakerState.PROBING
                 device.probe_gap = min(2.0 * device.probe_gap, self.probe_interval_s)
@@ -1024,7 +1026,7 @@ class BusConnection:
             self._junk(now, events)
         if decoder._buf:  # feed() leaves the bytes of a half frame, from position 0
             # A half frame: given up a timeout after its last byte (poll).
-            self._deadline = min(self._deadline, now + self.timeout_s)
+            self.poll_at = min(self.poll_at, now + self.timeout_s)
         return events
 
     def next_deadline(self) -> float | None:
@@ -1037,13 +1039,13 @@ class BusConnection:
                 deadline = min(deadline, exchange.expires_at)
         if self._decoder._buf:  # a half frame held (feed() leaves it from position 0)
             deadline = min(deadline, self._last_rx_at + self.timeout_s)
-        self._deadline = deadline  # exact, so also the soonest poll() has work
+        self.poll_at = deadline  # exact, so also the soonest poll() has work
         return None if deadline == math.inf else deadline
 
     def poll(self, now: float) -> list[Event]:
         """Give up what ``now`` has made hopeless: half frames, then overdue replies."""
         events: list[Event] = []
-        if now + _EPS < self._deadline:
+        if now + _EPS < self.poll_at:
             return events  # nothing is due before then: the common case
         try:
             self._poll(now, events)
@@ -1192,7 +1194,7 @@ class BusConnection:
                 exchange._confirm_at = (
                     now + self.clock_resolution_s + self._window_s(packet.sid, packet.size)
                 )
-                self._deadline = min(self._deadline, exchange._confirm_at)
+                self.poll_at = min(self.poll_at, exchange._confirm_at)
                 return
             self._answer(exchange, packet, now, events)
             return
