@@ -25,8 +25,13 @@ What it promises:
 * **Wire-timed and pipelined.** The next request goes when the previous transaction's
   time on the wire is up by the cost model (:mod:`ohmni_tb.protocol.timing`), not when
   the host has read the reply: an adapter's latency delays replies, not the rate. A reply
-  answers only a request it fits and could have answered by then; a late or duplicate
-  reply is counted, never delivered.
+  seen sooner frees the line sooner (``reply_guard_s`` after it), and the next request
+  is written from the reply's own callback; while the replies come that promptly, a
+  request waits for its reply rather than talk over a late one
+  (:class:`~ohmni_tb.protocol.connection.BusConnection`). A reply answers only a request
+  it fits and could have answered by then; a late or duplicate reply is counted, never
+  delivered. Replies are stamped as they are read and requests as they are written, to
+  the microsecond, whatever the loop (:func:`~ohmni_tb.eventloop.line_clock`).
 * **Silent devices cost little.** A device that stopped answering trips a breaker:
   requests to it fail fast with :class:`~ohmni_tb.errors.DeviceUnavailableError`, with a
   probe a second, until it answers.
