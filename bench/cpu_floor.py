@@ -21,7 +21,11 @@ own pass (its selector calls, timer heap and handles) — the ratio is printed.
 
 The requests are not paced to the line, so some collide with replies on the simulated
 half-duplex line: the reply count is lower than the schedule's 200 a second. The figure
-is the loop's and the system calls' cost, which that does not change much.
+is the loop's and the system calls' cost, which that does not change much. (The minimal
+master that paces them, writing each request from the previous reply's callback, is
+``bench/_floor.py``: ``bench/robot.py --ratio`` measures the Robot against it.) The pty
+is opened locked, as a serial port is: with another process on the line the run stops
+with an error instead of printing a figure for half the replies.
 
 Last, the same work warm and cold: the Robot with every stream on, driving, on ``sim://``
 in virtual time — the exact same sequence of callbacks every run, the simulator in the
@@ -40,10 +44,10 @@ import asyncio
 import os
 import sys
 import time
-import tty
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _floor import close_locked, open_locked
 from _pty import simulator_on_pty
 from ohmni_tb import Robot
 from ohmni_tb.protocol import PacketDecoder, encode_packet, read_request
@@ -58,14 +62,16 @@ CORE = encode_packet(read_status())
 
 
 async def floor(path: str, seconds: float, *, decode: bool) -> tuple[float, int]:
-    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    tty.setraw(fd)
+    fd = open_locked(path)  # refused (EBUSY) while another process holds the line
     loop = asyncio.get_running_loop()
     decoder = PacketDecoder()
     got = [0]
 
     def readable() -> None:
-        data = os.read(fd, 4096)
+        try:
+            data = os.read(fd, 4096)
+        except BlockingIOError:
+            return  # readiness without bytes: nothing to count
         got[0] += len(decoder.feed(data)) if decode else len(data)
 
     loop.add_reader(fd, readable)
@@ -93,7 +99,7 @@ async def floor(path: str, seconds: float, *, decode: bool) -> tuple[float, int]
     await asyncio.sleep(seconds + 0.1)
     share = (time.process_time() - cpu0) / (time.perf_counter() - wall0)
     loop.remove_reader(fd)
-    os.close(fd)
+    close_locked(fd)
     return share, got[0]
 
 

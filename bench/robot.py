@@ -1,7 +1,23 @@
 """The Robot's whole schedule in real time: stream rates, jitter, wire, command latency, CPU.
 
 Run: ``python bench/robot.py`` (``--seconds`` per row, 60 by default; ``--quick`` for
-5 s rows).
+5 s rows); ``--ratio`` for the CPU against the floor alone (below), ``--profile`` for the
+Python calls per transaction alone.
+
+**The ratio to the floor.** On one ``ohmni sim --pty`` in its own process, rounds of
+``--round-seconds`` (10) a side, ``--rounds`` (5) of them, interleaved: first the floor
+(``bench/_floor.py``: a minimal asyncio master running the same schedule with raw
+``os.read``/``os.write``, a timer per stream, the next request written from the reply's
+callback, replies counted, not parsed), then ``Robot.open(pty)`` with every stream on
+and ``drive(0.1)`` sent again every 0.1 s. Each side prints its CPU share of one core,
+its event loop's waits a second, every stream's rate and its timeouts; each round the
+Robot's CPU over the floor's, and at the end the median of those ratios and their
+spread. Interleaved rounds in one run keep a shared machine's load out of the ratio.
+``--loop`` runs both sides on ``ohmni_tb.run``'s loop (the default), ``asyncio.run``'s,
+or uvloop's (``pip install uvloop``).
+
+**Calls per transaction** (``--profile``): the Robot on the pty under cProfile, and the
+Python function calls it makes per request on the line, with the most called functions.
 
 Each row opens ``Robot.open(...)`` with every stream on (wheels 50 Hz, three HerkuleX
 servos at 30 Hz, the core board at 10 Hz, robot_state 1 Hz) and, the whole time, sends
@@ -37,24 +53,29 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import cProfile
 import math
+import pstats
 import random
+import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ohmni_tb.bus import Bus
-from ohmni_tb.eventloop import run
+from ohmni_tb.eventloop import new_event_loop, run
 from ohmni_tb.protocol import Command, PacketDecoder
 from ohmni_tb.protocol.drive import decode_wheel_command
-from ohmni_tb.robot import Robot
+from ohmni_tb.robot import LocalRobot, Robot
 from ohmni_tb.robot import schedule as schedule_module
 from ohmni_tb.sim.transport import SimTransport
 from ohmni_tb.transport import Transport, open_transport
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _floor import FloorMaster
 from _pty import simulator_on_pty
 from schedule import PHASES_S, PassThrough, Stream, machine, new_bodies, periodic
 
@@ -108,11 +129,12 @@ class Row:
 
 
 class WakeCounter:
-    """Counts the running loop's waits in its selector that could sleep (timeout not 0)."""
+    """Counts the running loop's waits in its selector that could sleep (timeout not 0);
+    ``nan`` on a loop without a Python selector to count them in (uvloop)."""
 
     def __init__(self) -> None:
-        self.count = 0
         self._selector = getattr(asyncio.get_running_loop(), "_selector", None)
+        self.count = math.nan if self._selector is None else 0
         self._real = None if self._selector is None else self._selector.select
 
     def __enter__(self) -> WakeCounter:
@@ -273,13 +295,191 @@ def show(row: Row) -> None:
     )
 
 
+# -- the ratio to the floor ----------------------------------------------------------------
+
+#: The streams both sides poll, as the Robot names them and as the floor does.
+RATIO_STREAMS = dict(
+    zip(POLLED, ("wheels", "servo 3", "servo 11", "servo 12", "core"), strict=True)
+)
+
+
+def loop_factory(name: str) -> Callable[[], asyncio.AbstractEventLoop]:
+    """The loop a round runs on: ``ohmni`` (ohmni_tb.run's), ``asyncio`` or ``uvloop``."""
+    if name == "ohmni":
+        return new_event_loop
+    if name == "asyncio":
+        return asyncio.new_event_loop
+    import uvloop  # noqa: PLC0415  # an optional benchmark dependency
+
+    return uvloop.new_event_loop
+
+
+@dataclass
+class Round:
+    """One side of one interleaved round: CPU share, loop passes, rates, timeouts."""
+
+    cpu: float
+    wakes: float
+    rates: dict[str, float]
+    timeouts: int
+    skipped: int = 0
+
+
+async def floor_round(path: str, seconds: float) -> Round:
+    """The minimal master (``bench/_floor.py``) on the pty for ``seconds``, after 0.5 s."""
+    master = FloorMaster(path)
+    master.start()
+    try:
+        await asyncio.sleep(0.5)
+        before = {s.name: (s.cycles, s.timeouts, s.skipped) for s in master.streams}
+        with WakeCounter() as wakes:
+            cpu0, wall0 = time.process_time(), time.perf_counter()
+            await asyncio.sleep(seconds)
+            cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    finally:
+        master.close()
+    rates = {s.name: (s.cycles - before[s.name][0]) / wall for s in master.streams}
+    timeouts = sum(s.timeouts - before[s.name][1] for s in master.streams)
+    skipped = sum(s.skipped - before[s.name][2] for s in master.streams)
+    return Round(cpu / wall, wakes.count / wall, rates, timeouts, skipped)
+
+
+async def robot_round(path: str, seconds: float) -> Round:
+    """``Robot.open(pty)`` with every stream on, ``drive(0.1)`` re-sent every 0.1 s."""
+    async with Robot.open(path) as robot:
+        robot.drive(0.1)
+        await asyncio.sleep(1.0)  # discovery done, every stream running
+        start = robot.stats()
+        with WakeCounter() as wakes:
+            cpu0, wall0 = time.process_time(), time.perf_counter()
+            stop_at = time.perf_counter() + seconds
+            while time.perf_counter() < stop_at:
+                robot.drive(0.1)
+                await asyncio.sleep(0.1)
+            cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+        end = robot.stats()
+        robot.stop()
+    rates = {
+        RATIO_STREAMS[name]: (end.streams[name].samples - start.streams[name].samples) / wall
+        for name in POLLED
+    }
+    skipped = sum(end.streams[n].skipped - start.streams[n].skipped for n in POLLED)
+    return Round(
+        cpu / wall, wakes.count / wall, rates, end.bus.timeouts - start.bus.timeouts, skipped
+    )
+
+
+def ratio(seconds: float, rounds: int, loop_name: str) -> list[float]:
+    """Interleaved rounds, floor then Robot, on one ``ohmni sim --pty``; print each, and
+    the median ratio of the Robot's CPU to the floor's with its spread."""
+    factory = loop_factory(loop_name)
+    print(
+        f"\nCPU against the floor on {loop_name}: {rounds} interleaved rounds of {seconds:g} s "
+        "on one `ohmni sim --pty` (rates in Hz; requested: wheels 50, servos 30, core 10)"
+    )
+    names = list(RATIO_STREAMS.values())
+    header = (
+        f"{'round':<10} | {'CPU':>6} {'wake/s':>6} | "
+        + " ".join(f"{n:>8}" for n in names)
+        + f" | {'timeouts':>8} {'skipped':>7} | {'ratio':>5}"
+    )
+    print(header)
+    print("-" * len(header))
+    ratios: list[float] = []
+    with simulator_on_pty() as path:
+        for k in range(rounds):
+            sides = []
+            for label, side in (("floor", floor_round), ("robot", robot_round)):
+                with asyncio.Runner(loop_factory=factory) as runner:
+                    result = runner.run(side(path, seconds))
+                sides.append(result)
+                wakes = "     -" if math.isnan(result.wakes) else f"{result.wakes:6.0f}"
+                extra = f"{result.cpu / sides[0].cpu:5.2f}" if label == "robot" else ""
+                print(
+                    f"{label} {k + 1:<4} | {result.cpu:6.2%} {wakes} | "
+                    + " ".join(f"{result.rates[n]:8.2f}" for n in names)
+                    + f" | {result.timeouts:8d} {result.skipped:7d} | {extra}"
+                )
+            ratios.append(sides[1].cpu / sides[0].cpu)
+    ordered = sorted(ratios)
+    print(
+        f"Robot / floor CPU on {loop_name}: median {statistics.median(ratios):.2f} "
+        f"(spread {ordered[0]:.2f}..{ordered[-1]:.2f} over {rounds} rounds)"
+    )
+    return ratios
+
+
+async def profile_robot(path: str, seconds: float) -> None:
+    """cProfile the Robot on the pty: Python calls per bus transaction, and the top callees."""
+    async with LocalRobot.open(path) as robot:
+        robot.drive(0.1)
+        await asyncio.sleep(1.0)
+        start = robot.bus.stats
+        profiler = cProfile.Profile()
+        profiler.enable()
+        stop_at = time.perf_counter() + seconds
+        while time.perf_counter() < stop_at:
+            robot.drive(0.1)
+            await asyncio.sleep(0.1)
+        profiler.disable()
+        end = robot.bus.stats
+        robot.stop()
+    replies = sum(d.replies for d in end.devices.values()) - sum(
+        d.replies for d in start.devices.values()
+    )
+    requests = sum(d.requests for d in end.devices.values()) - sum(
+        d.requests for d in start.devices.values()
+    )
+    stats = pstats.Stats(profiler)
+    table = stats.stats  # type: ignore[attr-defined]  # set by Stats, not in the stubs
+    # (file, line, name) -> (primitive calls, calls, ...): "~" is C (builtins, methods).
+    python = sum(row[1] for (file, _, _), row in table.items() if file != "~")
+    total = sum(row[1] for row in table.values())
+    print(
+        f"\ncProfile, Robot on the pty for {seconds:g} s: {requests} requests, {replies} "
+        f"replies; {python} calls of Python functions ({total} with C functions and "
+        f"methods): {python / requests:.0f} Python calls per transaction "
+        f"({total / requests:.0f} with C)"
+    )
+    stats.sort_stats("ncalls").print_stats(40)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--quick", action="store_true", help="5 s a row")
+    parser.add_argument(
+        "--ratio",
+        action="store_true",
+        help="only the CPU against the floor (interleaved rounds on one pty)",
+    )
+    parser.add_argument("--rounds", type=int, default=5, help="rounds of the ratio (5)")
+    parser.add_argument(
+        "--round-seconds", type=float, default=10.0, help="seconds a side of a round (10)"
+    )
+    parser.add_argument(
+        "--loop",
+        choices=("ohmni", "asyncio", "uvloop"),
+        default="ohmni",
+        help="the loop of the ratio: ohmni_tb.run's (default), asyncio.run's, or uvloop",
+    )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="only cProfile the Robot on the pty: Python calls per transaction",
+    )
     args = parser.parse_args()
     seconds = 5.0 if args.quick else args.seconds
     print(machine())
+    if args.profile:
+        with simulator_on_pty() as path:
+            asyncio.Runner(loop_factory=loop_factory(args.loop)).run(
+                profile_robot(path, args.round_seconds)
+            )
+        return 0
+    if args.ratio:
+        ratio(args.round_seconds, args.rounds, args.loop)
+        return 0
     print(f"{seconds:g} s a row, real time; requested: wheels 50, servos 3 at 30, core 10 Hz")
     header = (
         f"{'row':<16} | {'wheel':>6} {'neck':>6} {'ext1':>6} {'ext2':>6} {'core':>6} | "
@@ -327,6 +527,7 @@ def main() -> int:
         f"{precise.jitter_p99_ms:.1f} vs {coarse.jitter_p99_ms:.1f} ms"
     )
     print("units: Hz | ms | ms | share of the line | share of one core")
+    ratio(args.round_seconds, args.rounds, args.loop)
     return 0
 
 

@@ -1020,6 +1020,61 @@ def test_on_done_hears_of_a_slot_dropped_while_it_is_submitted() -> None:
     assert isinstance(heard, DeadlineMissedError)
 
 
+def test_a_completed_slot_goes_again_as_a_new_cycle_without_a_new_slot() -> None:
+    async def main() -> tuple[list[int], list[int], list[bool], float | None, float]:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus:
+            loop = asyncio.get_running_loop()
+            cycle = (read_count(0), read_count(1))
+            got: list[list[int]] = []
+
+            def done(slot: Slot) -> None:
+                got.append([value(r) for r in slot.results])
+
+            slot = bus.submit(cycle, priority=3, on_done=done, tag="first")
+            with pytest.raises(StateError, match="completed"):
+                bus.resubmit(slot)  # still on the line
+            await asyncio.sleep(0.02)
+            first_results = slot.results
+            due = loop.time() + 0.01
+            again = bus.resubmit(slot, not_before=due, on_done=done, tag="second")
+            assert again is slot
+            assert (slot.finished, slot.started_at, slot.tag) == (False, None, "second")
+            await asyncio.sleep(0.02)
+            replies = await slot.future  # a fresh future, for the second cycle
+            flags = [first_results is not slot.results, slot.finished, slot.priority == 3]
+        await end.aclose()
+        return got[0], [value(r) for r in replies], flags, slot.started_at, due
+
+    first, second, flags, started, due = virtual(main)
+    assert (first, second) == ([1, 2], [3, 4])
+    assert flags == [True, True, True]
+    assert started is not None
+    assert started >= due  # it waited for its not_before
+
+
+def test_a_slot_withdrawn_or_failed_can_go_again_and_another_bus_cannot_take_it() -> None:
+    async def main() -> tuple[list[int], BaseException | None]:
+        host, end = pair()
+        TimedDevice(end)
+        async with Bus(host) as bus, Bus(pair()[0]) as other:
+            loop = asyncio.get_running_loop()
+            bus.submit([read_count(0)])  # holds the line
+            late = bus.submit([read_count(1)], deadline=loop.time() + 0.0001)
+            error = late.error
+            with pytest.raises(StateError):
+                other.resubmit(late)
+            bus.resubmit(late)
+            replies = await late.future
+        await end.aclose()
+        return [value(r) for r in replies], error
+
+    values, error = virtual(main)
+    assert isinstance(error, DeadlineMissedError)
+    assert values == [2]
+
+
 def test_finished_slots_leave_no_reference_cycle_for_the_collector() -> None:
     # ~150 slots a second under the Robot: left to the cycle collector, they promoted
     # garbage into the generation whose collection paused the loop for a control period.

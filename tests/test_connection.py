@@ -169,6 +169,19 @@ def test_a_read_holds_the_line_for_its_budget_and_delivers_its_times(feed: Feede
     assert stats.wire_busy_s == pytest.approx(24 * BYTE_S)
 
 
+def test_after_a_reply_seen_the_line_frees_by_its_own_guard_and_the_model_keeps_its() -> None:
+    c = conn(reply_guard_s=3 * BYTE_S / 10)  # three bit times
+    exchange = c.send(read_count(0), 1.0)
+    assert c.free_at == pytest.approx(exchange.window_end_s + GUARD)  # the model's
+    seen = exchange.reply_earliest_s + 0.0002
+    only(c.receive_data(encode_packet(count_reply(0, 1)), seen), ReplyReceived)
+    assert c.free_at == pytest.approx(seen + 3 * BYTE_S / 10)
+    command = wheel_command(10, 10)
+    write = c.send(command, c.free_at)
+    assert c.free_at == pytest.approx(write.wire_end_s + GUARD)  # no reply: the model's
+    assert conn().reply_guard_s == GUARD  # not told: the guard
+
+
 def test_the_line_is_refused_before_it_is_free() -> None:
     c = conn()
     c.send(read_count(0), 0.0)
@@ -225,6 +238,81 @@ def test_a_link_without_a_baud_rate_is_not_pipelined() -> None:
     assert c.free_at == math.inf
     # No wire time to add: the turnaround budget and the timeout.
     assert exchange.expires_at == pytest.approx(c.turnaround_s + c.timeout_s)
+
+
+# -- a clock in whole milliseconds ---------------------------------------------------------
+
+
+def _ms(t: float) -> float:
+    """What a clock in whole milliseconds (uvloop's loop.time()) reads at ``t``."""
+    return math.floor(t * 1000 + 1e-9) / 1000
+
+
+def _on_a_millisecond_clock(c: BusConnection, count: int) -> tuple[int, int, float]:
+    """Reads on a true timeline, stamped by a clock in whole milliseconds: the device
+    answers 0.5 ms after each request. Returns the replies taken, those refused as
+    early, and the shortest true quiet between a reply's end and the next request."""
+    true_t = 0.0104
+    taken = early = 0
+    quiet = math.inf
+    reply_end = -math.inf
+    for k in range(count):
+        request = read_count(k % 2)
+        # The owner waits until its own clock says the line is free (and the request's
+        # look-alike answered or given up), then sends.
+        while True:
+            stamp = _ms(true_t)
+            c.poll(stamp)
+            if stamp + 1e-12 >= max(c.free_at, c.blocked_until(request, stamp)):
+                break
+            true_t = stamp + 0.001
+        quiet = min(quiet, true_t - reply_end)
+        exchange = c.send(request, stamp)
+        reply_end = true_t + (request.size + 15) * BYTE_S + 0.0005
+        for event in c.receive_data(encode_packet(count_reply(k % 2, k)), _ms(reply_end)):
+            taken += isinstance(event, ReplyReceived)
+            early += isinstance(event, StrayPacket) and event.kind is StrayKind.EARLY
+        # The owner comes back a little later; an unanswered request is waited out.
+        true_t = reply_end + 0.000137 * (k % 7)
+        if not exchange.done:
+            true_t = max(true_t, exchange.expires_at)
+    return taken, early, quiet
+
+
+def test_a_clock_in_whole_milliseconds_takes_every_reply_and_keeps_the_guard() -> None:
+    # Told its clock's step, the connection allows for stamps up to a step behind.
+    c = conn(clock_resolution_s=0.001)
+    taken, early, quiet = _on_a_millisecond_clock(c, 200)
+    assert (taken, early) == (200, 0)
+    assert quiet >= GUARD  # never talked over the end of a reply
+    stats = c.stats(10.0)
+    assert sum(d.timeouts for d in stats.devices.values()) == 0
+    # Not told, it takes good replies for another request's, come too early.
+    taken, early, _ = _on_a_millisecond_clock(conn(), 200)
+    assert early == 200
+    assert taken == 0
+
+
+def test_a_coarse_clock_widens_the_windows_by_its_step_and_nothing_else() -> None:
+    exact, coarse = conn(), conn(clock_resolution_s=0.001)
+    a, b = exact.send(read_count(0), 1.0), coarse.send(read_count(0), 1.0)
+    assert b.reply_earliest_s == a.reply_earliest_s  # a lower bound stays one
+    assert b.wire_end_s == pytest.approx(a.wire_end_s + 0.001)
+    assert b.window_end_s == pytest.approx(a.window_end_s + 0.001)
+    assert b.expires_at == pytest.approx(a.expires_at + 0.001)
+    assert coarse.free_at == pytest.approx(exact.free_at + 0.001)
+    # A reply stamped half a step before it could have been complete is still taken...
+    early_stamp = a.reply_earliest_s - 0.0005
+    assert only(coarse.receive_data(encode_packet(count_reply(0, 1)), early_stamp), ReplyReceived)
+    assert only(exact.receive_data(encode_packet(count_reply(0, 1)), early_stamp), StrayPacket)
+    # ... and the line frees a guard after the latest the reply can really have come.
+    assert coarse.free_at == pytest.approx(early_stamp + 0.001 + GUARD)
+
+
+@pytest.mark.parametrize("bad", [-0.001, 0.5, math.nan])
+def test_a_clock_resolution_out_of_range_is_refused(bad: float) -> None:
+    with pytest.raises(OutOfRangeError, match="clock_resolution_s"):
+        conn(clock_resolution_s=bad)
 
 
 # -- which reply answers which request -----------------------------------------------------
@@ -437,6 +525,92 @@ def test_a_failed_probe_reopens_the_breaker() -> None:
     assert c.refusal(12, t) == pytest.approx(probe_at + 0.25 - t)
 
 
+# -- a prompt line waits for its replies ---------------------------------------------------
+
+
+def _answered(c: BusConnection, count: int, t: float, *, late_s: float = -0.0004) -> float:
+    """``count`` reads of both wheel counts, each reply seen ``late_s`` after the line
+    was free by the model (negative: before); returns the time after the last."""
+    for k in range(count):
+        exchange = c.send(read_count(k % 2), t)
+        seen = exchange.window_end_s + GUARD + late_s
+        [got] = only(c.receive_data(encode_packet(count_reply(k % 2, k)), seen), ReplyReceived)
+        assert got.exchange is exchange
+        t = max(c.free_at, seen)
+    return t
+
+
+def test_a_prompt_line_waits_for_a_late_reply_instead_of_talking_over_it() -> None:
+    c = conn()
+    t = _answered(c, 15, 0.0)
+    before = c.prompt  # not yet: 16 replies tell
+    t = _answered(c, 1, t)
+    assert (before, c.prompt) == (False, True)
+    exchange = c.send(read_count(0), t)
+    model = exchange.window_end_s + GUARD
+    # The reply is late (its host was busy): the line stays taken past the model's time...
+    assert c.free_at == math.inf
+    assert c.urgent_free_at == pytest.approx(model)  # a stop still goes on the model
+    with pytest.raises(StateError, match="busy"):
+        c.send(read_count(1), model + 0.003)
+    # ... until it comes, 3 ms late: a guard after it, the next request may go.
+    late = model + 0.003
+    [got] = only(c.receive_data(encode_packet(count_reply(0, 7)), late), ReplyReceived)
+    assert got.exchange is exchange
+    assert c.free_at == pytest.approx(late + GUARD)
+
+
+def test_a_stop_on_a_prompt_line_goes_on_the_models_time() -> None:
+    c = conn()
+    exchange = c.send(read_count(0), _answered(c, 16, 0.0))
+    model = exchange.window_end_s + GUARD
+    with pytest.raises(StateError, match="busy"):
+        c.send(wheel_command(0, 0), model - 0.0001, urgent=True)
+    stop = c.send(wheel_command(0, 0), model, urgent=True)
+    assert stop.sent_at == model
+
+
+def test_a_prompt_line_waits_out_a_missing_reply_then_goes_on_the_model_for_that_device() -> None:
+    c = conn()
+    t = _answered(c, 16, 0.0)
+    silent = c.send(read_request(3, 0x30, 2), t)
+    assert c.free_at == math.inf
+    [missing] = only(c.poll(silent.expires_at), ReplyMissing)
+    assert missing.exchange is silent
+    assert c.free_at == pytest.approx(silent.expires_at + GUARD)
+    # A miss in the last 16: the line goes on the model's time again, for every device.
+    assert not c.prompt
+    again = c.send(read_request(3, 0x31, 2), c.free_at)
+    assert c.free_at == pytest.approx(again.window_end_s + GUARD)
+
+
+def test_replies_an_adapter_holds_keep_the_line_on_the_models_time() -> None:
+    # Replies seen after the line was free by the model, as a rule: a USB adapter's
+    # latency timer holds them, and waiting for each would cost its latency every time.
+    c = conn()
+    t = 0.0
+    for k in range(40):
+        exchange = c.send(read_count(k % 2), t)
+        assert c.free_at == pytest.approx(exchange.window_end_s + GUARD)
+        seen = exchange.window_end_s + GUARD + 0.004
+        only(c.receive_data(encode_packet(count_reply(k % 2, k)), seen), ReplyReceived)
+        t = exchange.window_end_s + GUARD
+    assert not c.prompt
+    # A few late replies among prompt ones leave it prompt.
+    t = _answered(c, 12, t + 0.1)
+    t = _answered(c, 4, t, late_s=0.002)
+    assert c.prompt
+
+
+def test_an_unpipelined_or_cautious_line_is_unchanged_by_promptness() -> None:
+    u = conn(pipelined=False)
+    for k in range(20):
+        exchange = u.send(read_count(k % 2), k * 0.01)
+        assert u.free_at == math.inf
+        assert u.urgent_free_at == math.inf
+        u.receive_data(encode_packet(count_reply(k % 2, k)), exchange.window_end_s)
+
+
 # -- junk makes the line cautious ------------------------------------------------------
 
 
@@ -519,6 +693,8 @@ def test_caution_off_or_unpipelined_changes_nothing() -> None:
         ({"baudrate": 0}, "baudrate"),
         ({"timeout_s": 0.0}, "timeout_s"),
         ({"guard_s": -1.0}, "guard_s"),
+        ({"reply_guard_s": -1.0}, "reply_guard_s"),
+        ({"reply_guard_s": math.inf}, "reply_guard_s"),
         ({"turnaround_s": math.nan}, "turnaround_s"),
         ({"breaker_timeouts": 0}, "breaker_timeouts"),
         ({"probe_interval_s": 0.0}, "probe_interval_s"),

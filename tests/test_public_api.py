@@ -90,8 +90,8 @@ PUBLIC = {
     "ohmni_tb.sim.clock": ["VirtualClockLoop", "run_virtual"],
     "ohmni_tb": ["MotionResult", "OhmniError", "Robot", "RobotConfig", "__version__", "run"],
     "ohmni_tb.eventloop": [
-        "DEFAULT_RT_PRIORITY", "PreciseEpollSelector", "new_event_loop", "realtime_priority",
-        "run", "set_realtime", "timer_resolution_s",
+        "DEFAULT_RT_PRIORITY", "LineClock", "PreciseEpollSelector", "line_clock",
+        "new_event_loop", "realtime_priority", "run", "set_realtime", "timer_resolution_s",
     ],
     "ohmni_tb.config": [
          "CONFIG_ENV", "CONFIG_FILE_NAME", "ENV_PREFIX", "RobotConfig", "config_paths",

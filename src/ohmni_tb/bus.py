@@ -25,8 +25,13 @@ What it promises:
 * **Wire-timed and pipelined.** The next request goes when the previous transaction's
   time on the wire is up by the cost model (:mod:`ohmni_tb.protocol.timing`), not when
   the host has read the reply: an adapter's latency delays replies, not the rate. A reply
-  answers only a request it fits and could have answered by then; a late or duplicate
-  reply is counted, never delivered.
+  seen sooner frees the line sooner (``reply_guard_s`` after it), and the next request
+  is written from the reply's own callback; while the replies come that promptly, a
+  request waits for its reply rather than talk over a late one
+  (:class:`~ohmni_tb.protocol.connection.BusConnection`). A reply answers only a request
+  it fits and could have answered by then; a late or duplicate reply is counted, never
+  delivered. Replies are stamped as they are read and requests as they are written, to
+  the microsecond, whatever the loop (:func:`~ohmni_tb.eventloop.line_clock`).
 * **Silent devices cost little.** A device that stopped answering trips a breaker:
   requests to it fail fast with :class:`~ohmni_tb.errors.DeviceUnavailableError`, with a
   probe a second, until it answers.
@@ -45,6 +50,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass, fields
@@ -62,6 +68,7 @@ from ohmni_tb.errors import (
     StateError,
     TransportError,
 )
+from ohmni_tb.eventloop import MILLISECOND_S, LineClock, line_clock, timer_resolution_s
 from ohmni_tb.protocol import (
     BROADCAST_ID,
     MAX_PACKET_SIZE,
@@ -136,6 +143,12 @@ DEFAULT_CLOSE_TIMEOUT_S = 0.5
 _WAIT_WINDOW = 1024
 #: While bytes wait in the port, look again this often.
 _BACKLOG_POLL_S = 0.001
+#: On a loop whose timers wait in whole milliseconds, the last this long of a wait for the
+#: line is slept inline rather than left to the timer (Bus._wait_inline).
+_INLINE_WAIT_MAX_S = MILLISECOND_S
+#: A wait for the line this short is waited out in the loop on any real clock: shorter
+#: than what a pass of the event loop and its wake-up cost (Bus._wait_inline).
+_SPIN_S = 0.00005
 _EPS = 1e-9
 
 #: Opens a fresh transport for :meth:`Bus.reconnect`.
@@ -176,17 +189,25 @@ class Slot:
 
     Public attributes: :attr:`future` (resolves to one reply or ``None`` per packet, as
     :meth:`Bus.transact` returns, or to its exception), :attr:`started_at` (the loop time
-    its first packet was written, ``None`` until then) and :attr:`packets`.
+    its first packet was written, ``None`` until then), :attr:`packets`, and, once it
+    has completed (:attr:`finished`), :attr:`results` (one reply or ``None`` per packet)
+    or :attr:`error`; :attr:`tag` holds whatever the submitter attached. A slot that has
+    completed can be queued again with :meth:`Bus.resubmit`.
     """
 
     __slots__ = (
+        "_error",
+        "_future",
+        "_loop",
+        "_owner",
         "active",
         "attempts",
         "cancelled",
         "deadline",
         "exchanges",
         "expect",
-        "future",
+        "finished",
+        "given",
         "on_done",
         "packets",
         "priority",
@@ -198,6 +219,7 @@ class Slot:
         "started",
         "started_at",
         "submitted_at",
+        "tag",
         "timeout_s",
     )
 
@@ -212,7 +234,8 @@ class Slot:
         timeout_s: float | None,
         seq: int,
         submitted_at: float,
-        future: asyncio.Future[list[ReplyPacket | None]],
+        loop: asyncio.AbstractEventLoop,
+        owner: object = None,
     ) -> None:
         self.packets = packets
         self.expect = expect
@@ -222,7 +245,12 @@ class Slot:
         self.timeout_s = timeout_s
         self.seq = seq
         self.submitted_at = submitted_at
-        self.future = future
+        self._loop = loop
+        self._owner = owner  # the bus it runs on
+        # Made when first asked for (Slot.future): a stream's slots, which report
+        # through on_done, never need one.
+        self._future: asyncio.Future[list[ReplyPacket | None]] | None = None
+        self._error: BaseException | None = None
         self.results: list[ReplyPacket | None] = [None] * len(packets)
         self.attempts = [0] * len(packets)
         self.refused: list[float | None] = [None] * len(packets)
@@ -231,9 +259,36 @@ class Slot:
         self.started = False
         self.started_at: float | None = None
         self.on_done: Callable[[Slot], None] | None = None
+        #: Withdrawn (Bus.cancel, or its future cancelled).
         self.cancelled = False
+        #: Completed, failed or withdrawn: nothing more happens to it.
+        self.finished = False
+        self.tag: object = None
+        #: The sequence it was submitted as (resubmit() keeps it when passed again).
+        self.given: Sequence[Packet] = ()
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
         self.active: set[Slot] | None = None
+
+    @property
+    def future(self) -> asyncio.Future[list[ReplyPacket | None]]:
+        """Resolves to :attr:`results`, or to :attr:`error`; cancelled when withdrawn."""
+        future = self._future
+        if future is None:
+            future = self._future = self._loop.create_future()
+            if self.finished:
+                if self.cancelled:
+                    future.cancel()
+                elif self._error is not None:
+                    future.set_exception(self._error)
+                else:
+                    future.set_result(self.results)
+        return future
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why it failed (:class:`~ohmni_tb.errors.DeadlineMissedError`, a lost link…),
+        or ``None``."""
+        return self._error
 
     def replace_unsent(self, index: int, packet: Packet) -> None:
         """Put ``packet`` in place of packet ``index``, which must expect no reply, before
@@ -255,20 +310,49 @@ class Slot:
         self.packets[index] = packet
 
     def settle(self, index: int, result: ReplyPacket | None) -> None:
+        if self.finished:
+            return
         self.results[index] = result
         self.remaining -= 1
         if self.remaining <= 0:
-            self._leave()
-            if not self.future.done():
-                self.future.set_result(self.results)
-                self._notify()
+            # _finish() and _notify(), written out: every cycle of every stream ends here.
+            self.finished = True
+            active = self.active
+            if active is not None:
+                active.discard(self)
+                self.active = None
+            self.exchanges = []
+            future = self._future
+            if future is not None and not future.done():
+                future.set_result(self.results)
+            on_done = self.on_done
+            if on_done is not None:
+                self.on_done = None
+                try:
+                    on_done(self)
+                except Exception:
+                    _log.exception("a slot's on_done callback failed")
 
     def fail(self, exc: BaseException) -> None:
-        self._leave()
-        if not self.future.done():
-            self.future.set_exception(exc)
-            self._notify()
         self.remaining = 0
+        if self.finished:
+            return
+        self._finish()
+        self._error = exc
+        future = self._future
+        if future is not None and not future.done():
+            future.set_exception(exc)
+        self._notify()
+
+    def withdraw(self) -> None:
+        """Mark it withdrawn: finished, its future (if any) cancelled, no callback."""
+        self.cancelled = True
+        self.on_done = None
+        if not self.finished:
+            self._finish()
+        future = self._future
+        if future is not None and not future.done():
+            future.cancel()
 
     def _notify(self) -> None:
         on_done = self.on_done
@@ -280,7 +364,8 @@ class Slot:
         except Exception:
             _log.exception("a slot's on_done callback failed")
 
-    def _leave(self) -> None:
+    def _finish(self) -> None:
+        self.finished = True
         if self.active is not None:
             self.active.discard(self)
             self.active = None
@@ -334,7 +419,9 @@ class Bus:
         timeout_s: How long past a reply's latest time on the wire it is still waited
             for: the adapter's and the host's receive latency.
         retries: Extra attempts for reads and STAT.
-        guard_s: Quiet between transactions.
+        guard_s: Quiet between transactions, by the cost model.
+        reply_guard_s: Quiet after a reply is seen before the next request goes: its
+            sender's line-driver turnaround (``None``: ``guard_s``).
         turnaround_s: The longest a device takes to start its reply (per device:
             :meth:`set_turnaround`).
         max_packet_size: The largest packet sent or accepted (223 HerkuleX, 64 Ohmni).
@@ -362,6 +449,7 @@ class Bus:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
         guard_s: float = DEFAULT_GUARD_S,
+        reply_guard_s: float | None = None,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         max_packet_size: int = MAX_PACKET_SIZE,
         commands: Iterable[int] | None = None,
@@ -383,6 +471,7 @@ class Bus:
             baudrate=transport.baudrate,
             turnaround_s=turnaround_s,
             guard_s=guard_s,
+            reply_guard_s=reply_guard_s,
             timeout_s=timeout_s,
             max_packet_size=max_packet_size,
             commands=commands,
@@ -399,6 +488,11 @@ class Bus:
         self.close_timeout_s = float(close_timeout_s)
         self._reopen = reopen
         self._loop: asyncio.AbstractEventLoop | None = None
+        # The line's time (ohmni_tb.eventloop.line_clock): chosen for the loop at start.
+        self._clock: LineClock | None = None
+        self._now: Callable[[], float] = _not_started
+        # The longest wait for the line slept inline rather than on a timer (coarse loops).
+        self._inline_wait_s = 0.0
         self._waiting: list[_Part] = []
         # Every slot whose caller still waits, wherever its packets are.
         self._active: set[Slot] = set()
@@ -407,6 +501,9 @@ class Bus:
         self._urgent_done: asyncio.Future[None] | None = None
         self._wake: asyncio.TimerHandle | None = None
         self._wake_at = math.inf
+        # The reply timeouts' own timer (_arm_expiry).
+        self._expiry: asyncio.TimerHandle | None = None
+        self._expiry_at = math.inf
         self._pumping = False
         self._again = False
         self._seq = 0
@@ -417,8 +514,11 @@ class Bus:
         self._lost: asyncio.Event | None = None
         self._taps: list[Tap] = []
         #: Tuples of packets already found encodable, by id (the tuple is kept, so the
-        #: id is not reused): a stream's same reads every cycle are checked once.
-        self._checked: dict[int, tuple[Packet, ...]] = {}
+        #: id is not reused), with which of them wait for a reply under the ACK policies
+        #: of that version: a stream's same reads every cycle are checked once.
+        self._checked: dict[int, tuple[tuple[Packet, ...], list[bool], int]] = {}
+        # Bytes may wait in the port since the last write (its backlog is looked at then).
+        self._backlogged = False
         self._stall_since: float | None = None
         self._waits: deque[float] = deque(maxlen=_WAIT_WINDOW)
         self._slots = 0
@@ -469,6 +569,14 @@ class Bus:
         if self._started:
             return
         self._loop = asyncio.get_running_loop()
+        self._clock = clock = line_clock(self._loop)
+        self._now = clock.now
+        coarse = timer_resolution_s(self._loop) >= MILLISECOND_S
+        # Waits it may make in the loop (_wait_inline): never on virtual time, whose
+        # clock only moves when the loop waits.
+        real = clock.now is time.monotonic
+        self._inline_wait_s = _INLINE_WAIT_MAX_S if coarse and real else _SPIN_S if real else 0.0
+        self._conn.clock_resolution_s = clock.resolution_s
         self._lost = asyncio.Event()
         self._transport.start_receiving(self._on_data, self._on_lost)
         self._started = True
@@ -559,6 +667,19 @@ class Bus:
     def connection(self) -> BusConnection:
         """The sans-IO line state this bus drives."""
         return self._conn
+
+    @property
+    def clock(self) -> LineClock:
+        """The clock the bus keeps the line's time with, in the loop's time base
+        (:func:`~ohmni_tb.eventloop.line_clock`): its stamps, and timers that never fire
+        early.
+
+        Raises:
+            BusClosedError: The bus is not started.
+        """
+        if self._clock is None:
+            raise BusClosedError("the bus is not started: use `async with Bus(...)`")
+        return self._clock
 
     async def wait_lost(self) -> TransportError:
         """Wait until the link is lost and return why (at once if it is lost now).
@@ -683,6 +804,7 @@ class Bus:
             )
         self._failure = None
         self._stall_since = None
+        self._backlogged = False
         self._lost = asyncio.Event()
         transport.start_receiving(self._on_data, self._on_lost)
         self._reconnects += 1
@@ -790,6 +912,7 @@ class Bus:
         timeout_s: float | None = None,
         on_done: Callable[[Slot], None] | None = None,
         not_before: float | None = None,
+        tag: object = None,
     ) -> Slot:
         """Queue ``packets`` as one atomic slot and return at once: :meth:`transact`
         without a task.
@@ -801,7 +924,8 @@ class Bus:
         Cancelling the future, or :meth:`cancel`, withdraws the slot (what has gone out
         stays out). A stream that sends the same packets every cycle can pass the same
         tuple each time: the bus checks that its packets encode (and that their replies
-        fit) the first time only.
+        fit) the first time only; once its slot has completed, :meth:`resubmit` queues
+        that slot again. ``tag`` is set as :attr:`Slot.tag` before anything can complete.
 
         Raises:
             OhmniError: The same as :meth:`transact`, except that
@@ -816,25 +940,86 @@ class Bus:
             timeout_s=timeout_s,
             on_done=on_done,
             not_before=not_before,
+            tag=tag,
         )
-        if on_done is None:
+        if on_done is None and not slot.finished:
             slot.future.add_done_callback(self._withdraw_if_cancelled(slot))
+        return slot
+
+    def resubmit(
+        self,
+        slot: Slot,
+        packets: Sequence[Packet] | None = None,
+        *,
+        deadline: float | None = None,
+        not_before: float | None = None,
+        on_done: Callable[[Slot], None] | None = None,
+        tag: object = None,
+    ) -> Slot:
+        """Queue a slot from :meth:`submit` that has completed once more, as a new slot:
+        a stream's next cycle, without making one.
+
+        It keeps its priority, retries and timeout; it goes with its packets as they
+        were submitted (or ``packets``), a fresh ``deadline`` and ``not_before``,
+        ``on_done`` and ``tag``, and starts over (its results, start time and future
+        are new). Returns ``slot``.
+
+        Raises:
+            StateError: The slot has not completed, or is another bus's.
+            The same as :meth:`submit` for ``packets``, ``deadline`` and ``not_before``.
+        """
+        if not slot.finished or slot._owner is not self:
+            raise StateError("only a slot of this bus that has completed can be queued again")
+        given = slot.given if packets is None else packets
+        wants = slot.expect if given is slot.given else self._wants(given, None)
+        for name, value in (("deadline", deadline), ("not_before", not_before)):
+            # A float that is finite (x - x is 0.0 for those only): no call for the others.
+            if value is not None and (type(value) is not float or value - value != 0.0):
+                _check_loop_time(name, value)
+        if self._closed or self._closing or self._failure is not None:
+            self._check_usable()
+        now = self._now()
+        count = len(given)
+        slot.given = given
+        slot.packets = list(given)
+        slot.expect = wants
+        slot.deadline = deadline
+        self._seq += 1
+        slot.seq = self._seq
+        slot.submitted_at = now
+        slot._future = None
+        slot._error = None
+        slot.results = [None] * count
+        slot.attempts = [0] * count
+        slot.refused = [None] * count
+        slot.exchanges = []
+        slot.remaining = count
+        slot.started = False
+        slot.started_at = None
+        slot.cancelled = False
+        slot.finished = False
+        slot.on_done = on_done
+        slot.tag = tag
+        slot.active = self._active
+        self._active.add(slot)
+        ready_at = -math.inf if not_before is None else not_before
+        self._waiting.append(
+            _Part(slot, list(range(count)), seq=slot.seq, submitted_at=now, ready_at=ready_at)
+        )
+        self._pump()
         return slot
 
     def cancel(self, slot: Slot) -> None:
         """Withdraw a slot from :meth:`submit` (what has gone out stays out)."""
-        if slot.future.done():
+        if slot.finished:
             return
-        slot.on_done = None
-        slot.future.cancel()
-        if not slot.cancelled:
-            self._cancel(slot)
+        self._cancel(slot)
 
     def _withdraw_if_cancelled(
         self, slot: Slot
     ) -> Callable[[asyncio.Future[list[ReplyPacket | None]]], None]:
         def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
-            if future.cancelled() and not slot.cancelled:
+            if future.cancelled() and not slot.cancelled and future is slot._future:
                 self._cancel(slot)
 
         return done
@@ -955,7 +1140,7 @@ class Bus:
     @property
     def stats(self) -> BusStats:
         """A snapshot of every counter."""
-        now = self._loop.time() if self._loop is not None else 0.0
+        now = self._now() if self._loop is not None else 0.0
         line = self._conn.stats(now)
         waits = sorted(self._waits)
         return BusStats(
@@ -999,12 +1184,11 @@ class Bus:
         fail_fast: bool = False,
         on_done: Callable[[Slot], None] | None = None,
         not_before: float | None = None,
+        tag: object = None,
     ) -> Slot:
         conn = self._conn
         given = packets
-        checked = type(given) is tuple and self._checked.get(id(given)) is given
-        packets = list(packets)
-        if not packets:
+        if not given:
             raise InvalidArgumentError("transact() needs at least one packet")
         if isinstance(priority, bool) or not isinstance(priority, int):
             raise InvalidArgumentError(f"priority must be an int, not {priority!r}")
@@ -1014,12 +1198,73 @@ class Bus:
             check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         _check_loop_time("deadline", deadline)
         _check_loop_time("not_before", not_before)
+        wants = self._wants(given, expect)
+        self._check_usable()
+        now = self._now()
+        slot = Slot(
+            list(given),
+            wants,
+            priority=priority,
+            deadline=deadline,
+            retries=extra,
+            timeout_s=timeout_s,
+            seq=self._next_seq(),
+            submitted_at=now,
+            loop=self._loop_(),
+            owner=self,
+        )
+        slot.given = given
+        if fail_fast and wants[0]:
+            # A request to a device known to be gone fails at once (a probe may still go).
+            first = slot.packets[0]
+            retry_in = conn.refusal(first.sid, now)
+            if retry_in is not None:
+                self._refused += 1
+                raise DeviceUnavailableError(
+                    sid=first.sid,
+                    cmd=first.cmd,
+                    silent_s=conn.silent_for(first.sid, now),
+                    retry_in_s=retry_in,
+                )
+        # Before the pump below, which may already settle it (a deadline it cannot meet).
+        slot.on_done = on_done
+        slot.tag = tag
+        slot.active = self._active
+        self._active.add(slot)
+        ready_at = -math.inf if not_before is None else float(not_before)
+        self._waiting.append(
+            _Part(
+                slot,
+                list(range(len(given))),
+                seq=slot.seq,
+                submitted_at=now,
+                ready_at=ready_at,
+            )
+        )
+        self._pump()
+        return slot
+
+    def _wants(self, given: Sequence[Packet], expect: list[bool] | None) -> list[bool]:
+        """Check ``given`` can go as one slot; return which packets wait for a reply.
+
+        A tuple seen before is not checked again (a stream's same packets every cycle).
+
+        Raises:
+            OutOfRangeError: A packet cannot be encoded, or a read's reply would not fit.
+            InvalidArgumentError: A STAT to broadcast, or two replies that look alike.
+        """
+        tupled = type(given) is tuple and expect is None
+        version = self._conn.policy_version
+        if tupled:
+            known = self._checked.get(id(given))
+            if known is not None and known[0] is given and known[2] == version:
+                return known[1]
+        conn = self._conn
         wants: list[bool] = []
         keys: set[tuple[int, int, bytes]] = set()
-        for i, packet in enumerate(packets):
-            if not checked:
-                conn.frame(packet)  # raises OutOfRangeError before anything is queued
-                _check_reply_fits(packet, conn.max_packet_size)
+        for i, packet in enumerate(given):
+            conn.frame(packet)  # raises OutOfRangeError before anything is queued
+            _check_reply_fits(packet, conn.max_packet_size)
             if packet.sid == BROADCAST_ID:
                 if packet.cmd == Command.STAT:
                     raise InvalidArgumentError(
@@ -1036,50 +1281,11 @@ class Bus:
                         f"one slot cannot wait for two replies that look alike: {packet!r}"
                     )
                 keys.add(key)
-        if not checked and type(given) is tuple:
+        if tupled:
             if len(self._checked) >= _CHECKED_MAX:
                 self._checked.clear()
-            self._checked[id(given)] = cast(tuple[Packet, ...], given)
-        self._check_usable()
-        loop = self._loop_()
-        now = loop.time()
-        slot = Slot(
-            packets,
-            wants,
-            priority=priority,
-            deadline=deadline,
-            retries=extra,
-            timeout_s=timeout_s,
-            seq=self._next_seq(),
-            submitted_at=now,
-            future=loop.create_future(),
-        )
-        if fail_fast and wants[0]:
-            # A request to a device known to be gone fails at once (a probe may still go).
-            retry_in = conn.refusal(packets[0].sid, now)
-            if retry_in is not None:
-                self._refused += 1
-                raise DeviceUnavailableError(
-                    sid=packets[0].sid,
-                    cmd=packets[0].cmd,
-                    silent_s=conn.silent_for(packets[0].sid, now),
-                    retry_in_s=retry_in,
-                )
-        # Before the pump below, which may already settle it (a deadline it cannot meet).
-        slot.on_done = on_done
-        slot.active = self._active
-        self._active.add(slot)
-        self._waiting.append(
-            _Part(
-                slot,
-                list(range(len(packets))),
-                seq=slot.seq,
-                submitted_at=now,
-                ready_at=-math.inf if not_before is None else float(not_before),
-            )
-        )
-        self._pump()
-        return slot
+            self._checked[id(given)] = (cast(tuple[Packet, ...], given), wants, version)
+        return wants
 
     async def _await(self, slot: Slot) -> list[ReplyPacket | None]:
         try:
@@ -1092,7 +1298,7 @@ class Bus:
         packet = slot.packets[index]
         retry_in = slot.refused[index]
         if retry_in is not None:
-            now = self._loop_().time()
+            now = self._now()
             raise DeviceUnavailableError(
                 sid=packet.sid,
                 cmd=packet.cmd,
@@ -1105,15 +1311,14 @@ class Bus:
         )
 
     def _cancel(self, slot: Slot) -> None:
-        slot.cancelled = True
+        for exchange in slot.exchanges:
+            if not exchange.done:
+                self._conn.abandon(exchange)
+        slot.withdraw()  # finished: lets go of its exchanges (Slot._finish)
         self._active.discard(slot)
         self._waiting = [p for p in self._waiting if p.slot is not slot]
         if self._current is not None and self._current.slot is slot:
             self._current = None
-        for exchange in slot.exchanges:
-            if not exchange.done:
-                self._conn.abandon(exchange)
-        slot.exchanges = []  # no cycle left through the tokens (Slot._leave)
         self._pump()
 
     def _next_seq(self) -> int:
@@ -1154,20 +1359,22 @@ class Bus:
                 self._taps.remove(tap)
 
     def _on_data(self, data: bytes) -> None:
-        loop = self._loop
-        if loop is None or self._closed:
+        if self._closed or self._loop is None:
             return
-        now = loop.time()
+        # Stamped as it is read: the line's clock, whatever the loop's own resolution.
+        now = self._now()
         if self._taps:
             self._tapped(False, data, now)
         events = self._conn.receive_data(data, now)
-        # The slots these settle may queue more (a stream's next cycle): their
-        # submissions wait for the one pass below instead of each making its own.
-        pumping, self._pumping = self._pumping, True
-        try:
-            self._handle(events)
-        finally:
-            self._pumping = pumping
+        if events:
+            # The slots these settle may queue more (a stream's next cycle): their
+            # submissions wait for the one pass below instead of each making its own,
+            # and the next request goes from here, the reply's own callback.
+            pumping, self._pumping = self._pumping, True
+            try:
+                self._handle(events)
+            finally:
+                self._pumping = pumping
         self._pump()
 
     def _on_lost(self, exc: TransportError) -> None:
@@ -1177,8 +1384,7 @@ class Bus:
         """The link is down (lost, or released when not ``loss``): fail what waits."""
         if self._failure is not None or self._closed:
             return
-        loop = self._loop
-        now = loop.time() if loop is not None else 0.0
+        now = self._now() if self._loop is not None else 0.0
         self._failure = exc
         if loss:
             self._link_losses += 1
@@ -1206,24 +1412,55 @@ class Bus:
             self._wake.cancel()
             self._wake = None
             self._wake_at = math.inf
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
+            self._expiry_at = math.inf
+
+    def _on_expiry(self) -> None:
+        self._expiry = None
+        self._expiry_at = math.inf
+        self._pump()
+
+    def _arm_expiry(self, when: float | None) -> None:
+        """Make the reply-timeout timer fire by ``when`` (the connection's next deadline).
+
+        A timer of its own, apart from the line's: a reply's timeout is set for every
+        request and almost never needed, so the one set for an earlier request is left
+        to fire (it finds nothing due, and sets the next) rather than moved for each.
+        """
+        if self._closed or when is None:
+            return
+        if self._expiry is not None:
+            if self._expiry_at <= when + _EPS:
+                return
+            self._expiry.cancel()
+        self._expiry_at = when
+        clock = self._clock
+        assert clock is not None  # armed only once started
+        self._expiry = clock.call_at(when, self._on_expiry)
 
     def _arm(self, when: float) -> None:
         """Make the one timer fire at ``when`` (``inf``: not at all).
 
-        ``when`` is the whole of what the engine waits for, so a timer set earlier for
-        something that has since happened is moved rather than left to wake the loop
-        for nothing.
+        ``when`` is the whole of what the engine waits for. A timer set for later is
+        moved; one set for sooner is left, and looks again when it fires.
         """
         if self._closed:
             return
         if self._wake is not None:
-            if abs(self._wake_at - when) <= _EPS:
+            if self._wake_at <= when + _EPS:
+                # It fires no later than needed, and looks again then: moving it would
+                # cost more than that look (a reply's timeout, set for each request and
+                # mostly not needed, is always later than the one before).
                 return
             self._cancel_wake()
         if when == math.inf:
             return
         self._wake_at = when
-        self._wake = self._loop_().call_at(when, self._on_wake)
+        clock = self._clock
+        assert clock is not None  # armed only once started
+        self._wake = clock.call_at(when, self._on_wake)
 
     def _progress(self) -> asyncio.Future[None]:
         if self._urgent_done is None or self._urgent_done.done():
@@ -1246,7 +1483,7 @@ class Bus:
         try:
             while True:
                 self._again = False
-                self._run(loop.time())
+                self._run(self._now())
                 if not self._again:
                     break
         finally:
@@ -1254,12 +1491,15 @@ class Bus:
 
     def _run(self, now: float) -> None:
         conn = self._conn
-        self._handle(conn.poll(now))
+        if now + _EPS >= conn.poll_at:
+            events = conn.poll(now)
+            if events:
+                self._handle(events)
         # What those events queued, the loop below sees: no second pass for it.
         self._again = False
         wake = math.inf
         while self._failure is None and not self._closed:
-            backlog = self._transport.backlog
+            backlog = self._transport.backlog if self._backlogged else 0
             if backlog:
                 # The port has not taken the last bytes: the wire model is off until it
                 # does, and a port that never does has lost its peer.
@@ -1275,10 +1515,15 @@ class Bus:
                     return
                 wake = min(wake, now + _BACKLOG_POLL_S)
                 break
+            self._backlogged = False
             self._stall_since = None
             if self._urgent:
-                if now + _EPS < conn.free_at:
-                    wake = min(wake, conn.free_at)
+                line_at = conn.urgent_free_at
+                if now + _EPS < line_at:
+                    if line_at - now <= self._inline_wait_s:
+                        now = self._wait_inline(line_at)
+                        continue
+                    wake = min(wake, line_at - self._inline_wait_s)
                     break
                 self._send_urgent(self._urgent.popleft(), now)
                 if not self._urgent:
@@ -1290,12 +1535,25 @@ class Bus:
                 # Choose only when the line is free: a slot that arrives meanwhile with a
                 # higher priority must still be able to go first. With nothing waiting
                 # there is nothing to wake for; a new slot pumps by itself.
+                line_at = conn.free_at
+                next_at = math.inf
                 if self._current is not None:
-                    wake = min(wake, conn.free_at)  # its next packet
-                if self._waiting:
+                    next_at = line_at  # its next packet
+                if self._waiting and line_at != math.inf:
                     # The scan counts the line's freeing for the parts that may go then,
                     # not for a cycle queued ahead of its time (it has a time of its own).
-                    wake = min(wake, self._scan(now, choose=False)[1])
+                    # While the line waits for a reply, the reply (or its timeout) pumps
+                    # next, and the scan is done then: nothing can start before.
+                    next_at = min(next_at, self._scan(now, choose=False)[1])
+                if next_at <= line_at + _EPS:
+                    # Something goes when the line frees: on a loop with millisecond
+                    # timers, the last of the wait is slept (_wait_inline); the last
+                    # few tens of microseconds (of the guard after a reply) on any.
+                    if line_at - now <= self._inline_wait_s:
+                        now = self._wait_inline(line_at)
+                        continue
+                    next_at = min(next_at, line_at - self._inline_wait_s)
+                wake = min(wake, next_at)
                 break
             part = self._current
             if part is None:
@@ -1304,10 +1562,36 @@ class Bus:
                     wake = min(wake, next_at)
                     break
             self._send_next(part, now)
-        deadline = conn.next_deadline()
-        if deadline is not None:
-            wake = min(wake, deadline)
-        self._arm(wake)
+        # The soonest a reply's timeout (or a half frame) can be due: a lower bound, so a
+        # timer set for it may find nothing due, and set the next.
+        deadline = conn.poll_at
+        # The timers are moved only when they would fire too late (_arm, _arm_expiry):
+        # most passes leave them as they are, without the calls.
+        if deadline != math.inf and (self._expiry is None or deadline + _EPS < self._expiry_at):
+            self._arm_expiry(deadline)
+        if self._wake is None or wake + _EPS < self._wake_at:
+            self._arm(wake)
+
+    def _wait_inline(self, until: float) -> float:
+        """Wait until ``until`` in the loop's own time and return the time then.
+
+        A wait of a few tens of microseconds (``_SPIN_S``: the last of the guard after a
+        reply, when the reply's own callback is ready to send) is waited out: a timer
+        would cost a pass of the event loop, its wake-up included, which takes longer
+        than that. On a loop whose timers wait in whole milliseconds the last
+        millisecond of a wait is slept (``_inline_wait_s``): its timer is set that much
+        before the line frees. On a timer alone each request would start up to a
+        millisecond late, and a schedule that books the line to 81 % does not have a
+        millisecond per transaction to spare; the loop's other work waits that
+        fraction instead.
+        """
+        now = self._now
+        left = until - now()
+        if left > _SPIN_S:
+            time.sleep(left)
+        while now() < until:
+            pass
+        return now()
 
     def _scan(self, now: float, *, choose: bool) -> tuple[_Part | None, float]:
         """One pass over the waiting parts.
@@ -1336,7 +1620,7 @@ class Bus:
         gone: list[_Part] = []
         for part in self._waiting:
             slot = part.slot
-            if slot.future.done():
+            if slot.finished:
                 gone.append(part)
                 continue
             deadline = slot.deadline
@@ -1376,7 +1660,7 @@ class Bus:
             dropped = {id(part) for part in gone}
             self._waiting = [part for part in self._waiting if id(part) not in dropped]
             self._again = True
-        if best is None or best_key is None or best.slot.future.done():
+        if best is None or best_key is None or best.slot.finished:
             return None, max(wake, now)
         self._waiting.remove(best)
         if best_key[0] and any(p.slot.priority > best.slot.priority for p in self._waiting):
@@ -1417,16 +1701,16 @@ class Bus:
                 return
         attempt = slot.attempts[index]
         slot.attempts[index] = attempt + 1
-        loop = self._loop_()
         exchange = self._conn.send(
             packet,
-            loop.time(),
+            self._now(),
             expect_reply=expect,
             timeout_s=slot.timeout_s,
             attempt=attempt,
-            token=(slot, index),
+            # Its slot, which packet, and which cycle of a slot sent again (resubmit).
+            token=(slot, index, slot.seq),
         )
-        if not self._write(exchange, loop):
+        if not self._write(exchange):
             return
         if expect:
             slot.exchanges.append(exchange)
@@ -1440,35 +1724,40 @@ class Bus:
         if expect and conn.blocked_until(packet, now) > now + _EPS:
             # Its reply could not be told from another's: send it and ignore the answer.
             expect = False
-        loop = self._loop_()
-        exchange = conn.send(packet, loop.time(), expect_reply=expect)
+        exchange = conn.send(packet, self._now(), expect_reply=expect, urgent=True)
         if expect:
             conn.abandon(exchange)
-        if self._write(exchange, loop) and urgent.future is not None and not urgent.future.done():
+        if self._write(exchange) and urgent.future is not None and not urgent.future.done():
             urgent.future.set_result(None)
 
-    def _write(self, exchange: Exchange, loop: asyncio.AbstractEventLoop) -> bool:
+    def _write(self, exchange: Exchange) -> bool:
         """Write ``exchange``'s frame; tell the connection when the write returned.
 
         The exchange was registered, with the time just before, so that no reply can
         arrive unexpected; the time just after bounds when the bytes left.
         """
+        transport = self._transport
         try:
-            self._transport.write_nowait(exchange.frame)
+            transport.write_nowait(exchange.frame)
         except TransportError as exc:
             self._on_lost(exc)
             return False
-        now = loop.time()
+        now = self._now()
         self._conn.written(exchange, now)
+        if transport.backlog:
+            self._backlogged = True
         if self._taps:
             self._tapped(True, exchange.frame, now)
         return True
 
     def _handle(self, events: list[Event]) -> None:
         for event in events:
-            if isinstance(event, ReplyReceived):
-                slot, index = cast(tuple[Slot, int], event.exchange.token)
-                slot.settle(index, event.reply)
+            # Exact types, tested without a call (the events are final classes).
+            if event.__class__ is ReplyReceived:
+                token: tuple[Slot, int, int] = event.exchange.token  # type: ignore[assignment]  # _send_next sets it
+                slot, index, seq = token
+                if slot.seq == seq:  # not a reply of the slot's previous cycle
+                    slot.settle(index, event.reply)
             elif isinstance(event, ReplyMissing):
                 self._missing(event)
             elif isinstance(event, StrayPacket):
@@ -1478,12 +1767,12 @@ class Bus:
         token = event.exchange.token
         if not isinstance(token, tuple):
             return
-        slot, index = token
+        slot, index, seq = token
         assert isinstance(slot, Slot)
-        if slot.future.done() or slot.cancelled:
+        if slot.finished or slot.seq != seq:
             return
         packet = slot.packets[index]
-        now = self._loop_().time()
+        now = self._now()
         may_retry = (
             event.reason is not MissingReason.LINK_LOST
             and is_idempotent(packet)
@@ -1495,6 +1784,10 @@ class Bus:
             slot.settle(index, None)
             return
         self._waiting.append(_Part(slot, [index], seq=self._next_seq(), submitted_at=now))
+
+
+def _not_started() -> float:
+    raise BusClosedError("the bus is not started: use `async with Bus(...)`")
 
 
 #: Packet tuples remembered as checked (``Bus._checked``); more, and it starts over.

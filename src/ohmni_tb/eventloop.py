@@ -21,8 +21,23 @@ waits in milliseconds) :func:`new_event_loop` is asyncio's default.
 ``ohmni`` commands and ``ohmni serve`` run on it; a program that embeds the
 :class:`~ohmni_tb.robot.Robot` gets it with ``ohmni_tb.run(main())`` in place of
 ``asyncio.run(main())`` (or ``asyncio.Runner(loop_factory=new_event_loop)``). The Robot
-works on any loop; :func:`timer_resolution_s` says what its timers get, and the Robot
-logs a warning, once, when it opens a serial port on a millisecond loop.
+works on any loop: on one whose timers wait in whole milliseconds
+(:func:`timer_resolution_s`: asyncio's default, uvloop) the bus sets its timer a
+millisecond before the line frees and sleeps the rest in the loop, so the schedule keeps
+its rates there too, at the cost of up to a millisecond of the loop's time per request
+sent on a timer; the Robot logs a warning, once, when it opens a serial port on such a
+loop.
+
+Whatever the loop, the bus keeps the line's time with a :class:`LineClock`
+(:func:`line_clock`): the moment a reply is read and a request written, to the
+microsecond, in the loop's own time base. On asyncio's loops that is
+:func:`time.monotonic`, which their ``time()`` already is; on uvloop, whose ``time()``
+counts whole milliseconds of the same clock, it is :func:`time.monotonic` too (a reply
+stamped up to a millisecond early looks as if it came before its request could have been
+answered), and its timers, which libuv also counts in whole milliseconds and rounds to
+the nearest, are set on the millisecond after their time so that none fires early. On a
+loop that keeps a time of its own (the simulator's virtual time) it is that loop's
+``time()``, exact.
 
 A precise timer still fires late when every core is busy with other programs: the
 kernel lets a waking time-shared process wait its turn. :func:`set_realtime` puts the
@@ -33,11 +48,13 @@ every time-shared process (``ohmni serve --rt-priority``; docs/hardware.md).
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import select
 import selectors
 import sys
-from collections.abc import Coroutine
+import time
+from collections.abc import Callable, Coroutine
 from typing import Any, Final, TypeVar
 
 from ohmni_tb._checks import integer
@@ -45,7 +62,9 @@ from ohmni_tb.errors import ConfigError
 
 __all__ = [
     "DEFAULT_RT_PRIORITY",
+    "LineClock",
     "PreciseEpollSelector",
+    "line_clock",
     "new_event_loop",
     "realtime_priority",
     "run",
@@ -76,7 +95,8 @@ if hasattr(selectors, "EpollSelector"):
 
         def __init__(self) -> None:
             super().__init__()
-            self._precise = self.fileno() < _FD_SETSIZE
+            self._epoll_fd = self.fileno()
+            self._precise = self._epoll_fd < _FD_SETSIZE
 
         @property
         def precise(self) -> bool:
@@ -86,7 +106,7 @@ if hasattr(selectors, "EpollSelector"):
         def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
             if self._precise and timeout is not None and timeout > 0:
                 # Only the wait: the events are read below, by epoll, as always.
-                select.select([self.fileno()], [], [], timeout)
+                select.select([self._epoll_fd], [], [], timeout)
                 timeout = 0
             return super().select(timeout)
 
@@ -112,12 +132,14 @@ def timer_resolution_s(loop: asyncio.AbstractEventLoop | None = None) -> float:
     """How late ``loop``'s timers may fire from the way it waits, in seconds.
 
     0.001 for a selector loop that waits in whole milliseconds (asyncio's default on
-    Linux, ``epoll`` or ``poll``), 0.0 for a finer one (:class:`PreciseEpollSelector`,
-    ``select``, ``kqueue``) and for any other loop (uvloop, a virtual-time loop): the
-    figure is about the selector, and for those it is not known to be coarse.
+    Linux, ``epoll`` or ``poll``) and for uvloop (libuv counts its timers in whole
+    milliseconds); 0.0 for a finer one (:class:`PreciseEpollSelector`, ``select``,
+    ``kqueue``) and for any other loop (a virtual-time loop, one not known to be coarse).
     """
     if loop is None:
         loop = asyncio.get_running_loop()
+    if _is_uvloop(loop):
+        return MILLISECOND_S
     selector = getattr(loop, "_selector", None)  # asyncio's selector loops keep it here
     if selector is None:
         return 0.0
@@ -132,6 +154,78 @@ def timer_resolution_s(loop: asyncio.AbstractEventLoop | None = None) -> float:
     if isinstance(selector, coarse) and sys.platform != "win32":
         return MILLISECOND_S
     return 0.0
+
+
+class LineClock:
+    """The time a bus keeps on one event loop (:func:`line_clock`; the module docstring).
+
+    Attributes:
+        now: Reads the time: seconds in the loop's own time base (what ``call_at`` takes).
+        resolution_s: How much earlier than the truth :attr:`now` may read (0.0: exact to
+            the microsecond; more only for a loop whose own coarse ``time()`` is the
+            clock, as its ``_clock_resolution`` says).
+        grid_s: The loop's timer grid, where its timers round to it (uvloop's whole
+            milliseconds); :meth:`call_at` sets a timer on the grid step after its time.
+    """
+
+    __slots__ = ("_loop", "grid_s", "now", "resolution_s")
+
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        now: Callable[[], float],
+        *,
+        resolution_s: float = 0.0,
+        grid_s: float = 0.0,
+    ) -> None:
+        self._loop = loop
+        self.now = now
+        self.resolution_s = resolution_s
+        self.grid_s = grid_s
+
+    def call_at(self, when: float, callback: Callable[[], object]) -> asyncio.TimerHandle:
+        """``loop.call_at(when, callback)``, never firing before :attr:`now` reaches ``when``."""
+        grid = self.grid_s
+        if grid:
+            # The next step of the grid at or after `when` (a nanosecond of float slack).
+            when = math.ceil(when / grid - 1e-6) * grid
+        return self._loop.call_at(when, callback)
+
+    def __repr__(self) -> str:
+        return (
+            f"<LineClock {getattr(self.now, '__qualname__', self.now)} "
+            f"resolution={self.resolution_s:g} s grid={self.grid_s:g} s>"
+        )
+
+
+def line_clock(loop: asyncio.AbstractEventLoop | None = None) -> LineClock:
+    """The clock a bus keeps its line's time with on ``loop`` (the running one by default).
+
+    :func:`time.monotonic` on asyncio's own loops (their ``time()``, read without the
+    method call) and on a loop whose ``time()`` counts the same clock more coarsely
+    (uvloop: whole milliseconds, and timers on that grid); the loop's own ``time()``
+    on a loop that keeps a time of its own (a virtual clock), with the resolution it
+    declares (asyncio's ``_clock_resolution``).
+    """
+    if loop is None:
+        loop = asyncio.get_running_loop()
+    if isinstance(loop, asyncio.BaseEventLoop):
+        if type(loop).time is asyncio.BaseEventLoop.time:
+            return LineClock(loop, time.monotonic)
+        declared = getattr(loop, "_clock_resolution", 0.0)
+        resolution = float(declared) if isinstance(declared, int | float) else 0.0
+        # Finer than a microsecond is exact for a line of 87 µs bytes.
+        return LineClock(loop, loop.time, resolution_s=resolution if resolution > 1e-6 else 0.0)
+    grid = MILLISECOND_S if _is_uvloop(loop) else 0.0
+    behind = time.monotonic() - loop.time()
+    if 0.0 <= behind < 2 * MILLISECOND_S:
+        # The same clock, truncated (libuv: whole milliseconds of CLOCK_MONOTONIC).
+        return LineClock(loop, time.monotonic, grid_s=grid)
+    return LineClock(loop, loop.time, resolution_s=grid, grid_s=grid)
+
+
+def _is_uvloop(loop: asyncio.AbstractEventLoop) -> bool:
+    return type(loop).__module__.split(".", 1)[0] in ("uvloop", "winloop")
 
 
 #: ``ohmni serve --rt-priority``'s suggestion: above every time-shared process, below the

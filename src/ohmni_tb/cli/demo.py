@@ -127,7 +127,7 @@ async def _devices(robot: Robot) -> None:
         if sid not in state.present:
             answer = "[dim]no answer[/dim]"
         elif sid in models:
-            answer = _servo_answer(robot, sid, models[sid])
+            answer = await _servo_answer(robot, sid, models[sid])
         elif sid == DeviceId.WORM_NECK:
             answer = await _worm_answer(robot)
         else:
@@ -139,16 +139,19 @@ async def _devices(robot: Robot) -> None:
     console.print(f"robot: link {state.link}, neck {state.neck}{faults}", highlight=False)
 
 
-def _servo_answer(robot: Robot, sid: int, model: str | None) -> str:
+async def _servo_answer(robot: Robot, sid: int, model: str | None) -> str:
+    from ohmni_tb.robot import ServoSample  # noqa: PLC0415  # the CLI starts without it
+
     stream = {int(DeviceId.HERKULEX_NECK): "servo_neck"}.get(sid)
     if stream is None:
         ext = robot.config.ext_servo_ids
         stream = f"servo_ext{ext.index(sid) + 1}" if sid in ext else None
-    sample = robot.latest(stream) if stream is not None else None
+    # Its stream's first sample may still be on its way just after the Robot opened.
+    sample = await _first(robot, stream) if stream is not None else None
     where = (
-        ""
-        if sample is None
-        else f" at {sample.position_raw} ({math.degrees(sample.angle_rad):+.1f}°)"
+        f" at {sample.position_raw} ({math.degrees(sample.angle_rad):+.1f}°)"
+        if isinstance(sample, ServoSample)
+        else ""
     )
     return f"{model or 'HerkuleX (model unread)'}{where}"
 

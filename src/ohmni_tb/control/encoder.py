@@ -91,6 +91,11 @@ def unwrap_delta(previous: int, current: int, bits: int) -> int:
     whole("previous", previous)
     whole("current", current)
     integer("bits", bits, 2, MAX_COUNTER_BITS)
+    return _unwrap(previous, current, bits)
+
+
+def _unwrap(previous: int, current: int, bits: int) -> int:
+    """:func:`unwrap_delta` of readings and a width already checked."""
     modulus = 1 << bits
     half = modulus >> 1
     return (current - previous + half) % modulus - half
@@ -132,11 +137,12 @@ class Unwrapper:
         Raises:
             OutOfRangeError: ``raw`` does not fit the counter.
         """
-        integer("raw", raw, self.low, self.high, "ticks")
+        if type(raw) is not int or not self.low <= raw <= self.high:
+            integer("raw", raw, self.low, self.high, "ticks")  # raises, naming the range
         if self._raw is None:
             self._count = raw
         else:
-            self._count += unwrap_delta(self._raw, raw, self.bits)
+            self._count += _unwrap(self._raw, raw, self.bits)
         self._raw = raw
         return self._count
 
@@ -266,8 +272,10 @@ class VelocityEstimator:
                 (by at least a nanosecond), or ``count`` is not an int.
             OutOfRangeError: ``count`` is beyond ±2**63.
         """
-        integer("count", count, -_MAX_COUNT, _MAX_COUNT, "ticks")
-        finite("t_s", t_s, "s")
+        if type(count) is not int or not -_MAX_COUNT <= count <= _MAX_COUNT:
+            integer("count", count, -_MAX_COUNT, _MAX_COUNT, "ticks")
+        if type(t_s) is not float or t_s - t_s:  # a finite float passes without a call
+            finite("t_s", t_s, "s")
         samples = self._samples
         if samples:
             last_t, last_count = samples[-1]
@@ -368,7 +376,8 @@ class WheelEncoder:
             OutOfRangeError: ``raw`` does not fit the counter.
             InvalidArgumentError: ``t_s`` is not finite or not after the previous read.
         """
-        finite("t_s", t_s, "s")
+        if type(t_s) is not float or t_s - t_s:  # a finite float passes without a call
+            finite("t_s", t_s, "s")
         if raw is None:
             return None
         if self._last is not None and t_s <= self._last.t_s:
@@ -469,14 +478,16 @@ class CountFilter:
             InvalidArgumentError: ``raw`` is not an int, or ``t_s`` not a finite number.
             OutOfRangeError: ``raw`` does not fit the counter (a rebase on it).
         """
-        whole("raw", raw)
-        finite("t_s", t_s, "s")
+        if type(raw) is not int:
+            whole("raw", raw)
+        if type(t_s) is not float or t_s - t_s:  # a finite float passes without a call
+            finite("t_s", t_s, "s")
         last_raw, last_t = self._raw, self._t_s
         if last_t is None or last_raw is None:
             return CountVerdict.TAKE
         if t_s <= last_t:
             return CountVerdict.STALE
-        ticks = abs(unwrap_delta(last_raw, raw, self.encoder.config.counter_bits))
+        ticks = abs(_unwrap(last_raw, raw, self.encoder.config.counter_bits))
         if ticks * self.encoder.config.metres_per_tick <= self.max_mps * (t_s - last_t) + (
             self.slack_m
         ):
@@ -498,7 +509,9 @@ class CountFilter:
                 previous read.
             OutOfRangeError: ``raw`` does not fit the counter.
         """
-        sample = self.encoder.update(whole("raw", raw), t_s)
+        if type(raw) is not int:
+            whole("raw", raw)
+        sample = self.encoder.update(raw, t_s)
         self._in_row = 0
         self._raw, self._t_s = raw, t_s
         assert sample is not None  # a read, not a failed one: always a sample

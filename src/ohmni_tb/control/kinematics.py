@@ -50,8 +50,13 @@ class Twist:
     angular_radps: float = 0.0
 
     def __post_init__(self) -> None:
-        finite("linear_mps", self.linear_mps, "m/s")
-        finite("angular_radps", self.angular_radps, "rad/s")
+        # A finite float passes without a call (x - x is 0.0 for those only); anything
+        # else gets the full check, and its error.
+        linear, angular = self.linear_mps, self.angular_radps
+        if type(linear) is not float or linear - linear:
+            finite("linear_mps", linear, "m/s")
+        if type(angular) is not float or angular - angular:
+            finite("angular_radps", angular, "rad/s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,8 +72,11 @@ class WheelSpeeds:
     right_mps: float = 0.0
 
     def __post_init__(self) -> None:
-        finite("left_mps", self.left_mps, "m/s")
-        finite("right_mps", self.right_mps, "m/s")
+        left, right = self.left_mps, self.right_mps  # finite floats pass without a call
+        if type(left) is not float or left - left:
+            finite("left_mps", left, "m/s")
+        if type(right) is not float or right - right:
+            finite("right_mps", right, "m/s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,8 +237,10 @@ def saturate_wheel_speeds(wheels: WheelSpeeds, max_wheel_mps: float) -> WheelSpe
     Returns:
         ``wheels`` unchanged if within the limit, else both scaled down.
     """
-    _check_type("wheels", wheels, WheelSpeeds)
-    positive_or_inf("max_wheel_mps", max_wheel_mps, "m/s")
+    if type(wheels) is not WheelSpeeds:
+        _check_type("wheels", wheels, WheelSpeeds)
+    if type(max_wheel_mps) is not float or not max_wheel_mps > 0.0:
+        positive_or_inf("max_wheel_mps", max_wheel_mps, "m/s")
     scale = _ratio(max_wheel_mps, max(abs(wheels.left_mps), abs(wheels.right_mps)))
     if scale >= 1.0:
         return wheels

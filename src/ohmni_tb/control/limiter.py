@@ -77,9 +77,14 @@ def ramp(current: float, target: float, dt_s: float, limits: AccelLimits) -> flo
     Raises:
         InvalidArgumentError: An argument is NaN or infinite, or ``dt_s <= 0``.
     """
-    finite("current", current)
-    finite("target", target)
-    positive("dt_s", dt_s, "s")
+    # Finite floats pass without a call (x - x is 0.0 for those only); anything else gets
+    # the full check, and its error.
+    if type(current) is not float or current - current:
+        finite("current", current)
+    if type(target) is not float or target - target:
+        finite("target", target)
+    if type(dt_s) is not float or not 0.0 < dt_s < math.inf:
+        positive("dt_s", dt_s, "s")
     given: object = limits  # typed, but callers may pass a number
     if not isinstance(given, AccelLimits):
         raise InvalidArgumentError(f"limits must be AccelLimits, not {type(given).__name__}")

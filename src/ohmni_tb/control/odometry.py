@@ -60,9 +60,13 @@ class Pose:
     yaw: float = 0.0
 
     def __post_init__(self) -> None:
-        finite("x", self.x, "m")
-        finite("y", self.y, "m")
-        finite("yaw", self.yaw, "rad")
+        x, y, yaw = self.x, self.y, self.yaw  # finite floats pass without a call
+        if type(x) is not float or x - x:
+            finite("x", x, "m")
+        if type(y) is not float or y - y:
+            finite("y", y, "m")
+        if type(yaw) is not float or yaw - yaw:
+            finite("yaw", yaw, "rad")
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,11 +132,16 @@ class Odometry:
         self._theta = 0.0  # unwrapped heading
         # Upper triangle of the covariance: xx, xy, xθ, yy, yθ, θθ.
         self._cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        # The pose as last made (pose), until the next update or reset.
+        self._pose: Pose | None = None
 
     @property
     def pose(self) -> Pose:
         """The latest pose; ``yaw`` wrapped to ``(-π, π]``."""
-        return Pose(self._x, self._y, wrap_angle(self._theta))
+        pose = self._pose
+        if pose is None:
+            pose = self._pose = Pose(self._x, self._y, wrap_angle(self._theta))
+        return pose
 
     @property
     def heading_rad(self) -> float:
@@ -186,9 +195,14 @@ class Odometry:
                 the previous update, or the step would take a value past a finite number.
             OutOfRangeError: An increment is beyond ±1000 m.
         """
-        bounded("d_left_m", d_left_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
-        bounded("d_right_m", d_right_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
-        finite("t_s", t_s, "s")
+        # Floats in range pass without a call (NaN fails every comparison); anything else
+        # gets the full check, and its error.
+        if type(d_left_m) is not float or not -MAX_INCREMENT_M <= d_left_m <= MAX_INCREMENT_M:
+            bounded("d_left_m", d_left_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
+        if type(d_right_m) is not float or not -MAX_INCREMENT_M <= d_right_m <= MAX_INCREMENT_M:
+            bounded("d_right_m", d_right_m, -MAX_INCREMENT_M, MAX_INCREMENT_M, "m")
+        if type(t_s) is not float or t_s - t_s:
+            finite("t_s", t_s, "s")
         if self._t_s is not None and t_s <= self._t_s:
             raise InvalidArgumentError(
                 f"t_s={t_s!r} s is not after the previous update at {self._t_s!r} s"
@@ -228,22 +242,24 @@ class Odometry:
             window = [*window, (t_s - self._t_s, ds, dtheta)][-keep:]
         x, y, theta = self._x + dx, self._y + dy, theta0 + dtheta
         if self._t_s is not None:
-            total_dt = math.fsum(w[0] for w in window)
-            linear = math.fsum(w[1] for w in window) / total_dt
-            angular = math.fsum(w[2] for w in window) / total_dt
+            dts, dss, dthetas = zip(*window, strict=True)
+            total_dt = math.fsum(dts)
+            linear = math.fsum(dss) / total_dt
+            angular = math.fsum(dthetas) / total_dt
             if not (math.isfinite(linear) and math.isfinite(angular)):
                 raise InvalidArgumentError(
                     f"t_s={t_s!r} s is too close to the previous update at {self._t_s!r} s "
                     f"for increments of {d_left_m!r} m and {d_right_m!r} m: the speed overflows"
                 )
             twist = Twist(linear, angular)
-        if not all(math.isfinite(v) for v in (x, y, theta, *cov)):
+        if not all(map(math.isfinite, (x, y, theta, *cov))):
             raise InvalidArgumentError(
                 f"d_left_m={d_left_m!r} m and d_right_m={d_right_m!r} m take the pose or its "
                 f"covariance past a finite number; reset() the odometry"
             )
         # Committed only now, so a refused update changes nothing.
         self._x, self._y, self._theta, self._cov = x, y, theta, cov
+        self._pose = None
         if self._t_s is not None:
             self._window.append(window[-1])
             self._twist = twist
@@ -269,6 +285,7 @@ class Odometry:
         self._x = float(x)
         self._y = float(y)
         self._theta = float(yaw)
+        self._pose = None
         self._cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         self._times.clear()
         self._states.clear()
@@ -436,6 +453,8 @@ def wrap_angle(angle_rad: float) -> float:
     Raises:
         InvalidArgumentError: ``angle_rad`` is not a number, NaN or infinite.
     """
+    if type(angle_rad) is float and -math.pi < angle_rad <= math.pi:
+        return angle_rad  # a float inside (NaN is not): nothing to check or wrap
     finite("angle_rad", angle_rad, "rad")
     if -math.pi < angle_rad <= math.pi:
         return angle_rad

@@ -186,9 +186,14 @@ class PidController:
             InvalidArgumentError: An argument is not a number, NaN or infinite.
             OutOfRangeError: An argument is outside its range.
         """
-        bounded("setpoint", setpoint, -MAX_SIGNAL, MAX_SIGNAL)
-        bounded("measurement", measurement, -MAX_SIGNAL, MAX_SIGNAL)
-        bounded("dt_s", dt_s, MIN_DT_S, MAX_DT_S, "s")
+        # Floats in range pass without a call; anything else (NaN fails every comparison)
+        # gets the full check, and its error.
+        if type(setpoint) is not float or not -MAX_SIGNAL <= setpoint <= MAX_SIGNAL:
+            bounded("setpoint", setpoint, -MAX_SIGNAL, MAX_SIGNAL)
+        if type(measurement) is not float or not -MAX_SIGNAL <= measurement <= MAX_SIGNAL:
+            bounded("measurement", measurement, -MAX_SIGNAL, MAX_SIGNAL)
+        if type(dt_s) is not float or not MIN_DT_S <= dt_s <= MAX_DT_S:
+            bounded("dt_s", dt_s, MIN_DT_S, MAX_DT_S, "s")
         g = self._gains
         error = setpoint - measurement
         rate = self._rate

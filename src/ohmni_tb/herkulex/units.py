@@ -88,6 +88,15 @@ def angle_deg_from_raw(pos_raw: float, *, zero_offset_raw: int = 0) -> float:
             ``zero_offset_raw`` is not an int.
         OutOfRangeError: ``zero_offset_raw`` is outside −512..511.
     """
+    # A register's position and an offset in range (a servo's feedback) pass without a
+    # call; anything else (a float, a huge int) goes the full way and gets its error.
+    if (
+        type(pos_raw) is int
+        and -0x10000 <= pos_raw <= 0xFFFF
+        and type(zero_offset_raw) is int
+        and -CENTRE_RAW <= zero_offset_raw <= POSITION_MAX_RAW - CENTRE_RAW
+    ):
+        return (pos_raw - CENTRE_RAW - zero_offset_raw) * DEG_PER_COUNT
     raw = finite("pos_raw", pos_raw)
     offset = check_zero_offset_raw(zero_offset_raw)
     return (raw - CENTRE_RAW - offset) * DEG_PER_COUNT
@@ -190,6 +199,8 @@ def voltage_v_from_raw(voltage_raw: int) -> float:
     Raises:
         InvalidArgumentError: ``voltage_raw`` is not a number, NaN or infinite.
     """
+    if type(voltage_raw) is int and 0 <= voltage_raw <= 0xFFFF:  # a register's value
+        return voltage_raw * VOLT_PER_COUNT
     return finite("voltage_raw", voltage_raw) * VOLT_PER_COUNT
 
 

@@ -22,8 +22,22 @@ The rules:
   turnaround budget, its reply's bytes and a guard (:mod:`ohmni_tb.protocol.timing`).
   The next request may go when that time is up by the model, even if the host has not
   seen the reply yet: a USB adapter's latency then delays the delivery of replies, not
-  the rate. Once a reply is seen and nothing was sent after it, the line is free a guard
-  later, whatever the budget said.
+  the rate. Once a reply is seen and nothing was sent after it, the line is free
+  ``reply_guard_s`` later (the guard unless told otherwise), whatever the budget said:
+  the reply's sender has finished, and only needs to turn its line driver around.
+* **A prompt line waits for a late reply.** While the last 16 requests were all answered
+  and over a quarter of their replies reached the host before the line was free by the
+  model (no adapter holds them: one whose latency timer is 16 ms hands over nearly every
+  reply later), a reply later than that is its device's lateness, or the host's (a
+  simulator its host did not schedule in time, a host busy elsewhere): a request to a
+  device that answered its last one then holds the line until its reply is seen or
+  missing, as request at a time, instead of the next one talking over a reply still on
+  the wire. The reply frees the line a guard after it is seen, as always, so a reply in
+  time costs nothing more. While replies come late as a rule (three quarters of them or
+  more: a USB adapter's latency timer holds them), or go missing (a noisy line: waiting
+  out each would cost a timeout), and for a device whose last request went unanswered,
+  requests go on the model's time. A stop (:attr:`~BusConnection.urgent_free_at`) goes
+  on the model's time whatever the line.
 * **Junk makes the line cautious.** The model is only as good as the timing it assumes:
   a device that answers later than its budget, or a host whose bytes reach the wire later
   than it wrote them, makes the next request talk over a reply, and a collision leaves
@@ -54,6 +68,11 @@ The rules:
   :meth:`~BusConnection.refusal` says to fail requests to it at once, except probes: the
   first 0.125 s after it opened, then at doubling gaps up to one every
   ``probe_interval_s``; its first reply closes the breaker.
+* **A coarse clock is allowed for.** Every ``now`` may be up to ``clock_resolution_s``
+  earlier than the truth (a clock that counts whole milliseconds reads up to one behind):
+  a reply is early only when it came more than that before its request could have been
+  answered, and every time the line is held (a request's reply window, the guard after a
+  reply, a hold) ends that much later. With an exact clock (the default, 0) nothing moves.
 * **Nothing dropped silently.** Echoes of our own requests, other masters' requests,
   early, late, unmatched replies and replies to abandoned requests are each counted, per
   device where there is one, beside the decoder's own counters.
@@ -72,6 +91,7 @@ from ohmni_tb._checks import check_seconds, integer
 from ohmni_tb.errors import InvalidArgumentError, OutOfRangeError, StateError
 from ohmni_tb.protocol.framing import (
     BROADCAST_ID,
+    HEADER_SIZE,
     MAX_PACKET_SIZE,
     REPLY_FLAG,
     Command,
@@ -132,12 +152,20 @@ _LATENCY_WINDOW = 1024
 _RECENT_SENT = 8
 #: Frames remembered ready-encoded (periodic requests repeat; each is encoded once).
 _FRAME_CACHE_SIZE = 512
+#: Requests behind a prompt line: it is prompt while all of the last ones were answered
+#: and fewer than three quarters of their replies came after it was free by the model.
+_PROMPT_WINDOW = 16
+_HELD_AS_A_RULE = 12
 #: Window of the sliding figures (utilisation, transactions per second).
 _RATE_WINDOW_S = 1.0
 #: Holds kept before expired ones are swept (corrupted addresses make new keys).
 _MAX_HOLDS = 64
 #: Float slack when comparing model times.
 _EPS = 1e-9
+
+#: A request's outcome, for a prompt line (0: answered in time).
+_LATE = 1
+_MISSED = 2
 
 _IDEMPOTENT = frozenset({Command.RAM_READ, Command.EEP_READ, Command.STAT})
 _READS = frozenset({Command.RAM_READ, Command.EEP_READ})
@@ -244,6 +272,9 @@ class Exchange:
     _confirm_at: float = math.inf
     # A look-alike came before any reply could: whatever answers next is ambiguous.
     _tainted: bool = False
+    # What its reply looks like (_reply_key), and its device's counters.
+    _key: tuple[int, int, int] = field(default=(-1, -1, -1), repr=False)
+    _device: _Device | None = field(default=None, repr=False)
 
     @property
     def done(self) -> bool:
@@ -441,6 +472,27 @@ class ReplyMatcher(Generic[T]):
         return items
 
 
+#: A packet sent, with what the connection works out from it once (_packet_info): its
+#: frame, the look of its reply (_reply_key), and its reply's smallest and largest size.
+_PacketInfo = tuple[Packet, bytes, tuple[int, int, int], int, int]
+
+#: Makes an Exchange without its generated __init__: every field is set by send().
+_new_exchange = object.__new__
+_new = object.__new__
+# The slots of a ReplyPacket and a ReplyReceived, set directly (_answer).
+_set_reply_sid: Callable[[Packet, int], None] = Packet.__dict__["sid"].__set__
+_set_reply_cmd: Callable[[Packet, int], None] = Packet.__dict__["cmd"].__set__
+_set_reply_data: Callable[[Packet, bytes], None] = Packet.__dict__["data"].__set__
+_set_sent_at: Callable[[ReplyPacket, float], None] = ReplyPacket.__dict__["sent_at"].__set__
+_set_received_at: Callable[[ReplyPacket, float], None] = ReplyPacket.__dict__["received_at"].__set__
+_set_event_exchange: Callable[[ReplyReceived, Exchange], None] = ReplyReceived.__dict__[
+    "exchange"
+].__set__
+_set_event_reply: Callable[[ReplyReceived, ReplyPacket], None] = ReplyReceived.__dict__[
+    "reply"
+].__set__
+
+
 def _reply_key(packet: Packet) -> tuple[int, int, int]:
     """What makes two replies look alike: sid, request code and (for reads) address."""
     base = packet.cmd & ~REPLY_FLAG
@@ -536,7 +588,11 @@ class BusConnection:
         baudrate: Line speed; ``None`` for a link without one (then nothing is
             pipelined: the next request waits for the reply or its timeout).
         turnaround_s: Default device turnaround budget (:meth:`set_turnaround` per device).
-        guard_s: Quiet between transactions.
+        guard_s: Quiet between transactions, by the cost model.
+        reply_guard_s: Quiet after a reply the owner has seen before the next request:
+            the time its sender takes to turn its line driver around (``None``: the
+            guard). A few bit times are enough for a device; the cost model keeps
+            ``guard_s``.
         timeout_s: How long past a reply's latest wire time it is still waited for.
         max_packet_size: The largest packet sent or accepted; a length-0 read budgets it.
         commands: Command codes the decoder accepts (default: the nine HerkuleX ones).
@@ -549,6 +605,19 @@ class BusConnection:
             probes have backed off (the first goes 0.125 s after it opens).
         caution_s: How long junk on the line makes a pipelined connection wait for each
             reply before the next request (0: never).
+        clock_resolution_s: How much earlier than the truth the owner's ``now`` may be
+            (its clock's step: 0.001 for one in whole milliseconds; 0: exact).
+
+    Attributes:
+        free_at: When the next request may start (``inf`` while waiting for a reply: a
+            prompt line, a cautious one, or one not pipelined). Read it; the connection
+            keeps it (an attribute, not a property: the owner reads it on every pass).
+        urgent_free_at: When a stop may start (:meth:`send` with ``urgent``): the
+            model's time, also while a prompt line waits for a reply (``inf`` only while
+            cautious or not pipelined).
+        poll_at: No :meth:`poll` has work to do before this time: an owner polls when it
+            comes (a lower bound, made exact by each :meth:`poll` that works and by
+            :meth:`next_deadline`).
 
     Raises:
         OutOfRangeError: A setting is out of range; the message names it.
@@ -560,6 +629,7 @@ class BusConnection:
         baudrate: int | None = None,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         guard_s: float = DEFAULT_GUARD_S,
+        reply_guard_s: float | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         max_packet_size: int = MAX_PACKET_SIZE,
         commands: Iterable[int] | None = None,
@@ -568,6 +638,7 @@ class BusConnection:
         breaker_quiet_s: float = DEFAULT_BREAKER_QUIET_S,
         probe_interval_s: float = DEFAULT_PROBE_INTERVAL_S,
         caution_s: float = DEFAULT_CAUTION_S,
+        clock_resolution_s: float = 0.0,
     ) -> None:
         if baudrate is not None and (
             isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0
@@ -575,15 +646,19 @@ class BusConnection:
             raise OutOfRangeError("baudrate", baudrate, 1, 4_000_000, "baud")
         check_seconds("turnaround_s", turnaround_s, 0.0, 1.0)
         check_seconds("guard_s", guard_s, 0.0, 1.0)
+        if reply_guard_s is not None:
+            check_seconds("reply_guard_s", reply_guard_s, 0.0, 1.0)
         check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
         check_seconds("breaker_quiet_s", breaker_quiet_s, 0.0, 3600.0)
         check_seconds("probe_interval_s", probe_interval_s, 0.001, 3600.0)
         check_seconds("caution_s", caution_s, 0.0, 60.0)
+        check_seconds("clock_resolution_s", clock_resolution_s, 0.0, 0.1)
         integer("breaker_timeouts", breaker_timeouts, 1, 1000)
         self.baudrate = baudrate
         self.byte_s = 0.0 if baudrate is None else BITS_PER_BYTE / baudrate
         self.turnaround_s = float(turnaround_s)
         self.guard_s = float(guard_s)
+        self.reply_guard_s = self.guard_s if reply_guard_s is None else float(reply_guard_s)
         self.timeout_s = float(timeout_s)
         self.max_packet_size = max_packet_size
         self.pipelined = bool(pipelined) and baudrate is not None
@@ -591,16 +666,29 @@ class BusConnection:
         self.breaker_quiet_s = float(breaker_quiet_s)
         self.probe_interval_s = float(probe_interval_s)
         self.caution_s = float(caution_s)
+        self.clock_resolution_s = float(clock_resolution_s)
         self._decoder = PacketDecoder(max_size=max_packet_size, commands=commands)
         self._outstanding: ReplyMatcher[Exchange] = ReplyMatcher()
         self._keys: dict[tuple[int, int, int], Exchange] = {}
         self._holds: dict[tuple[int, int, int], float] = {}
         self._suspect: set[tuple[int, int, int]] = set()
         self._recent: deque[Packet] = deque(maxlen=_RECENT_SENT)
+        self._info: dict[int, _PacketInfo] = {}
         self._frames: dict[Packet, bytes] = {}
         self._ack_policy: dict[int, int] = {}
+        #: Counts the changes of ACK policy (what :meth:`expects_reply` says may change).
+        self.policy_version = 0
         self._devices: dict[int, _Device] = {}
-        self._free_at = -math.inf
+        self.free_at = -math.inf
+        self.poll_at = math.inf
+        # When a stop may go: the model's time, even while a prompt line waits for a reply.
+        self.urgent_free_at = -math.inf
+        # The last requests' outcomes: whether each reply was seen after the line was free
+        # by the model, or missing; and how many of each among them.
+        self._outcomes: deque[int] = deque(maxlen=_PROMPT_WINDOW)
+        self._late_count = 0
+        self._miss_count = 0
+        self._prompt = False
         self._cautious_until = -math.inf
         self._cautions = 0
         self._last: Exchange | None = None
@@ -632,6 +720,7 @@ class BusConnection:
         if isinstance(policy, bool) or policy not in (0, 1, 2):
             raise OutOfRangeError("ack policy", policy, 0, 2)
         self._ack_policy[sid] = int(policy)
+        self.policy_version += 1
 
     def turnaround(self, sid: int) -> float:
         """The turnaround budget of device ``sid``."""
@@ -661,9 +750,10 @@ class BusConnection:
     # -- the line ---------------------------------------------------------------------
 
     @property
-    def free_at(self) -> float:
-        """When the next request may start (``inf`` while waiting for a reply unpipelined)."""
-        return self._free_at
+    def prompt(self) -> bool:
+        """Whether the line is prompt: requests to devices that answer wait for their
+        replies (module docstring)."""
+        return self._prompt
 
     @property
     def outstanding(self) -> int:
@@ -681,12 +771,15 @@ class BusConnection:
         (it resolves by an event); else the end of the hold after an identical request
         went missing.
         """
+        keys, holds = self._keys, self._holds
+        if not keys and not holds:
+            return -math.inf  # nothing outstanding or held: the common case
         if not self.expects_reply(packet):
             return -math.inf
-        key = _reply_key(packet)
-        if key in self._keys:
+        key = self._packet_info(packet)[2]
+        if key in keys:
             return math.inf
-        until = self._holds.get(key)
+        until = holds.get(key)
         if until is None:
             return -math.inf
         if until <= now + _EPS:
@@ -716,13 +809,32 @@ class BusConnection:
         Raises:
             OutOfRangeError: The packet cannot be encoded (bad sid, command or size).
         """
+        return self._packet_info(packet)[1]
+
+    def _packet_info(self, packet: Packet) -> _PacketInfo:
+        """``packet`` with its frame, reply key and reply sizes, worked out once for a
+        packet object sent again (a stream's requests are the same objects every cycle).
+
+        Raises:
+            OutOfRangeError: The packet cannot be encoded (bad sid, command or size).
+        """
+        info = self._info.get(id(packet))
+        if info is not None and info[0] is packet:
+            return info
+        # An equal packet seen before shares its frame: encoded once per content.
         frame = self._frames.get(packet)
         if frame is None:
             frame = encode_packet(packet, max_size=self.max_packet_size)
             if len(self._frames) >= _FRAME_CACHE_SIZE:
                 self._frames.clear()
             self._frames[packet] = frame
-        return frame
+        smallest, largest = reply_size_range(packet, max_packet_size=self.max_packet_size)
+        info = (packet, frame, _reply_key(packet), smallest, largest)
+        if len(self._info) >= _FRAME_CACHE_SIZE:
+            self._info.clear()
+        # Keyed by identity, the packet kept in the entry: its id is not reused meanwhile.
+        self._info[id(packet)] = info
+        return info
 
     def send(
         self,
@@ -733,6 +845,7 @@ class BusConnection:
         timeout_s: float | None = None,
         attempt: int = 0,
         token: object = None,
+        urgent: bool = False,
     ) -> Exchange:
         """Start a transaction now: return the exchange, whose ``frame`` the owner writes.
 
@@ -744,6 +857,8 @@ class BusConnection:
             timeout_s: This request's own timeout (past its reply's latest wire time).
             attempt: 0 for a first try; more for a retry (counted).
             token: Anything the owner wants back with the events.
+            urgent: A stop: it may go at :attr:`urgent_free_at` (the model's time)
+                rather than :attr:`free_at`.
 
         Raises:
             OutOfRangeError: The packet cannot be encoded; nothing changed.
@@ -751,8 +866,9 @@ class BusConnection:
             StateError: The line is not free yet, or an identical request is
                 outstanding or held (see :meth:`blocked_until`).
         """
-        frame = self.frame(packet)
-        if packet.sid == BROADCAST_ID:
+        _, frame, key, smallest, largest = self._packet_info(packet)
+        sid = packet.sid
+        if sid == BROADCAST_ID:
             if packet.cmd == Command.STAT:
                 raise InvalidArgumentError(
                     "STAT to broadcast (0xFE): every device would answer at once"
@@ -760,64 +876,94 @@ class BusConnection:
             expect_reply = False
         elif expect_reply is None:
             expect_reply = self.expects_reply(packet)
-        if now + _EPS < self._free_at:
-            raise StateError(f"the line is busy for {self._free_at - now:.6f} s more")
-        timeout = self.timeout_s if timeout_s is None else timeout_s
-        check_seconds("timeout_s", timeout, 0.0005, 10.0)
-        key = _reply_key(packet)
-        if expect_reply and (key in self._keys or self._holds.get(key, -math.inf) > now + _EPS):
+        free = self.urgent_free_at if urgent else self.free_at
+        if now + _EPS < free:
+            raise StateError(f"the line is busy for {free - now:.6f} s more")
+        if timeout_s is None:
+            timeout = self.timeout_s
+        else:
+            check_seconds("timeout_s", timeout_s, 0.0005, 10.0)
+            timeout = timeout_s
+        holds = self._holds
+        if expect_reply and (
+            key in self._keys or (holds and holds.get(key, -math.inf) > now + _EPS)
+        ):
             raise StateError(f"an identical request is outstanding or held: {packet!r}")
         byte_s = self.byte_s
-        wire_end = now + len(frame) * byte_s
-        device = self._device(packet.sid)
+        size = len(frame)
+        wire_s = size * byte_s
+        # A coarse clock may read behind: the bytes may have gone that much later.
+        wire_end = now + self.clock_resolution_s + wire_s
+        device = self._devices.get(sid)
+        if device is None:
+            device = self._device(sid)
         device.requests += 1
         if attempt:
             device.retries += 1
-        self._bytes_out += len(frame)
-        self._note_busy(now, len(frame) * byte_s)
+        self._bytes_out += size
+        if wire_s:
+            self._busy_s += wire_s
+            busy = self._busy
+            busy.entries.append((now, wire_s))
+            busy.total += wire_s
+        exchange = _new_exchange(Exchange)
+        exchange.packet = packet
+        exchange.frame = frame
+        exchange.attempt = attempt
+        exchange.sent_at = now
+        exchange.wire_end_s = wire_end
+        exchange.token = token
+        exchange.reply = None
+        exchange.received_at = None
+        exchange.abandoned = False
+        exchange.missing = None
+        exchange._held_reply = None
+        exchange._held_at = 0.0
+        exchange._confirm_at = math.inf
+        exchange._tainted = False
+        exchange._key = key
+        exchange._device = device
         if expect_reply:
-            smallest, largest = reply_size_range(packet, max_packet_size=self.max_packet_size)
-            window_end = wire_end + self.turnaround(packet.sid) + largest * byte_s
-            exchange = Exchange(
-                packet=packet,
-                frame=frame,
-                expect_reply=True,
-                attempt=attempt,
-                sent_at=now,
-                wire_end_s=wire_end,
-                reply_earliest_s=wire_end + smallest * byte_s,
-                window_end_s=window_end,
-                expires_at=window_end + timeout,
-                token=token,
+            turnaround = device.turnaround_s
+            window_end = (
+                wire_end
+                + (self.turnaround_s if turnaround is None else turnaround)
+                + largest * byte_s
             )
-            self._outstanding.add(packet, exchange)
+            exchange.expect_reply = True
+            exchange.reply_earliest_s = now + (size + smallest) * byte_s
+            exchange.window_end_s = window_end
+            exchange.expires_at = window_end + timeout
+            exchange._state = _State.PENDING
+            self._outstanding._pending.append((packet, exchange))
             self._keys[key] = exchange
-            self._holds.pop(key, None)
+            if holds:
+                holds.pop(key, None)
+            self.poll_at = min(self.poll_at, exchange.expires_at)
             if device.breaker is BreakerState.OPEN:
                 device.breaker = BreakerState.PROBING
                 device.probe_gap = min(2.0 * device.probe_gap, self.probe_interval_s)
                 device.next_probe_at = now + device.probe_gap
                 device.probes += 1
             pipelined = self.pipelined and now + _EPS >= self._cautious_until
-            free_at = window_end + self.guard_s if pipelined else math.inf
-            self._reserved.add(now, window_end - now + self.guard_s)
+            urgent_free_at = free_at = window_end + self.guard_s if pipelined else math.inf
+            if pipelined and self._prompt and device.consecutive == 0:
+                # A prompt line waits for a device that answers (it may be late).
+                free_at = math.inf
+            reserved_s = window_end - now + self.guard_s
         else:
-            exchange = Exchange(
-                packet=packet,
-                frame=frame,
-                expect_reply=False,
-                attempt=attempt,
-                sent_at=now,
-                wire_end_s=wire_end,
-                reply_earliest_s=wire_end,
-                window_end_s=wire_end,
-                expires_at=wire_end,
-                token=token,
-                _state=_State.SENT,
-            )
-            free_at = wire_end + self.guard_s
-            self._reserved.add(now, wire_end - now + self.guard_s)
-        self._free_at = free_at
+            exchange.expect_reply = False
+            exchange.reply_earliest_s = wire_end
+            exchange.window_end_s = wire_end
+            exchange.expires_at = wire_end
+            exchange._state = _State.SENT
+            urgent_free_at = free_at = wire_end + self.guard_s
+            reserved_s = wire_end - now + self.guard_s
+        reserved = self._reserved
+        reserved.entries.append((now, reserved_s))
+        reserved.total += reserved_s
+        self.free_at = free_at
+        self.urgent_free_at = urgent_free_at
         self._last = exchange
         self._recent.append(packet)
         return exchange
@@ -838,8 +984,10 @@ class BusConnection:
         exchange.expires_at += delta
         if exchange is self._last:
             end = exchange.window_end_s if exchange.expect_reply else exchange.wire_end_s
-            if self._free_at != math.inf:
-                self._free_at = max(self._free_at, end + self.guard_s)
+            if self.free_at != math.inf:
+                self.free_at = max(self.free_at, end + self.guard_s)
+            if self.urgent_free_at != math.inf:
+                self.urgent_free_at = max(self.urgent_free_at, end + self.guard_s)
 
     def abandon(self, exchange: Exchange) -> None:
         """The owner no longer waits for ``exchange``'s reply (its time on the line stays)."""
@@ -851,30 +999,63 @@ class BusConnection:
         self._last_rx_at = now
         events: list[Event] = []
         decoder = self._decoder
-        discarded = decoder.discarded
+        # The decoder's own counters, read without its properties' calls (a read a reply).
+        discarded = decoder._discarded
+        pending = self._outstanding._pending
         for packet in decoder.feed(data):
+            if pending and packet.cmd & REPLY_FLAG and not self._suspect:
+                # The common case, the oldest request's reply on a clean line: what
+                # _route would conclude, without its general search.
+                request, exchange = pending[0]
+                if (
+                    exchange._held_reply is None
+                    and not exchange._tainted
+                    and now + self.clock_resolution_s + _EPS >= exchange.reply_earliest_s
+                    and reply_matches(request, packet)
+                ):
+                    pending.popleft()
+                    wire_s = (HEADER_SIZE + len(packet.data)) * self.byte_s
+                    self._busy_s += wire_s
+                    busy = self._busy
+                    busy.entries.append((now, wire_s))
+                    busy.total += wire_s
+                    self._answer(exchange, packet, now, events)
+                    continue
             self._route(packet, now, events)
-        if decoder.discarded != discarded:
+        if decoder._discarded != discarded:
             self._junk(now, events)
+        if decoder._buf:  # feed() leaves the bytes of a half frame, from position 0
+            # A half frame: given up a timeout after its last byte (poll).
+            self.poll_at = min(self.poll_at, now + self.timeout_s)
         return events
 
     def next_deadline(self) -> float | None:
         """When :meth:`poll` next has something to do (a reply window, a half frame)."""
         deadline = math.inf
-        for exchange in self._outstanding:
+        for _, exchange in self._outstanding._pending:
             if exchange._held_reply is not None:
                 deadline = min(deadline, exchange._confirm_at)
             else:
                 deadline = min(deadline, exchange.expires_at)
-        if self._decoder.pending:
+        if self._decoder._buf:  # a half frame held (feed() leaves it from position 0)
             deadline = min(deadline, self._last_rx_at + self.timeout_s)
+        self.poll_at = deadline  # exact, so also the soonest poll() has work
         return None if deadline == math.inf else deadline
 
     def poll(self, now: float) -> list[Event]:
         """Give up what ``now`` has made hopeless: half frames, then overdue replies."""
         events: list[Event] = []
-        if not self._outstanding and not self._decoder.pending:
-            return events
+        if now + _EPS < self.poll_at:
+            return events  # nothing is due before then: the common case
+        try:
+            self._poll(now, events)
+        finally:
+            self.next_deadline()
+        return events
+
+    def _poll(self, now: float, events: list[Event]) -> None:
+        if not self._outstanding._pending and not self._decoder.pending:
+            return
         if self._decoder.pending and now + _EPS >= self._last_rx_at + self.timeout_s:
             # Nothing arrived for a whole timeout: the rest of this frame is not coming.
             discarded = self._decoder.discarded
@@ -899,7 +1080,6 @@ class BusConnection:
                 self._miss(exchange, MissingReason.TIMEOUT, now, events)
         if len(self._holds) > _MAX_HOLDS:
             self._holds = {k: t for k, t in self._holds.items() if t > now}
-        return events
 
     def link_lost(self, now: float) -> list[Event]:
         """The port went away: every outstanding request is missing; the line starts over."""
@@ -913,7 +1093,7 @@ class BusConnection:
         self._decoder.reset()
         self._holds.clear()
         self._suspect.clear()
-        self._free_at = now
+        self.free_at = self.urgent_free_at = now
         self._last = None
         return events
 
@@ -962,8 +1142,15 @@ class BusConnection:
             # for one reply window.
             self._foreign += 1
             _, largest = reply_size_range(packet, max_packet_size=self.max_packet_size)
-            busy_until = now + self.turnaround_s + largest * self.byte_s + self.guard_s
-            self._free_at = max(self._free_at, busy_until)
+            busy_until = (
+                now
+                + self.clock_resolution_s
+                + self.turnaround_s
+                + largest * self.byte_s
+                + self.guard_s
+            )
+            self.free_at = max(self.free_at, busy_until)
+            self.urgent_free_at = max(self.urgent_free_at, busy_until)
             events.append(StrayPacket(packet, now, StrayKind.FOREIGN_REQUEST))
             return
         self._note_busy(now, packet.size * self.byte_s)
@@ -977,7 +1164,7 @@ class BusConnection:
                 self._stray(packet, now, StrayKind.TWIN, events)
                 self._miss(exchange, MissingReason.AMBIGUOUS, now, events)
                 return
-            if now + _EPS < exchange.reply_earliest_s:
+            if now + self.clock_resolution_s + _EPS < exchange.reply_earliest_s:
                 # Its request's bytes and its own could not both have crossed the line
                 # yet: this is another request's reply that merely looks the same, and
                 # more of those may queue ahead of its own.
@@ -1004,7 +1191,10 @@ class BusConnection:
                 self._outstanding.add(exchange.packet, exchange)
                 exchange._held_reply = packet
                 exchange._held_at = now
-                exchange._confirm_at = now + self._window_s(packet.sid, packet.size)
+                exchange._confirm_at = (
+                    now + self.clock_resolution_s + self._window_s(packet.sid, packet.size)
+                )
+                self.poll_at = min(self.poll_at, exchange._confirm_at)
                 return
             self._answer(exchange, packet, now, events)
             return
@@ -1039,7 +1229,9 @@ class BusConnection:
         key = _reply_key(packet)
         # Its sender may have more of these queued: its look stays suspect and held.
         self._suspect.add(key)
-        hold = now + self._window_s(packet.sid, packet.size) + self.timeout_s
+        hold = (
+            now + self.clock_resolution_s + self._window_s(packet.sid, packet.size) + self.timeout_s
+        )
         self._holds[key] = max(self._holds.get(key, -math.inf), hold)
         device = self._device(packet.sid)
         device.unmatched += 1
@@ -1051,30 +1243,72 @@ class BusConnection:
         events.append(StrayPacket(packet, now, kind))
 
     def _answer(self, exchange: Exchange, packet: Packet, now: float, events: list[Event]) -> None:
-        self._keys.pop(_reply_key(exchange.packet), None)
+        self._keys.pop(exchange._key, None)
         exchange._state = _State.ANSWERED
         exchange.reply = packet
         exchange.received_at = now
-        device = self._device(exchange.packet.sid)
+        device = exchange._device
+        if device is None:  # pragma: no cover - send() gives every exchange its device
+            device = self._device(exchange.packet.sid)
         device.replies += 1
         device.latencies.append(now - exchange.sent_at)
         device.last_reply_at = now
         device.consecutive = 0
         device.breaker = BreakerState.CLOSED
-        self._answers.add(now, 1.0)
+        answers = self._answers
+        answers.entries.append((now, 1.0))
+        answers.total += 1.0
+        late = now > exchange.window_end_s + self.guard_s + _EPS
+        if late or not self._prompt:
+            self._note_outcome(_LATE if late else 0)
+        else:
+            # In time on a prompt line: the window moves on by an answer in time.
+            window = self._outcomes
+            gone = window[0]
+            if gone:
+                self._late_count -= gone == _LATE
+                self._miss_count -= gone == _MISSED
+                self._prompt = not self._miss_count and self._late_count < _HELD_AS_A_RULE
+            window.append(0)
         if exchange is self._last:
             # The reply is in, so the line went quiet no later than now, whatever the
             # budget said.
-            self._free_at = min(self._free_at, now + self.guard_s)
+            quiet = now + self.clock_resolution_s + self.reply_guard_s
+            self.free_at = min(self.free_at, quiet)
+            self.urgent_free_at = min(self.urgent_free_at, quiet)
         if exchange.abandoned:
             device.abandoned += 1
             self._abandoned += 1
             events.append(StrayPacket(packet, now, StrayKind.ABANDONED))
             return
-        reply = ReplyPacket(
-            packet.sid, packet.cmd, packet.data, sent_at=exchange.sent_at, received_at=now
+        # Built through the slots, as the decoder builds packets: the frozen dataclasses'
+        # __init__ sets each field by name, which takes a Python call and twice as long.
+        reply = _new(ReplyPacket)
+        _set_reply_sid(reply, packet.sid)
+        _set_reply_cmd(reply, packet.cmd)
+        _set_reply_data(reply, packet.data)
+        _set_sent_at(reply, exchange.sent_at)
+        _set_received_at(reply, now)
+        event = _new(ReplyReceived)
+        _set_event_exchange(event, exchange)
+        _set_event_reply(event, reply)
+        events.append(event)
+
+    def _note_outcome(self, outcome: int) -> None:
+        """A request was answered in time (0), late (``_LATE``) or not (``_MISSED``)."""
+        window = self._outcomes
+        if len(window) == _PROMPT_WINDOW:
+            gone = window[0]
+            self._late_count -= gone == _LATE
+            self._miss_count -= gone == _MISSED
+        window.append(outcome)
+        self._late_count += outcome == _LATE
+        self._miss_count += outcome == _MISSED
+        self._prompt = (
+            len(window) == _PROMPT_WINDOW
+            and not self._miss_count
+            and self._late_count < _HELD_AS_A_RULE
         )
-        events.append(ReplyReceived(exchange, reply))
 
     def _miss(
         self, exchange: Exchange, reason: MissingReason, now: float, events: list[Event]
@@ -1083,11 +1317,12 @@ class BusConnection:
         self._keys.pop(key, None)
         # A device slower than its budget may still answer: an identical request waits
         # one more window, in which that answer is recognised as late.
-        hold = now + (exchange.expires_at - exchange.wire_end_s)
+        hold = now + self.clock_resolution_s + (exchange.expires_at - exchange.wire_end_s)
         self._holds[key] = max(self._holds.get(key, -math.inf), hold)
         self._suspect.add(key)
         exchange._state = _State.MISSING
         exchange.missing = reason
+        self._note_outcome(_MISSED)
         device = self._device(exchange.packet.sid)
         device.timeouts += 1
         if device.consecutive == 0:
@@ -1106,8 +1341,11 @@ class BusConnection:
             device.breaker = BreakerState.OPEN
             device.probe_gap = min(_FIRST_PROBE_S, self.probe_interval_s)
             device.next_probe_at = now + device.probe_gap
-        if exchange is self._last and self._free_at == math.inf:
-            self._free_at = now + self.guard_s
+        if exchange is self._last:
+            if self.free_at == math.inf:
+                self.free_at = now + self.clock_resolution_s + self.guard_s
+            if self.urgent_free_at == math.inf:
+                self.urgent_free_at = now + self.clock_resolution_s + self.guard_s
         if not exchange.abandoned:
             events.append(ReplyMissing(exchange, reason))
 

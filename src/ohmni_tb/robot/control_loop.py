@@ -100,6 +100,9 @@ class ControlLoop:
         # Whether the twist target goes through the acceleration limiter (drive's ramped).
         self._ramped = True
         self._pwm = (0, 0)
+        # A braking command (0, 0) known to be on the wire since the last command that was
+        # not one: while cycles are skipped, the brake goes out until this is so.
+        self._brake_out = False
         self._last_step_s: float | None = None
         self._last_command_s = -math.inf
         self._watchdog_timer: asyncio.TimerHandle | None = None
@@ -307,7 +310,7 @@ class ControlLoop:
 
     def packets(self, due: float) -> tuple[Packet, ...]:
         """The control slot's packets: the wheel command computed now, both count reads."""
-        pwm = self._step(self._loop.time())
+        pwm = self._command(self._loop.time())
         cycle = self._cycles.get(pwm)
         if cycle is None:
             # One tuple per command value: the bus checks a tuple it has seen only once.
@@ -315,6 +318,13 @@ class ControlLoop:
                 self._cycles.clear()
             cycle = self._cycles[pwm] = (wheel_command(*pwm, self._boards), *self._count_reads)
         return cycle
+
+    def _command(self, now: float) -> tuple[int, int]:
+        """The wheel PWM to send now (:meth:`_step`); one that is not a brake is not out yet."""
+        pwm = self._step(now)
+        if pwm != (0, 0):
+            self._brake_out = False
+        return pwm
 
     def _step(self, now: float) -> tuple[int, int]:
         """The wheel PWM to send now: watchdog, estop, limits, ramps and the PIDs."""
@@ -433,7 +443,9 @@ class ControlLoop:
         """Control cycles that did not run (a late loop, a busy line): counted; while the
         wheels are braking, the braking command goes anyway, late rather than never."""
         self._state.topics["wheel_encoder"].skipped += cycles
-        if self._pwm != (0, 0) and not self._moving_target():
+        # Not the last command computed (its cycle may be the one skipped) but the last
+        # one known written: a brake computed for a skipped cycle never reached the wheels.
+        if not self._brake_out and not self._moving_target():
             self.write_early(force=True)
 
     def failed(self, due: float, exc: BaseException) -> None:
@@ -471,12 +483,12 @@ class ControlLoop:
         for waiting in (control.unstarted(), self._early_slot):
             if waiting is not None and waiting.started_at is None:
                 with contextlib.suppress(OhmniError):
-                    waiting.replace_unsent(0, wheel_command(*self._step(now), self._boards))
+                    waiting.replace_unsent(0, wheel_command(*self._command(now), self._boards))
                     self._early_writes += 1
                     return
         if self._early_pending or (not force and control.next_due_s - now <= control.period_s / 4):
             return
-        pwm = self._step(now)
+        pwm = self._command(now)
         try:
             slot = self._bus.submit(
                 [wheel_command(*pwm, self._boards)],
@@ -492,6 +504,8 @@ class ControlLoop:
         def done(future: asyncio.Future[list[ReplyPacket | None]]) -> None:
             self._early_pending = False
             self._early_slot = None
+            if pwm == (0, 0) and slot.started_at is not None:
+                self._brake_out = True
             if not future.cancelled():
                 future.exception()  # retrieved: a missed deadline needs no report
 

@@ -173,7 +173,12 @@ class LocalRobot(Robot):
             transport = await open_transport(port if port is not None else config.port)
         _warn_if_coarse_timers(transport)
         reopen = transport.reopen if transport.can_reopen else None
-        bus = Bus(transport, timeout_s=config.bus_timeout_s(), reopen=reopen)
+        bus = Bus(
+            transport,
+            timeout_s=config.bus_timeout_s(),
+            reply_guard_s=_reply_guard_s(transport.baudrate),
+            reopen=reopen,
+        )
         bus.start()
         robot: LocalRobot | None = None
         try:
@@ -557,13 +562,24 @@ def _reopener(url: str) -> Reopen:
 
 _coarse_timers_told = False
 
+#: After a reply it has seen, the Robot's bus sends the next request once the reply's
+#: sender can have turned its line driver around: a few bit times after its stop bit
+#: (the cost model keeps its 0.2 ms guard). The reply's own callback then sends it.
+_REPLY_GUARD_BITS = 3
+
+
+def _reply_guard_s(baudrate: int | None) -> float | None:
+    """The quiet the Robot's bus keeps after a reply it has seen (``None``: the guard)."""
+    return None if not baudrate else _REPLY_GUARD_BITS / baudrate
+
 
 def _warn_if_coarse_timers(transport: Transport) -> None:
     """Tell once per process when a serial port runs on a loop with millisecond timers.
 
     Behind an adapter that holds replies, every request of the schedule goes out on a
     timer, and each one late by up to a millisecond does not fit a line booked to 81 %
-    (ohmni_tb.eventloop). The simulator in this process delivers at once: not told.
+    (ohmni_tb.eventloop): the bus sleeps the last millisecond of those waits in the loop
+    instead. The simulator in this process delivers at once: not told.
     """
     global _coarse_timers_told  # noqa: PLW0603  # once per process, not per Robot
     if _coarse_timers_told or not isinstance(transport, SerialTransport):
@@ -572,7 +588,8 @@ def _warn_if_coarse_timers(transport: Transport) -> None:
         return
     _coarse_timers_told = True
     _log.warning(
-        "this event loop's timers fire up to 1 ms late (asyncio's epoll waits in whole "
-        "milliseconds): behind a USB adapter that holds replies the servo streams can miss "
-        "their rates; run the program with ohmni_tb.run(main()) instead of asyncio.run"
+        "this event loop's timers fire up to 1 ms late (asyncio's epoll waits, and uvloop "
+        "counts its timers, in whole milliseconds): the bus sleeps the last millisecond of "
+        "its waits for the line in the loop, which the program's other work waits for; run "
+        "the program with ohmni_tb.run(main()) instead of asyncio.run to give it back"
     )

@@ -14,6 +14,9 @@ the bus at once with ``not_before`` its due time. The bus starts it from whateve
 it by then — a reply, the line freeing — and sets a timer only when the line is idle at
 that time. On a line busy most of the time that is one wake-up of the event loop fewer
 for most cycles (``bench/robot.py`` counts them).
+
+Each cycle's slot is one the stream has used before, once it has completed
+(:meth:`~ohmni_tb.bus.Bus.resubmit`): a stream makes its two slots once.
 """
 
 from __future__ import annotations
@@ -108,6 +111,9 @@ class Periodic:
         self._in_flight: set[Slot] = set()
         #: Cycles queued ahead: their due times.
         self._ahead_due: dict[Slot, float] = {}
+        #: Slots of cycles that have completed, for the next cycles (Bus.resubmit).
+        self._spare: list[Slot] = []
+        self._on_done = self._done
         self._submitting = False
         self.running = False
 
@@ -116,7 +122,7 @@ class Periodic:
         self.stop()
         self._t0 = t0 + self.phase_s
         self._k = 0
-        now = asyncio.get_running_loop().time()
+        now = self.bus.clock.now()
         if now > self._t0:
             self._k = math.ceil((now - self._t0) / self.period_s - 1e-9)
         self.running = True
@@ -130,7 +136,7 @@ class Periodic:
             self._timer.cancel()
             self._timer = None
         if self._ahead_due:
-            now = asyncio.get_running_loop().time()
+            now = self.bus.clock.now()
             for slot, due in list(self._ahead_due.items()):
                 if slot.started_at is None and due > now:
                     self._withdraw(slot)
@@ -173,7 +179,7 @@ class Periodic:
         self.bus.cancel(slot)  # its on_done is not called
         self._in_flight.discard(slot)
         due = self._ahead_due.pop(slot, None)
-        if due is not None and due > asyncio.get_running_loop().time():
+        if due is not None and due > self.bus.clock.now():
             self._k -= 1  # a cycle queued ahead, not yet due: it is the next one again
 
     def _resume(self) -> None:
@@ -190,14 +196,14 @@ class Periodic:
         return self._t0 + k * self.period_s
 
     def _arm(self) -> None:
-        loop = asyncio.get_running_loop()
-        self._timer = loop.call_at(self._due(self._k), self._fire)
+        # The bus's clock: the line's time, and a timer that does not fire before it.
+        self._timer = self.bus.clock.call_at(self._due(self._k), self._fire)
 
     def _fire(self) -> None:
         self._timer = None
         if not self.running:
             return
-        self._cycle(asyncio.get_running_loop().time())
+        self._cycle(self.bus.clock.now())
 
     def _cycle(self, now: float) -> None:
         """Submit the next due cycle (at its time, or ahead of it), and arm the timer
@@ -221,16 +227,28 @@ class Periodic:
             ahead = self.ahead and due > now
             self._submitting = True
             try:
-                slot = self.bus.submit(
-                    packets,
-                    priority=self.priority,
-                    deadline=due + self.slack_s,
-                    on_done=lambda done: self._done(done, due),
-                    not_before=due if ahead else None,
-                )
+                spare = self._spare
+                if spare:
+                    slot = self.bus.resubmit(
+                        spare.pop(),
+                        packets,
+                        deadline=due + self.slack_s,
+                        not_before=due if ahead else None,
+                        on_done=self._on_done,
+                        tag=due,
+                    )
+                else:
+                    slot = self.bus.submit(
+                        packets,
+                        priority=self.priority,
+                        deadline=due + self.slack_s,
+                        on_done=self._on_done,
+                        not_before=due if ahead else None,
+                        tag=due,
+                    )
             finally:
                 self._submitting = False
-            if not slot.future.done():
+            if not slot.finished:
                 self._in_flight.add(slot)
                 if self.ahead:
                     # Its completion queues the next cycle: no timer needed meanwhile.
@@ -249,24 +267,26 @@ class Periodic:
             if self.running and not queued:
                 self._arm()
 
-    def _done(self, slot: Slot, due: float) -> None:
+    def _done(self, slot: Slot) -> None:
         # Called from inside the bus as the slot completes: no loop pass in between.
+        due: float = slot.tag  # type: ignore[assignment]  # _cycle tags each slot with it
         self._in_flight.discard(slot)
         self._ahead_due.pop(slot, None)
         try:
-            future = slot.future
-            if future.cancelled():
+            if slot.cancelled:
                 return
-            exc = future.exception()
+            exc = slot.error
             if exc is not None:
                 if isinstance(exc, DeadlineMissedError):
                     self._skipped(1)
                 else:
                     self._fail(due, exc)
                 return
-            started = slot.started_at if slot.started_at is not None else due
-            self._handle(CycleResult(due, started, future.result()))
+            started = slot.started_at
+            self._handle(CycleResult(due, due if started is None else started, slot.results))
         finally:
+            # Done with it: the slot of a cycle to come (resubmit resets it).
+            self._spare.append(slot)
             if (
                 self.ahead
                 and self.running
@@ -275,4 +295,4 @@ class Periodic:
                 and not self._in_flight
             ):
                 # The next cycle, queued now for its due time.
-                self._cycle(asyncio.get_running_loop().time())
+                self._cycle(self.bus.clock.now())

@@ -160,7 +160,9 @@ class Topic(Generic[T]):
         self.latest = sample
         self.samples += 1
         self._stamps.append(stamp_s)
-        if self._subscriptions:  # iterating even an empty WeakSet costs a guard object
+        # Iterating even an empty WeakSet costs a guard object, and asking its len() a
+        # call: its set of references (dead ones are dropped as it is iterated) tells.
+        if self._subscriptions.data:  # type: ignore[attr-defined]  # CPython's WeakSet keeps it
             for subscription in self._subscriptions:
                 subscription._put(sample)
 

@@ -80,7 +80,7 @@ class SerialTransport(Transport):
         self._low_latency = low_latency
         self._exclusive = exclusive
         self._rx = ReceiveBuffer(f"serial port {port}")
-        self._serial: serial_asyncio_fast.SerialTransport | None = None
+        self._serial: _TtyTransport | None = None
         self._closed = False
         self._gone: asyncio.Future[None] | None = None
         # Set while the port's write buffer is empty (the protocol's flow control).
@@ -188,19 +188,21 @@ class SerialTransport(Transport):
 
     @property
     def backlog(self) -> int:
-        if self._serial is None or self._closed:
+        serial_transport = self._serial
+        if serial_transport is None or self._closed or not serial_transport._write_buffer:
             return 0
-        return self._serial.get_write_buffer_size()
+        return serial_transport.get_write_buffer_size()
 
     async def drain(self) -> None:
         if self.backlog and not self._closed:
             await self._drained.wait()
 
     def write_nowait(self, data: bytes) -> None:
-        if self._closed or self._serial is None or self._serial.is_closing():
+        serial_transport = self._serial
+        if self._closed or serial_transport is None or serial_transport._closing:
             raise TransportClosedError(f"serial port {self.port} is closed")
         try:
-            self._serial.write(data)
+            serial_transport.write(data)
         except (serial.SerialException, OSError) as exc:
             raise TransportError(f"write to {self.port} failed: {exc}") from exc
 
@@ -209,6 +211,10 @@ class SerialTransport(Transport):
 
     def start_receiving(self, on_data: Receiver, on_lost: LostHandler) -> None:
         self._rx.start(on_data, on_lost)
+        if self._serial is not None and not self._closed:
+            # Straight from the port's readiness callback to the receiver: the protocol
+            # and the receive buffer would only hand each chunk on.
+            self._serial._receiver = on_data
 
     def _connection_lost(self, exc: Exception | None) -> None:
         if self._gone is not None and not self._gone.done():
@@ -218,6 +224,8 @@ class SerialTransport(Transport):
             return
         # Not our own close: the adapter was unplugged or the port failed.
         self._closed = True
+        if self._serial is not None:
+            self._serial._receiver = None
         reason = f": {exc}" if exc is not None else ""
         lost = TransportClosedError(f"serial port {self.port} was closed or unplugged{reason}")
         lost.__cause__ = exc
@@ -232,6 +240,7 @@ class SerialTransport(Transport):
         serial_transport = self._serial
         if serial_transport is None:
             return
+        serial_transport._receiver = None
         if serial_transport.get_write_buffer_size():
             # Give queued bytes (a final stop) their wire time, no more.
             with contextlib.suppress(TimeoutError):
@@ -277,6 +286,32 @@ class _TtyTransport(serial_asyncio_fast.SerialTransport):
     """
 
     _empty_reads = 0
+    #: The owner's receiver, called with each chunk straight from _read_ready (else the
+    #: protocol's data_received).
+    _receiver: Receiver | None = None
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        # The library's write() checks, then calls _write_data(): here the usual case,
+        # nothing queued and the port open, writes at once.
+        device: serial.Serial | None = self._serial
+        fd = None if device is None else device.fd
+        if self._closing or self._write_buffer or fd is None:
+            super().write(data)
+            return
+        try:
+            n = os.write(fd, data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError as exc:
+            self._fatal_error(
+                serial.SerialException(f"write failed: {exc}"),
+                "Fatal write error on serial transport",
+            )
+            return
+        if n < len(data):
+            self._write_buffer.append(data[n:])  # the rest when the port can take it
+            self._maybe_pause_protocol()
+            self._ensure_writer()
 
     def _write_data(self, data: bytes | bytearray | memoryview) -> None:
         # The library's own goes through pyserial's write(), whose timeout bookkeeping is
@@ -318,7 +353,11 @@ class _TtyTransport(serial_asyncio_fast.SerialTransport):
             return
         if data:
             self._empty_reads = 0
-            self._protocol.data_received(data)
+            receiver = self._receiver
+            if receiver is not None:
+                receiver(data)
+            else:
+                self._protocol.data_received(data)
             return
         reason = _why_lost(fd, device.port)
         if reason is None:
