@@ -13,7 +13,9 @@ The schedule is the Robot's on the default simulator: every 20 ms a wheel comman
 both wheel-count reads, servos 3, 11 and 12 at 30 Hz (RAM 48..59, their phases spread
 over the period), the core board's status at 10 Hz. A stream whose cycle is still
 waiting for the line when the next is due skips that cycle (counted); a reply that does
-not come within 25 ms is a timeout (counted), and the line moves on.
+not come within 25 ms is a timeout (counted): the bytes waiting to be read are flushed, so
+that what is left of the late reply is not counted toward the next one, and the line
+moves on.
 """
 
 from __future__ import annotations
@@ -170,8 +172,10 @@ class FloorMaster:
     def _due(self, stream: FloorStream) -> None:
         current = self._current
         if current is not None and self._loop.time() - self._sent_at > REPLY_TIMEOUT_S:
-            # The reply is not coming (a collision garbled it): the line moves on.
+            # The reply is not coming (a collision garbled it, or the simulator's process
+            # was not scheduled): what has come of it goes, and the line moves on.
             current.timeouts += 1
+            termios.tcflush(self._fd, termios.TCIFLUSH)
             self._finish(current)
         if stream.busy:
             stream.skipped += 1

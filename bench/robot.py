@@ -12,7 +12,9 @@ callback, replies counted, not parsed), then ``Robot.open(pty)`` with every stre
 and ``drive(0.1)`` sent again every 0.1 s. Each side prints its CPU share of one core,
 its event loop's waits a second, every stream's rate and its timeouts; each round the
 Robot's CPU over the floor's, and at the end the median of those ratios and their
-spread. Interleaved rounds in one run keep a shared machine's load out of the ratio.
+spread, over the rounds in which both sides kept the wheel stream at 49 Hz or more (a side
+that fell short did less work: its CPU is no figure). Interleaved rounds in one run keep a
+shared machine's load out of the ratio.
 ``--loop`` runs both sides on ``ohmni_tb.run``'s loop (the default), ``asyncio.run``'s,
 or uvloop's (``pip install uvloop``).
 
@@ -369,9 +371,14 @@ async def robot_round(path: str, seconds: float) -> Round:
     )
 
 
+#: A round counts only if both sides kept the wheel stream at least this fast (of 50 Hz).
+FULL_RATE_HZ = 49.0
+
+
 def ratio(seconds: float, rounds: int, loop_name: str) -> list[float]:
     """Interleaved rounds, floor then Robot, on one ``ohmni sim --pty``; print each, and
-    the median ratio of the Robot's CPU to the floor's with its spread."""
+    the median ratio of the Robot's CPU to the floor's with its spread, over the rounds in
+    which both sides kept their wheel stream at 49 Hz or more."""
     factory = loop_factory(loop_name)
     print(
         f"\nCPU against the floor on {loop_name}: {rounds} interleaved rounds of {seconds:g} s "
@@ -400,11 +407,23 @@ def ratio(seconds: float, rounds: int, loop_name: str) -> list[float]:
                     + " ".join(f"{result.rates[n]:8.2f}" for n in names)
                     + f" | {result.timeouts:8d} {result.skipped:7d} | {extra}"
                 )
-            ratios.append(sides[1].cpu / sides[0].cpu)
+            short = [
+                label
+                for label, side in zip(("floor", "robot"), sides, strict=True)
+                if side.rates["wheels"] < FULL_RATE_HZ
+            ]
+            if short:
+                # A side that did not keep its schedule did less work: its CPU is no figure.
+                print(f"  round {k + 1} left out: the {' and the '.join(short)} fell short")
+            else:
+                ratios.append(sides[1].cpu / sides[0].cpu)
+    if not ratios:
+        print(f"Robot / floor CPU on {loop_name}: no round kept its schedule on both sides")
+        return ratios
     ordered = sorted(ratios)
     print(
         f"Robot / floor CPU on {loop_name}: median {statistics.median(ratios):.2f} "
-        f"(spread {ordered[0]:.2f}..{ordered[-1]:.2f} over {rounds} rounds)"
+        f"(spread {ordered[0]:.2f}..{ordered[-1]:.2f} over {len(ratios)} of {rounds} rounds)"
     )
     return ratios
 
