@@ -711,6 +711,36 @@ def test_send_now_jumps_the_queue() -> None:
     assert [p.sid for p in sent] == [0, BROADCAST_ID, 1, 3, 11, 12]
 
 
+def test_a_read_sent_now_in_the_middle_of_a_slot_is_not_sent_twice_by_it() -> None:
+    # The stop path reads a wheel's count at once (send_now), between the packets of a
+    # control slot that reads the same count; that device then stays silent. The slot's
+    # own read would be told from the stop's by nothing: it is not sent, and is counted;
+    # the slot completes (it used to hang, with an error in the loop's callback).
+    async def main() -> tuple[object, BusStats, list[Packet], list[dict[str, Any]]]:
+        loop = asyncio.get_running_loop()
+        errors: list[dict[str, Any]] = []
+        loop.set_exception_handler(lambda _loop, context: errors.append(context))
+        host, end = pair()
+        device = TimedDevice(end)
+        async with Bus(host) as bus:
+            slot = asyncio.ensure_future(bus.transact([read_count(0), read_count(1)]))
+            await asyncio.sleep(0)  # the slot's first read is on the line
+            device.silent.add(1)
+            await bus.send_now(read_count(1))
+            result = await asyncio.wait_for(slot, 1.0)
+            stats = bus.stats
+        await end.aclose()
+        return result, stats, device.sent(), errors
+
+    result, stats, sent, errors = virtual(main)
+    assert errors == []
+    assert isinstance(result, list)
+    assert result[0] is not None
+    assert result[1] is None
+    assert stats.twins == 1
+    assert [p.sid for p in sent] == [0, 1]
+
+
 def test_the_final_stop_goes_out_while_the_bus_closes_even_when_cancelled() -> None:
     async def main() -> tuple[list[Packet], list[BaseException]]:
         host, end = pair()

@@ -170,6 +170,9 @@ class BusStats(ConnectionStats):
         deadline_misses: Slots dropped (and retries not sent) because of their deadline.
         promoted: Slots sent ahead of their priority after waiting ``max_wait_s``.
         refused: Requests not sent because the device's breaker was open.
+        twins: Requests of a slot not sent because an identical request sent ahead of
+            them (a stop's own read) was outstanding or held: their replies could not be
+            told apart. Their results are ``None``.
         link_losses: Times the link was lost.
         reconnects: Times it was reopened.
     """
@@ -180,6 +183,7 @@ class BusStats(ConnectionStats):
     deadline_misses: int
     promoted: int
     refused: int
+    twins: int
     link_losses: int
     reconnects: int
 
@@ -525,6 +529,7 @@ class Bus:
         self._deadline_misses = 0
         self._promoted = 0
         self._refused = 0
+        self._twins = 0
         self._link_losses = 0
         self._reconnects = 0
 
@@ -1151,6 +1156,7 @@ class Bus:
             deadline_misses=self._deadline_misses,
             promoted=self._promoted,
             refused=self._refused,
+            twins=self._twins,
             link_losses=self._link_losses,
             reconnects=self._reconnects,
         )
@@ -1697,6 +1703,13 @@ class Bus:
             if retry_in is not None:
                 self._refused += 1
                 slot.refused[index] = retry_in
+                slot.settle(index, None)
+                return
+            if self._conn.blocked_until(packet, now) > now + _EPS:
+                # An urgent twin went in the middle of this slot (the scan checked the
+                # slot's packets when it chose it): this one's reply would be taken for
+                # the twin's, or the twin's for this one's.
+                self._twins += 1
                 slot.settle(index, None)
                 return
         attempt = slot.attempts[index]
