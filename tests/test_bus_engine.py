@@ -648,6 +648,32 @@ def test_a_silent_device_trips_its_breaker_and_is_probed_until_it_answers() -> N
     virtual(main)
 
 
+def test_a_probe_asks_a_device_whose_breaker_is_open_and_closes_it() -> None:
+    # A drive board missed its replies on a noisy line and its breaker opened; a stop's
+    # confirmation must still read its count (transact(probe=True)), which a plain read
+    # is refused, and its answer closes the breaker at once.
+    async def main() -> None:
+        host, end = pair()
+        device = TimedDevice(end)
+        device.silent.add(1)
+        async with Bus(host, breaker_timeouts=3, breaker_quiet_s=0.05) as bus:
+            with pytest.raises(BusTimeoutError):
+                await bus.request(read_count(1))
+            assert breaker(bus, 1) is BreakerState.OPEN
+            device.silent.discard(1)
+            assert await bus.transact([read_count(1)]) == [None]  # refused, not sent
+            sent_before = len(device.sent(1))
+            (reply,) = await bus.transact([read_count(1)], probe=True)
+            assert reply is not None
+            assert len(device.sent(1)) == sent_before + 1
+            assert breaker(bus, 1) is BreakerState.CLOSED
+            with pytest.raises(InvalidArgumentError, match="probe must be True or False, not 1"):
+                await bus.transact([read_count(1)], probe=1)  # type: ignore[arg-type]  # the check under test
+        await end.aclose()
+
+    virtual(main)
+
+
 def test_a_silent_device_costs_the_wheel_slot_nothing() -> None:
     """Wheel slots at 50 Hz keep their rate while two servos read at 30 Hz are silent."""
 

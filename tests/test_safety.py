@@ -424,9 +424,11 @@ def test_on_a_lossy_line_the_robot_stops_and_never_claims_a_stop_it_did_not_see(
         return confirmed, robot_truth.wheel_speeds_mps(), robot_truth.pose.x
 
     confirmed, speeds, went = run_virtual(main())
-    # Stopped in truth, whether its counts confirmed it or not (the stale-feedback guard
-    # may have stopped it before the second was up: `went` is not checked).
+    # Stopped in truth (the stale-feedback guard may have stopped it before the second
+    # was up: `went` is not checked), and seen so: the confirmation's count reads go even
+    # to a board whose breaker the lost replies opened.
     assert speeds == (0.0, 0.0), (seed, confirmed, went)
+    assert confirmed, seed
 
 
 def test_the_demo_on_a_lossy_line_reports_its_stop_either_way(

@@ -215,6 +215,7 @@ class Slot:
         "on_done",
         "packets",
         "priority",
+        "probe",
         "refused",
         "remaining",
         "results",
@@ -270,6 +271,8 @@ class Slot:
         self.tag: object = None
         #: The sequence it was submitted as (resubmit() keeps it when passed again).
         self.given: Sequence[Packet] = ()
+        #: Sent to its devices even while their breakers are open (transact's probe).
+        self.probe = False
         # The bus's set of slots whose callers still wait; this slot leaves it when done.
         self.active: set[Slot] | None = None
 
@@ -869,6 +872,7 @@ class Bus:
         retries: int | None = None,
         timeout_s: float | None = None,
         not_before: float | None = None,
+        probe: bool = False,
     ) -> list[ReplyPacket | None]:
         """Send ``packets`` as one atomic slot and return each one's reply.
 
@@ -883,6 +887,9 @@ class Bus:
                 queued ahead of its due time, it goes from whatever wakes the bus then
                 (the reply in flight, the line freeing) instead of from a timer of the
                 caller's; its waiting counts from then.
+            probe: Send the requests even to a device the bus presumes gone (its
+                breaker open), for an answer that matters more than the line's time:
+                :func:`~ohmni_tb.safety.stop_wheels` reads the wheel counts so.
 
         Returns:
             One entry per packet: its reply, or ``None`` when it gets none (no reply
@@ -896,6 +903,8 @@ class Bus:
             BusClosedError: The bus is closed.
             TransportError: The link is lost.
         """
+        if probe is not True and probe is not False:
+            raise InvalidArgumentError(f"probe must be True or False, not {probe!r}")
         slot = self._submit(
             packets,
             None,
@@ -904,6 +913,7 @@ class Bus:
             retries=retries,
             timeout_s=timeout_s,
             not_before=not_before,
+            probe=probe,
         )
         return await self._await(slot)
 
@@ -1191,6 +1201,7 @@ class Bus:
         on_done: Callable[[Slot], None] | None = None,
         not_before: float | None = None,
         tag: object = None,
+        probe: bool = False,
     ) -> Slot:
         conn = self._conn
         given = packets
@@ -1220,6 +1231,7 @@ class Bus:
             owner=self,
         )
         slot.given = given
+        slot.probe = probe
         if fail_fast and wants[0]:
             # A request to a device known to be gone fails at once (a probe may still go).
             first = slot.packets[0]
@@ -1699,7 +1711,7 @@ class Bus:
         packet = slot.packets[index]
         expect = slot.expect[index]
         if expect:
-            retry_in = self._conn.refusal(packet.sid, now)
+            retry_in = None if slot.probe else self._conn.refusal(packet.sid, now)
             if retry_in is not None:
                 self._refused += 1
                 slot.refused[index] = retry_in

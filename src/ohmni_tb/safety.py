@@ -307,7 +307,10 @@ async def _watch(
         if round_at >= deadline:
             return _verdict(bus, windows, settle_s)
         try:
-            replies = await bus.transact(reads, priority=_READ_PRIORITY, deadline=deadline)
+            # Asked even of a board the bus presumes gone: a stop needs its answer.
+            replies = await bus.transact(
+                reads, priority=_READ_PRIORITY, deadline=deadline, probe=True
+            )
         except DeadlineMissedError:
             return _verdict(bus, windows, settle_s)
         except (BusClosedError, TransportError) as exc:
@@ -361,7 +364,9 @@ def _verdict(
             )
         stats = devices.get(int(side))
         if stats is not None and stats.breaker is not BreakerState.CLOSED:
-            text += " and the bus presumes it gone, sending it only probes"
+            text += (
+                " and the bus presumes it gone (its breaker is open; these reads were sent anyway)"
+            )
         unsettled.append(int(side))
         reasons.append(text)
     if not unsettled:  # pragma: no cover - a settled pair returns before any verdict
