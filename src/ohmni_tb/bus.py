@@ -981,7 +981,8 @@ class Bus:
 
         Raises:
             StateError: The slot has not completed, or is another bus's.
-            The same as :meth:`submit` for ``packets``, ``deadline`` and ``not_before``.
+            OhmniError: The same as :meth:`submit` for ``packets``, ``deadline`` and
+                ``not_before``.
         """
         if not slot.finished or slot._owner is not self:
             raise StateError("only a slot of this bus that has completed can be queued again")
