@@ -366,7 +366,7 @@ def test_nan_from_the_environment_is_refused(monkeypatch: pytest.MonkeyPatch) ->
         ({"ext_servo_ids": [20]}, "ext_servo_ids=(20,): id 20 is the core board's"),
         ({"ext_servo_ids": (12, 12)}, "ext_servo_ids=(12, 12) repeats id 12"),
         ({"ext_servo_ids": (11, 12, 13)}, "ext_servo_ids=(11, 12, 13) lists 3 servos: at most 2"),
-        ({"ext_servo_ids": (254,)}, "ext_servo_ids=(254,): id 254 is out of range: allowed 0..253"),
+        ({"ext_servo_ids": (254,)}, "ext_servo_ids=254 is out of range: allowed 0..253"),
         ({"ext_servo_ids": (11, "x")}, "ext_servo_ids[1]='x' is not an integer"),
         (
             {"ext_servo_ids": (11,), "neck_id": 11},

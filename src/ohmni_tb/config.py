@@ -67,13 +67,18 @@ from ohmni_tb.control.encoder import EncoderConfig
 from ohmni_tb.control.kinematics import DiffDrive, VelocityLimits
 from ohmni_tb.control.limiter import AccelLimits, TwistLimiter
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import ConfigError
+from ohmni_tb.errors import ConfigError, OhmniError
 from ohmni_tb.herkulex.registers import RAM as SERVO_RAM
 from ohmni_tb.protocol.connection import DEFAULT_TIMEOUT_S
 from ohmni_tb.protocol.core import BatteryLayout
 from ohmni_tb.protocol.devices import DEFAULT_EXT_SERVO_IDS, NECK_RAW_RANGE, DeviceId
 from ohmni_tb.protocol.messages import MAX_READ_LENGTH
-from ohmni_tb.protocol.profile import PROFILE_SETTINGS, BusProfile
+from ohmni_tb.protocol.profile import (
+    PROFILE_SETTINGS,
+    BusProfile,
+    check_ext_servo_ids,
+    parse_ext_servo_ids,
+)
 from ohmni_tb.protocol.worm_neck import WORM_MAX, WORM_MIN
 
 if TYPE_CHECKING:
@@ -836,25 +841,20 @@ class RobotConfig(BaseSettings):
     @field_validator("ext_servo_ids", mode="before")
     @classmethod
     def _parse_id_list(cls, value: object) -> object:
-        return _parse_ids(value) if isinstance(value, str) else value
+        if not isinstance(value, str):
+            return value
+        try:
+            return parse_ext_servo_ids(value)
+        except OhmniError as exc:
+            raise ValueError(str(exc)) from None
 
     @field_validator("ext_servo_ids", mode="after")
     @classmethod
     def _check_ext_ids(cls, ids: tuple[int, ...]) -> tuple[int, ...]:
-        shown = f"ext_servo_ids={ids}"
-        if len(ids) > _MAX_EXT_SERVOS:
-            raise ValueError(f"{shown} lists {len(ids)} servos: at most {_MAX_EXT_SERVOS}")
-        for sid in ids:
-            if not 0 <= sid <= _MAX_SERVO_ID:
-                raise ValueError(f"{shown}: id {sid} is out of range: allowed 0..{_MAX_SERVO_ID}")
-            if sid in _BOARD_IDS:
-                raise ValueError(
-                    f"{shown}: id {sid} is the {_BOARD_IDS[sid]} board's; board ids "
-                    f"{', '.join(map(str, _BOARD_IDS))} are taken"
-                )
-            if ids.count(sid) > 1:
-                raise ValueError(f"{shown} repeats id {sid}")
-        return ids
+        try:
+            return check_ext_servo_ids(ids)
+        except OhmniError as exc:
+            raise ValueError(str(exc)) from None
 
     @field_validator("frame_id_odom", "frame_id_baselink", mode="after")
     @classmethod
@@ -1137,25 +1137,6 @@ def _extra(name: str) -> dict[str, Any]:
 def _allowed(name: str) -> str:
     """What field ``name`` allows, in words."""
     return str(_extra(name).get("allowed", "see RobotConfig.describe()"))
-
-
-def _parse_ids(text: str) -> list[int]:
-    """Bus ids from text: ``"11,12"``, ``"[11, 12]"``, or ``""`` / ``"none"`` for none."""
-    body = text.strip()
-    if body.startswith("[") and body.endswith("]"):
-        body = body[1:-1].strip()
-    if body.lower() in {"", "none"}:
-        return []
-    ids: list[int] = []
-    for part in body.split(","):
-        try:
-            ids.append(int(part.strip()))
-        except ValueError:
-            raise ValueError(
-                f"ext_servo_ids={text!r}: {part.strip()!r} is not a bus id "
-                "(write ids like 11,12, or none)"
-            ) from None
-    return ids
 
 
 def _default_text(value: object) -> str:

@@ -186,52 +186,54 @@ def _renamed(exc: OutOfRangeError) -> OhmniError:
 
 
 def check_ext_servo_ids(ids: object) -> tuple[int, ...]:
-    """``ids`` as a tuple of external servo ids.
+    """``ids`` as a tuple of external servo ids (the one check, for the profile and for
+    ``RobotConfig.ext_servo_ids``).
 
     Raises:
-        InvalidArgumentError: Not a sequence of ints, or an id repeats.
-        OutOfRangeError: An id out of 0..253 or a board's, or more than two.
+        InvalidArgumentError: Not a sequence of ints, an id repeats, an id is a board's,
+            or more than two.
+        OutOfRangeError: An id out of 0..253.
     """
     if not isinstance(ids, (tuple, list)):
         raise InvalidArgumentError(f"ext_servo_ids must be a list of ids, not {ids!r}")
-    out: list[int] = []
+    shown = f"ext_servo_ids={tuple(ids)}"
     for sid in ids:
         if isinstance(sid, bool) or not isinstance(sid, int):
-            raise InvalidArgumentError(f"ext_servo_ids: {sid!r} is not a bus id (an int)")
+            raise InvalidArgumentError(f"{shown}: {sid!r} is not a bus id (an int)")
         if not 0 <= sid <= _MAX_SERVO_ID:
             raise OutOfRangeError("ext_servo_ids", sid, 0, _MAX_SERVO_ID)
         if sid in _BOARD_IDS:
             raise InvalidArgumentError(
-                f"ext_servo_ids: {sid} is a board's id (boards: "
-                f"{', '.join(map(str, sorted(_BOARD_IDS)))}); a servo there would answer for it"
+                f"{shown}: id {sid} is the {DeviceId(sid).name.lower()} board's; board ids "
+                f"{', '.join(map(str, sorted(_BOARD_IDS)))} are taken"
             )
-        if sid in out:
-            raise InvalidArgumentError(f"ext_servo_ids={tuple(ids)} repeats {sid}")
-        out.append(sid)
-    if len(out) > _MAX_EXT_SERVOS:
-        raise InvalidArgumentError(
-            f"ext_servo_ids={tuple(out)}: at most {_MAX_EXT_SERVOS} external servos "
-            "(servo_ext1, servo_ext2)"
-        )
-    return tuple(out)
+        if ids.count(sid) > 1:
+            raise InvalidArgumentError(f"{shown} repeats id {sid}")
+    if len(ids) > _MAX_EXT_SERVOS:
+        raise InvalidArgumentError(f"{shown} lists {len(ids)} servos: at most {_MAX_EXT_SERVOS}")
+    return tuple(ids)
 
 
 def parse_ext_servo_ids(text: str) -> tuple[int, ...]:
-    """``"13,14"`` (decimal or ``0x``), or ``""``/``"none"`` for none.
+    """``"13,14"`` or ``"[13, 14]"`` (decimal or ``0x``), or ``""``/``"none"`` for none.
 
     Raises:
         InvalidArgumentError: A part is not an integer.
         OutOfRangeError: An id is out of range (see :func:`check_ext_servo_ids`).
     """
-    if text.strip().lower() in {"", "none"}:
+    body = text.strip()
+    if body.startswith("[") and body.endswith("]"):
+        body = body[1:-1].strip()
+    if body.lower() in {"", "none"}:
         return ()
     ids: list[int] = []
-    for part in text.split(","):
+    for part in body.split(","):
         try:
             ids.append(int(part.strip(), 0))
         except ValueError:
             raise InvalidArgumentError(
-                f"ext_servo_ids={text!r}: {part.strip()!r} is not a bus id"
+                f"ext_servo_ids={text!r}: {part.strip()!r} is not a bus id "
+                "(write ids like 11,12, or none)"
             ) from None
     return check_ext_servo_ids(ids)
 
