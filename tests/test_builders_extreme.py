@@ -346,8 +346,8 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "encoder.CountFilter.take": (2, lambda a, b: _count_filter(3.0).take(a, b)),
     # control.limiter
     "limiter.AccelLimits": (
-        2,
-        lambda a, b: limiter.ramp(0.5, -0.5, 0.02, limiter.AccelLimits(a, b)),
+        3,
+        lambda a, b, c: limiter.jerk_ramp(0.5, 0.0, -0.5, 0.02, limiter.AccelLimits(a, b, c)),
     ),
     "limiter.TwistLimiter.step": (
         3,
@@ -357,6 +357,10 @@ CASES: dict[str, tuple[int, Callable[..., object]]] = {
     "limiter.ramp": (
         3,
         lambda a, b, c: limiter.ramp(a, b, c, limiter.AccelLimits(1.0, 2.0)),
+    ),
+    "limiter.jerk_ramp": (
+        4,
+        lambda a, b, c, d: limiter.jerk_ramp(a, b, c, d, limiter.AccelLimits(1.0, 2.0, 5.0)),
     ),
     # control.calibration
     "calibration.calibrate_straight_line": (

@@ -32,6 +32,7 @@ FIELDS = [
     "wheel_radius_m", "wheel_separation_m", "ticks_per_rev",
     "max_linear_mps", "max_angular_radps", "max_wheel_mps", "linear_accel_mps2",
     "linear_decel_mps2", "angular_accel_radps2", "angular_decel_radps2",
+    "linear_jerk_mps3", "angular_jerk_radps3",
     "pid_kp", "pid_ki", "pid_kd", "pid_kff", "pid_ff_offset", "controllers",
     "watchdog_s", "stale_ticks", "implausible_mps", "thermal_guard", "thermal_limit_raw",
     "neck_hold_s", "on_exit_neck", "stop_timeout_s",
@@ -472,6 +473,32 @@ def test_twist_limiter_is_fresh_and_configured() -> None:
     limiter.step(Twist(1.0, 1.0), dt_s=1.0)
     assert config.twist_limiter() is not limiter
     assert config.twist_limiter().current == Twist()
+
+
+def test_jerk_limits_are_off_by_default_and_set_from_arguments_env_and_file(
+    monkeypatch: pytest.MonkeyPatch, hermetic: Path
+) -> None:
+    default = RobotConfig().twist_limiter()
+    assert (default.linear.max_jerk, default.angular.max_jerk) == (math.inf, math.inf)
+    assert RobotConfig(linear_jerk_mps3=0).twist_limiter().linear.max_jerk == math.inf
+    assert RobotConfig(linear_jerk_mps3=2.5).twist_limiter().linear.max_jerk == 2.5
+    monkeypatch.setenv("OHMNI_ANGULAR_JERK_RADPS3", "8")
+    assert RobotConfig().twist_limiter().angular.max_jerk == 8.0
+    monkeypatch.delenv("OHMNI_ANGULAR_JERK_RADPS3")
+    (hermetic / "ohmni.toml").write_text("linear_jerk_mps3 = 4.0\n", encoding="utf-8")
+    assert RobotConfig.load().twist_limiter().linear.max_jerk == 4.0
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "allowed"),
+    [
+        ("linear_jerk_mps3", 0.5, "allowed 0 (off) or 1..1000 m/s³"),
+        ("linear_jerk_mps3", -2, "allowed 0 (off) or 1..1000 m/s³"),
+        ("angular_jerk_radps3", 5000, "allowed 0 (off) or 1..1000 rad/s³"),
+    ],
+)
+def test_a_bad_jerk_limit_is_named_with_its_range(name: str, value: float, allowed: str) -> None:
+    assert config_error(**{name: value}) == f"{name}={value} is out of range: {allowed} (argument)"
 
 
 def test_pid_gains() -> None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import difflib
 import json
 import logging
+import math
 import os
 import tomllib
 from collections.abc import Mapping
@@ -278,6 +279,24 @@ class RobotConfig(BaseSettings):
     )
     angular_decel_radps2: float = _setting(
         4.0, 0, 100, "rad/s²", "Yaw deceleration limit while braking, rad/s².", above=True
+    )
+    linear_jerk_mps3: float = _setting(
+        0.0,
+        1,
+        1000,
+        "m/s³",
+        "Linear jerk limit: how fast the acceleration may change, m/s³, so a drive "
+        "command starts and ends smoothly; a stop is not held back by it.",
+        off="off",
+    )
+    angular_jerk_radps3: float = _setting(
+        0.0,
+        1,
+        1000,
+        "rad/s³",
+        "Yaw jerk limit: how fast the yaw acceleration may change, rad/s³; a stop is not "
+        "held back by it.",
+        off="off",
     )
 
     # Wheel PID: the loop's output is the drive board's PWM. Tuned on the simulator's
@@ -729,8 +748,16 @@ class RobotConfig(BaseSettings):
     def twist_limiter(self) -> TwistLimiter:
         """A new acceleration limiter, standing, with the configured limits."""
         return TwistLimiter(
-            AccelLimits(self.linear_accel_mps2, self.linear_decel_mps2),
-            AccelLimits(self.angular_accel_radps2, self.angular_decel_radps2),
+            AccelLimits(
+                self.linear_accel_mps2,
+                self.linear_decel_mps2,
+                self.linear_jerk_mps3 or math.inf,  # 0 is off
+            ),
+            AccelLimits(
+                self.angular_accel_radps2,
+                self.angular_decel_radps2,
+                self.angular_jerk_radps3 or math.inf,
+            ),
         )
 
     def pid_gains(self) -> PidGains:

@@ -41,6 +41,7 @@ EXPECTED = {
     "calibrate_straight_line",
     "calibrate_umbmark",
     "integrate_batch",
+    "jerk_ramp",
     "limit_twist",
     "ramp",
     "saturate_wheel_speeds",

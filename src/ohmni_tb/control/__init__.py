@@ -7,7 +7,8 @@ a recorded log. See ``docs/control.md`` for the models and the limits a user set
 - :mod:`~ohmni_tb.control.pid`: per-wheel velocity PID (feed-forward, anti-windup,
   derivative on measurement, bumpless gain change, ``pid_debug`` terms).
 - :mod:`~ohmni_tb.control.kinematics`: twist ↔ wheel speeds, curvature-keeping limits.
-- :mod:`~ohmni_tb.control.limiter`: acceleration/deceleration ramps, ``delta_velo_raw``.
+- :mod:`~ohmni_tb.control.limiter`: acceleration/braking ramps, the jerk limit,
+  ``delta_velo_raw``.
 - :mod:`~ohmni_tb.control.encoder`: counter unwrapping, ticks ↔ metres, speed estimate.
 - :mod:`~ohmni_tb.control.odometry`: exact arc odometry, streaming and batch.
 - :mod:`~ohmni_tb.control.calibration`: UMBmark and straight-line corrections.
@@ -56,6 +57,7 @@ from ohmni_tb.control.limiter import (
     AccelLimits,
     TwistLimiter,
     accel_from_delta_velo_raw,
+    jerk_ramp,
     ramp,
 )
 from ohmni_tb.control.odometry import Odometry, Pose, WheelNoise, integrate_batch, wrap_angle
@@ -98,6 +100,7 @@ __all__ = [
     "calibrate_straight_line",
     "calibrate_umbmark",
     "integrate_batch",
+    "jerk_ramp",
     "limit_twist",
     "ramp",
     "saturate_wheel_speeds",

@@ -537,12 +537,13 @@ class Robot(RobotStreams):
         Not a coroutine: the control tick drives toward the target, within the speed
         limits (scaled keeping the curvature; the return value says by how much). With
         ``ramped`` (default; tb_control's ``/cmd_vel_accel``) the wheel setpoints get
-        there through the acceleration limits; ``ramped=False`` is the pure velocity
-        command (tb_control's ``/tb_cmd_vel``): the setpoints jump to the target at the
-        next control tick, and the wheel PIDs take it from there. Either way the watchdog
-        stops the wheels ``watchdog_s`` after the last call (repeat it at 5..20 Hz to keep
-        moving), and a stop, the watchdog's included, ramps down at the deceleration
-        limits.
+        there through the acceleration and braking limits (and the jerk limits, when
+        set: ``linear_jerk_mps3``, ``angular_jerk_radps3``); ``ramped=False`` is the
+        pure velocity command (tb_control's ``/tb_cmd_vel``): the setpoints jump to the
+        target at the next control tick, and the wheel PIDs take it from there. Either
+        way the watchdog stops the wheels ``watchdog_s`` after the last call (repeat it
+        at 5..20 Hz to keep moving), and a stop, the watchdog's included, ramps down at
+        the deceleration limits, never held back by a jerk limit.
 
         Raises:
             InvalidArgumentError: A value is not a finite number, or ``ramped`` not a bool.

@@ -99,6 +99,10 @@ class ControlLoop:
         self._enabled = [config.controllers, config.controllers]
         # Whether the twist target goes through the acceleration limiter (drive's ramped).
         self._ramped = True
+        # Whether the twist target is held to the jerk limit: a drive command's is; a
+        # stop's (stop, the watchdog, a fault) is not, the jerk limit would lengthen it;
+        # nor a motion goal's, which plans its own speed profile.
+        self._jerk_limited = True
         self._pwm = (0, 0)
         # A braking command (0, 0) known to be on the wire since the last command that was
         # not one: while cycles are skipped, the brake goes out until this is so.
@@ -169,9 +173,12 @@ class ControlLoop:
                 "robot.enable_controllers(True) first (drive_pwm() drives without them)"
             )
 
-    def drive(self, twist: Twist, *, ramped: bool = True) -> LimitedTwist:
+    def drive(
+        self, twist: Twist, *, ramped: bool = True, jerk_limited: bool = True
+    ) -> LimitedTwist:
         """Make ``twist``, within the speed limits, the target (``Robot.drive``): through
-        the acceleration limiter, or (``ramped=False``) at once."""
+        the acceleration limiter, or (``ramped=False``) at once; ``jerk_limited=False``
+        for a motion goal's own command (it plans its own speed profile)."""
         limited = limit_twist(twist, self._limits, self._drive)
         if limited.limited:
             self._state.clamped += 1
@@ -186,6 +193,7 @@ class ControlLoop:
         self._target = limited.twist
         self._requested = twist
         self._ramped = ramped
+        self._jerk_limited = jerk_limited
         self._commanded(changed)
         return limited
 
@@ -291,6 +299,7 @@ class ControlLoop:
         self._requested = Twist()
         # A stop ramps down at the deceleration limits, whatever the last drive was.
         self._ramped = True
+        self._jerk_limited = False
         if self._mode == "pwm":
             self._mode = "twist"
 
@@ -355,7 +364,7 @@ class ControlLoop:
                 self._drive.wheel_speeds(twist), self._limits.max_wheel_mps
             )
         else:
-            twist = self._limiter.step(self._target, dt)
+            twist = self._limiter.step(self._target, dt, jerk_limited=self._jerk_limited)
             wheels = saturate_wheel_speeds(
                 self._drive.wheel_speeds(twist), self._limits.max_wheel_mps
             )

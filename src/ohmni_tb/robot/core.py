@@ -362,7 +362,8 @@ class LocalRobot(Robot):
         self._control.check_can_drive()
         self._control.check_closed_loop("drive()")
         self._motion.preempt("drive")
-        return self._control.drive(twist, ramped=ramped)
+        # A motion goal's own command follows the goal's braking curve, not the jerk limit.
+        return self._control.drive(twist, ramped=ramped, jerk_limited=not self._motion.owning)
 
     def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
         """Each wheel's speed target (the contract: ohmni_tb.robot.api.Robot)."""

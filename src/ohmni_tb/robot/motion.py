@@ -437,6 +437,11 @@ class MotionGoals:
         """The goal under way, if any."""
         return None if self._active is None else self._active.kind
 
+    @property
+    def owning(self) -> bool:
+        """Whether the command being given is the running goal's own."""
+        return self._own
+
     def own(self, command: Callable[[], object]) -> None:
         """Give ``command`` as the running goal's own: it does not preempt the goal."""
         self._own = True
