@@ -124,3 +124,11 @@ def test_bad_values_are_rejected_by_name() -> None:
         ramp(0.0, 1.0, 0.0, LIMITS)
     with pytest.raises(InvalidArgumentError, match=r"max_decel=0\.0"):
         AccelLimits(1.0, 0.0)
+
+
+def test_a_tiny_speed_reversed_brakes_to_zero_then_speeds_up_at_the_acceleration_limit() -> None:
+    # The product of the two speeds underflows to -0.0: the step must still be a reversal
+    # (speeding up the other way at max_accel), not a braking at max_decel through zero.
+    limits = AccelLimits(max_accel=1.0, max_decel=2.0)
+    assert ramp(5e-324, -0.5, 0.0625, limits) == pytest.approx(-0.0625)
+    assert ramp(-5e-324, 0.5, 0.0625, limits) == pytest.approx(0.0625)

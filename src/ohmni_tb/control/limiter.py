@@ -106,7 +106,9 @@ def ramp(current: float, target: float, dt_s: float, limits: AccelLimits) -> flo
         return target
     if current == 0.0 or (target > current > 0.0) or (target < current < 0.0):
         return _toward(current, target, limits.max_accel * dt_s)
-    if target * current >= 0.0:  # braking, but not through zero
+    # Braking, but not through zero (signs compared, not multiplied: a product of two
+    # tiny speeds underflows to zero).
+    if (target >= 0.0) if current > 0.0 else (target <= 0.0):
         return _toward(current, target, limits.max_decel * dt_s)
     time_to_stop_s = abs(current) / limits.max_decel
     if time_to_stop_s >= dt_s:
