@@ -72,12 +72,12 @@ class LocalClient:
         #: Calls answered, and refused.
         self.calls = 0
         self.refused = 0
-        server._attach(self)  # type: ignore[arg-type]  # noqa: SLF001  # duck-typed client
+        server._attach(self)  # type: ignore[arg-type]  # duck-typed client
 
     @property
     def holds_lease(self) -> bool:
         """Whether this client holds the control lease."""
-        return self._server._holder is self  # type: ignore[comparison-overlap]  # noqa: SLF001
+        return self._server._holder is self  # type: ignore[comparison-overlap]
 
     async def call(self, method: str, args: dict[str, Any] | None = None) -> Any:
         """Call the daemon's service ``method`` (:data:`~ohmni_tb.robot.wire.METHODS`) with
@@ -102,7 +102,7 @@ class LocalClient:
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._waiting[ident] = future  # registered before the dispatch may answer
         try:
-            self._server._call(self, message)  # type: ignore[arg-type]  # noqa: SLF001  # duck-typed client
+            self._server._call(self, message)  # type: ignore[arg-type]  # duck-typed client
             result = await future
         except RequestError:
             self.refused += 1
@@ -117,7 +117,7 @@ class LocalClient:
         stop, as when any client leaves). Idempotent."""
         if self._closed:
             return
-        self._server._detach(self)  # type: ignore[arg-type]  # noqa: SLF001  # duck-typed client
+        self._server._detach(self)  # type: ignore[arg-type]  # duck-typed client
         self._closed = True
         for future in self._waiting.values():
             if not future.done():
