@@ -40,7 +40,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Self, cast
 
-from pydantic import Field, SecretStr, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    Field,
+    SecretStr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 from pydantic_settings import (
     BaseSettings,
@@ -995,15 +1002,15 @@ class RobotConfig(BaseSettings):
             problems.append((given, f"{given} is set but {missing} is not: give both"))
         address = mqtt_address(self.mqtt_url) if self.mqtt_url else None
         tls = address is not None and address[2]
-        for name in ("mqtt_ca_file", "mqtt_cert_file"):
-            if getattr(self, name) and not tls:
-                problems.append(
-                    (
-                        name,
-                        f"{name}={getattr(self, name)!r} needs TLS: mqtt_url must be "
-                        f"mqtts://HOST[:PORT], not {self.mqtt_url!r}",
-                    )
-                )
+        problems.extend(
+            (
+                name,
+                f"{name}={getattr(self, name)!r} needs TLS: mqtt_url must be "
+                f"mqtts://HOST[:PORT], not {self.mqtt_url!r}",
+            )
+            for name in ("mqtt_ca_file", "mqtt_cert_file")
+            if getattr(self, name) and not tls
+        )
         if self.mqtt_password.get_secret_value() and not self.mqtt_username:
             problems.append(("mqtt_username", "mqtt_password is set but mqtt_username is not"))
         if problems:

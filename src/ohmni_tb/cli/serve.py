@@ -395,9 +395,7 @@ def parse_foxglove(
     return host, port
 
 
-def _mqtt_settings(
-    url: str | None, robot_id: str | None, discovery: bool | None
-) -> dict[str, Any]:
+def _mqtt_settings(url: str | None, robot_id: str | None, discovery: bool | None) -> dict[str, Any]:
     """The MQTT settings given as options, checked before the port opens (a bad one moves
     nothing); and, when the robot goes on a broker, that the mqtt extra is there and the
     streams of ``mqtt_rates`` exist."""
