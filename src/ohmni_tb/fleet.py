@@ -168,6 +168,7 @@ class Fleet:
         self._version = 0
         self._client: aiomqtt.Client | None = None
         self._synced = asyncio.Event()
+        self._first_failure = asyncio.Event()
         self._failed: BaseException | None = None
         self._task: asyncio.Task[None] | None = None
         self._waiting: dict[bytes, asyncio.Future[Any]] = {}
@@ -222,13 +223,19 @@ class Fleet:
         self._task = asyncio.get_running_loop().create_task(
             self._run(), name=f"ohmni-fleet {self._broker.url}"
         )
+        # The first attempt decides: connected and read, or refused (no use retrying a
+        # wrong password or an address nothing listens on before the caller hears of it).
         synced = asyncio.ensure_future(self._synced.wait())
+        failed = asyncio.ensure_future(self._first_failure.wait())
         try:
             await asyncio.wait(
-                (synced, self._task), timeout=_OPEN_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
+                (synced, failed, self._task),
+                timeout=_OPEN_TIMEOUT_S,
+                return_when=asyncio.FIRST_COMPLETED,
             )
         finally:
             synced.cancel()
+            failed.cancel()
         if not self._synced.is_set():
             failed = self._failed
             await self.aclose()
@@ -337,9 +344,12 @@ class Fleet:
                     await self._session(client, backoff)
             except mqtt.MqttError as exc:
                 self._failed = exc
-                _log.warning("fleet: %s: %s (trying again)", self._broker.url, exc)
+                self._first_failure.set()
+                if self._synced.is_set():
+                    _log.warning("fleet: %s: %s (trying again)", self._broker.url, exc)
             except ConfigError as exc:  # a TLS file: no use trying again
                 self._failed = exc
+                self._first_failure.set()
                 return
             finally:
                 self._client = None

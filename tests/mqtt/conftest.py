@@ -14,6 +14,7 @@ and the virtual clock would run past its replies.
 from __future__ import annotations
 
 import os
+import pwd
 import shutil
 import socket
 import subprocess
@@ -108,7 +109,10 @@ def _broker(directory: Path, *, secure: bool) -> Mosquitto:
         pytest.skip("needs mosquitto (apt-get install mosquitto)")
     directory.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    lines = [f"listener {port} 127.0.0.1", "persistence false", "log_type error"]
+    # Started as root, mosquitto would become user "mosquitto", who cannot read this
+    # test's files: it stays whoever runs the tests (no effect for any other user).
+    user = pwd.getpwuid(os.getuid()).pw_name
+    lines = [f"listener {port} 127.0.0.1", "persistence false", "log_type error", f"user {user}"]
     if secure:
         assert MOSQUITTO_PASSWD is not None
         passwords = directory / "passwords"
