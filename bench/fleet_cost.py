@@ -1,7 +1,7 @@
 """What a fleet on MQTT costs: the bridge on the robot, and the broker and the fleet view
 with 100 robots.
 
-Run: ``python bench/mqtt.py`` (``--seconds`` per row, 8 by default: about 30 s in all).
+Run: ``python bench/fleet_cost.py`` (``--seconds`` per row, 8 by default: about 30 s in all).
 Needs the ``mqtt`` extra and ``mosquitto`` (``apt-get install mosquitto``); it starts its
 own broker on a free loopback port.
 
