@@ -341,7 +341,9 @@ class Fleet:
         backoff = Backoff()
         while True:
             client = self._broker.client(
-                f"ohmni-fleet-{self._tag}", max_queued_incoming=_INCOMING_QUEUE
+                f"ohmni-fleet-{self._tag}",
+                max_queued_incoming=_INCOMING_QUEUE,
+                on_dropped=self._incoming_dropped,
             )
             try:
                 async with client:
@@ -377,6 +379,9 @@ class Fleet:
             self._take(message)
             if not len(messages):
                 await self._bump()
+
+    def _incoming_dropped(self) -> None:
+        self.dropped += 1
 
     async def _bump(self) -> None:
         async with self._changed:

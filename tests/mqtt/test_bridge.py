@@ -10,6 +10,7 @@ import json
 import pytest
 
 from ohmni_tb.client import RobotClient
+from ohmni_tb.mqtt import Broker
 from ohmni_tb.mqtt.payloads import StatePayload
 
 from ._helpers import command, mqtt_client, next_message, payload, served
@@ -208,3 +209,20 @@ async def test_home_assistants_light_sets_the_ring(broker: Mosquitto) -> None:
         await client.publish("ohmni/a/ha/light/set", json.dumps({"state": "OFF"}))
         assert payload(await next_message(client, "ohmni/a/response"))["op"] == "result"
         assert bytes(robot.robot.sim.core.light_ring) == bytes((128, 255, 0))
+
+
+async def test_messages_beyond_what_a_client_holds_unread_are_counted(
+    broker: Mosquitto,
+) -> None:
+    dropped: list[int] = []
+    reader = Broker.from_url(broker.url).client(
+        "test-reader", max_queued_incoming=3, on_dropped=lambda: dropped.append(1)
+    )
+    async with reader, mqtt_client(broker.url) as writer:
+        await reader.subscribe("flood", qos=1)
+        for index in range(10):
+            await writer.publish("flood", str(index), qos=1)
+        async with asyncio.timeout(5):
+            while len(dropped) + len(reader.messages) < 10:  # noqa: ASYNC110  # the client's own
+                await asyncio.sleep(0.02)
+        assert (len(reader.messages), len(dropped)) == (3, 7)

@@ -244,6 +244,7 @@ class MqttBridge:
                 f"ohmni-{self.robot_id}",
                 will=(self._availability, OFFLINE),
                 max_queued_incoming=_INCOMING_QUEUE,
+                on_dropped=self._incoming_dropped,
             )
             since = time.monotonic()
             try:
@@ -568,6 +569,10 @@ class MqttBridge:
             with contextlib.suppress(RequestError):
                 await local.call("release")
         self._lease_users = 0
+
+    def _incoming_dropped(self) -> None:
+        """A command message the client had no room for (a flood): dropped, counted."""
+        self.dropped += 1
 
     def _queue_reply(self, topic: str, payload: bytes, correlation: bytes | None) -> None:
         if len(self._replies) >= _REPLY_QUEUE:

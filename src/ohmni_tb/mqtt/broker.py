@@ -3,9 +3,11 @@ attempts (a module of its own, as reconnecting is a job of its own)."""
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 import random
 import ssl
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
@@ -140,10 +142,13 @@ class Broker:
         *,
         will: tuple[str, str] | None = None,
         max_queued_incoming: int = 0,
+        on_dropped: Callable[[], None] | None = None,
     ) -> aiomqtt.Client:
         """A new MQTT 5 client for this broker (connect it with ``async with``), with a
         retained QoS 1 Last Will ``(topic, payload)`` when given, and a clean start (no
-        command sent while it was away is delivered later).
+        command sent while it was away is delivered later). It holds at most
+        ``max_queued_incoming`` messages unread (0: no limit); each one beyond is dropped,
+        and ``on_dropped`` told.
 
         Raises:
             ConfigError: The mqtt extra is missing, or a TLS file cannot be read.
@@ -164,6 +169,7 @@ class Broker:
             tls_context=context,
             max_inflight_messages=_MAX_INFLIGHT,
             max_queued_incoming_messages=max_queued_incoming,
+            queue_type=None if on_dropped is None else _counting_queue(on_dropped),
         )
 
     def _tls_context(self) -> ssl.SSLContext:
@@ -181,6 +187,19 @@ class Broker:
         except (OSError, ssl.SSLError) as exc:
             raise ConfigError(f"cannot use the TLS files for {self.url}: {exc}") from exc
         return context
+
+
+def _counting_queue(on_dropped: Callable[[], None]) -> type[asyncio.Queue[Any]]:
+    """The client's queue of unread messages, telling ``on_dropped`` of each it has no room
+    for (the client then drops it, and logs a line)."""
+
+    class CountingQueue(asyncio.Queue[Any]):
+        def put_nowait(self, item: Any) -> None:
+            if self.full():
+                on_dropped()
+            super().put_nowait(item)
+
+    return CountingQueue
 
 
 class Backoff:

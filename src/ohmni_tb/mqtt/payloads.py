@@ -128,7 +128,8 @@ class BridgeFigures(_Payload):
     connects: int = Field(description="Connections to the broker made.")
     published: int = Field(description="Messages handed to the broker.")
     dropped: int = Field(
-        description="Messages dropped, oldest first, because the broker was away or slow."
+        description="Messages dropped: to the broker, oldest first, while it was away or "
+        "slow; from it, commands beyond what the bridge holds unread."
     )
     commands: int = Field(description="Commands answered.")
     refused: int = Field(description="Commands refused (by the daemon or the bridge).")
