@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Create .venv (if missing) and install ohmni_tb into it with its test and lint tools, the
-# foxglove extra (its tests are part of the suite) and the docs extra (the site CI builds).
+# foxglove and mqtt extras (their tests are part of the suite) and the docs extra (the
+# site CI builds).
 # Sourced by the other scripts; safe to run again.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -16,6 +17,6 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 if [ ! -f "$stamp" ] || [ "$root/pyproject.toml" -nt "$stamp" ]; then
     "$venv/bin/python" -m pip install --quiet --upgrade pip
-    "$venv/bin/python" -m pip install --quiet -e "$root[test,lint,foxglove,docs]"
+    "$venv/bin/python" -m pip install --quiet -e "$root[test,lint,foxglove,mqtt,docs]"
     touch "$stamp"
 fi

@@ -22,6 +22,8 @@ A command is shown but not run when it cannot run on ``sim://`` here, and says w
   as ``ohmni serve --handoff 60``, or a command without ``--port`` shown going through one);
 - its comment says ``until Ctrl-C`` (it serves or streams until stopped: ``ohmni serve``,
   ``ohmni sim --pty``).
+- its comment says ``needs a broker`` (an MQTT broker: ``tests/mqtt/test_fleet_docs.py``
+  runs those against Mosquitto).
 
 A command written inline in a sentence is not run, only parsed
 (:func:`test_doc_commands_parse_as_written`, which also parses every command above).
@@ -62,9 +64,14 @@ def test_docs_have_examples() -> None:
 #: Pages whose examples serve the robot to other programs (the daemon, the Foxglove app's
 #: threads): they keep real time. The others run on the simulator's virtual time.
 REAL_TIME_PAGES = frozenset({"docs/daemon.md", "docs/foxglove.md"})
+#: Pages whose examples need an MQTT broker: ``tests/mqtt/test_fleet_docs.py`` runs them
+#: against Mosquitto.
+BROKER_PAGES = frozenset({"docs/fleet.md"})
 
 
-@pytest.mark.parametrize("page", sorted(name for name, blocks in PAGES.items() if blocks))
+@pytest.mark.parametrize(
+    "page", sorted(name for name, blocks in PAGES.items() if blocks and name not in BROKER_PAGES)
+)
 def test_doc_examples_run(
     page: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -144,7 +151,7 @@ _FENCE = re.compile(r"^```(?P<lang>[\w-]*)\n(?P<body>.*?)^```", re.S | re.M)
 #: A device port: the command needs the robot (or a simulator on a pty).
 _DEVICE_PORT = re.compile(r"(?:^|\s)(?:/dev/\S+|'?serial://\S+)")
 #: What a comment says when its command is shown but not run (module docstring).
-NOT_RUN = ("needs a terminal", "needs ohmni serve", "until Ctrl-C")
+NOT_RUN = ("needs a terminal", "needs ohmni serve", "until Ctrl-C", "needs a broker")
 _EXIT = re.compile(r"\bexit (?P<code>\d+)\b")
 _ASSIGNMENT = re.compile(r"[A-Z_][A-Z0-9_]*=\S*")
 
@@ -242,7 +249,9 @@ def test_the_shown_commands_are_found_and_classified() -> None:
 
 def test_few_commands_are_shown_without_running() -> None:
     commands = [c for cs in COMMAND_PAGES.values() for c in cs]
-    marked = [c for c in commands if c.why_not_run not in (None, "needs the robot")]
+    # (The commands that need a broker run too, in tests/mqtt/test_fleet_docs.py.)
+    run_elsewhere = (None, "needs the robot", "needs a broker")
+    marked = [c for c in commands if c.why_not_run not in run_elsewhere]
     assert len(marked) <= len(commands) // 10, [c.line for c in marked]
 
 

@@ -218,7 +218,15 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ),
     ("ohmni_tb.safety", "ohmni_tb.bus", "ohmni_tb.config", "ohmni_tb.config_file"),
     ("ohmni_tb.robot", "ohmni_tb.probe"),
-    ("ohmni_tb.client", "ohmni_tb.daemon", "ohmni_tb.foxglove", "ohmni_tb.monitor", "ohmni_tb"),
+    (
+        "ohmni_tb.client",
+        "ohmni_tb.daemon",
+        "ohmni_tb.foxglove",
+        "ohmni_tb.mqtt",
+        "ohmni_tb.fleet",
+        "ohmni_tb.monitor",
+        "ohmni_tb",
+    ),
     ("ohmni_tb.cli", "ohmni_tb.__main__"),
 )
 

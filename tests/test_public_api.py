@@ -189,6 +189,22 @@ PUBLIC = {
          "HEARTBEAT_S", "HUNG_S", "MAX_QUICK_DEATHS", "QUICK_DEATH_S", "RESTART_BACKOFF_S",
          "WORKER_EXIT_S", "WorkerCommand", "stop_wheels_at", "supervise", "until_stopped",
     ],
+    "ohmni_tb.daemon.local": ["LocalClient"],
+    "ohmni_tb.mqtt": ["Backoff", "Broker", "MqttBridge", "default_robot_id"],
+    "ohmni_tb.mqtt.bridge": [
+         "COMMANDS_AT_ONCE", "COMMANDS_PER_S", "MqttBridge", "default_robot_id",
+    ],
+    "ohmni_tb.mqtt.broker": [
+         "BACKOFF_FIRST_S", "BACKOFF_MAX_S", "Backoff", "Broker", "require_client",
+    ],
+    "ohmni_tb.mqtt.payloads": [
+         "AVAILABILITY", "COMMANDS", "DRIVING", "ERROR_CODES_MQTT", "OFFLINE", "ONLINE",
+         "RESPONSE", "ROOT", "STATE_PERIOD_S", "BatteryState", "BridgeFigures", "ErrorReply",
+         "NeckState", "ResultReply", "StatePayload", "command_topic", "discovery_messages",
+         "fleet_schema", "ha_light_args", "response_topic_allowed", "robot_topic", "state_key",
+         "write_fleet_schema",
+    ],
+    "ohmni_tb.fleet": ["DEFAULT_CALL_TIMEOUT_S", "Fleet", "FleetRobot"],
     "ohmni_tb.daemon.auth": [
          "MIN_TOKEN_CHARS", "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token",
          "default_token_path", "load_or_create_token", "presented_token", "read_token",

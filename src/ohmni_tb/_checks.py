@@ -154,6 +154,32 @@ def host_port(text: str, *, default_host: str | None = None) -> tuple[str, int] 
     return host, int(port)
 
 
+#: An MQTT broker's port when its URL names none: plain, and over TLS.
+MQTT_PORTS = {"mqtt": 1883, "mqtts": 8883}
+
+
+def mqtt_address(url: str) -> tuple[str, int, bool] | None:
+    """A broker's ``mqtt://HOST[:PORT]`` or ``mqtts://HOST[:PORT]`` URL as (host, port,
+    TLS), the port 1883 or 8883 when none is given; ``None`` when it is not one (another
+    scheme, no host, a port outside 1..65535, a user, a path other than ``/``, a query)."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port  # a number in 0..65535, or ValueError
+    except ValueError:
+        return None
+    if (
+        parts.scheme not in MQTT_PORTS
+        or not parts.hostname
+        or port == 0
+        or "@" in parts.netloc
+        or parts.path not in ("", "/")
+        or parts.query
+        or parts.fragment
+    ):
+        return None
+    return parts.hostname, port or MQTT_PORTS[parts.scheme], parts.scheme == "mqtts"
+
+
 def ws_address(url: str) -> tuple[str, int] | None:
     """A daemon's ``ws://HOST[:PORT]`` or ``wss://HOST[:PORT]`` URL as (host, port), the
     port 80 or 443 when none is given; ``None`` when it is not one (another scheme, no

@@ -40,7 +40,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Self, cast
 
-from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    Field,
+    SecretStr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 from pydantic_settings import (
     BaseSettings,
@@ -51,7 +58,7 @@ from pydantic_settings import (
 )
 from pydantic_settings.exceptions import SettingsError
 
-from ohmni_tb._checks import show
+from ohmni_tb._checks import mqtt_address, show
 from ohmni_tb.control.defaults import (
     CONTROL_HZ_RANGE,
     DEFAULT_BASE_FRAME,
@@ -123,6 +130,18 @@ _LOOP_MARGIN_S = 0.009
 _FRAME_ALLOWED = "a non-empty name without spaces"
 #: The PWM limit of the drive boards, for the PID descriptions.
 _PWM = "PWM -1000..1000"
+#: What ``mqtt_url`` may be.
+_MQTT_URL_ALLOWED = "empty, mqtt://HOST[:PORT] or mqtts://HOST[:PORT], without a user or path"
+#: What ``robot_id`` may be: one MQTT topic level that is also a Home Assistant node id.
+_ROBOT_ID_ALLOWED = "empty, or 1..64 letters, digits, - and _"
+_ROBOT_ID_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_")
+_MAX_ROBOT_ID = 64
+#: What the discovery prefix may be: MQTT topic levels without wildcards.
+_TOPIC_ALLOWED = "topic levels separated by /, none empty, without + # or spaces"
+#: What ``mqtt_rates`` may be.
+_RATES_ALLOWED = "none, or NAME=HZ pairs separated by commas, each rate >0..100 Hz"
+#: The fastest a stream is published to the broker (no stream is faster).
+_MAX_MQTT_HZ = 100.0
 
 
 def config_paths() -> list[Path]:
@@ -616,6 +635,76 @@ class RobotConfig(BaseSettings):
         "frame_id_baselink on Foxglove's /tf (live and recorded); off, no /tf.",
     )
 
+    # Fleets: the daemon on an MQTT broker (ohmni serve --mqtt, docs/fleet.md).
+    mqtt_url: str = Field(
+        default="",
+        description="The MQTT broker ohmni serve publishes this robot to and takes commands "
+        "from: mqtt://HOST[:PORT] (port 1883), or mqtts://HOST[:PORT] over TLS (8883); "
+        f"empty: none. Needs the mqtt extra. Allowed: {_MQTT_URL_ALLOWED}.",
+        json_schema_extra={"allowed": _MQTT_URL_ALLOWED},
+    )
+    robot_id: str = Field(
+        default="",
+        description="This robot's name on the broker: its topics are ohmni/<robot_id>/..., "
+        "and Home Assistant's device is named so; empty: this computer's host name (its "
+        f"first label). Allowed: {_ROBOT_ID_ALLOWED}.",
+        json_schema_extra={"allowed": _ROBOT_ID_ALLOWED},
+    )
+    mqtt_username: str = Field(
+        default="", description="User name on the broker; empty: connect without one."
+    )
+    mqtt_password: SecretStr = Field(
+        default=cast("SecretStr", ""),
+        description="Password on the broker (with mqtt_username). Never shown: ohmni config "
+        "and the daemon's clients see **********.",
+    )
+    mqtt_ca_file: str = Field(
+        default="",
+        description="CA certificates (PEM file) the broker's certificate is checked against "
+        "(mqtts:// only); empty: the system's.",
+    )
+    mqtt_cert_file: str = Field(
+        default="",
+        description="Client certificate (PEM file) for a broker that authenticates robots by "
+        "certificate (mqtts:// only, with mqtt_key_file).",
+    )
+    mqtt_key_file: str = Field(
+        default="", description="The client certificate's private key (PEM file)."
+    )
+    mqtt_keepalive_s: int = _setting(
+        30,
+        1,
+        3600,
+        "s",
+        "MQTT keep-alive, s: a robot that goes silent (its process killed, its network cut) "
+        "is announced offline by the broker within 1.5 times this.",
+    )
+    mqtt_discovery: bool = Field(
+        default=False,
+        description="Announce the robot to Home Assistant (MQTT discovery): a device with "
+        "battery, dock, link and fault sensors, the light ring and the neck.",
+    )
+    mqtt_discovery_prefix: str = Field(
+        default="homeassistant",
+        min_length=1,
+        description="Home Assistant's discovery prefix (its MQTT integration's setting). "
+        f"Allowed: {_TOPIC_ALLOWED}.",
+        json_schema_extra={"allowed": _TOPIC_ALLOWED},
+    )
+    mqtt_rates: str = Field(
+        default="wheel_odom=5,tbcore_status=1",
+        description="The streams published to ohmni/<robot_id>/stream/<name>, and at most "
+        "how often, Hz: NAME=HZ,... (none: no stream). The state topic carries the "
+        f"battery, dock and faults regardless. Allowed: {_RATES_ALLOWED}.",
+        json_schema_extra={"allowed": _RATES_ALLOWED},
+    )
+    mqtt_drive: bool = Field(
+        default=False,
+        description="Let MQTT commands drive the wheels (drive_distance, rotate), through the "
+        "daemon's control lease like any client; off, they are refused. Stopping is always "
+        "allowed.",
+    )
+
     if not TYPE_CHECKING:
         # Hidden from mypy, which then checks calls against the fields' own signature.
         def __init__(self, **values: Any) -> None:
@@ -889,6 +978,70 @@ class RobotConfig(BaseSettings):
         if frame and any(char.isspace() for char in frame):
             raise ValueError(f"{info.field_name}={frame!r} has a space: allowed {_FRAME_ALLOWED}")
         return frame
+
+    @field_validator("mqtt_url", mode="after")
+    @classmethod
+    def _check_mqtt_url(cls, url: str) -> str:
+        if url and mqtt_address(url) is None:
+            raise ValueError(f"mqtt_url={url!r} is not a broker URL: allowed {_MQTT_URL_ALLOWED}")
+        return url
+
+    @field_validator("robot_id", mode="after")
+    @classmethod
+    def _check_robot_id(cls, robot_id: str) -> str:
+        if len(robot_id) > _MAX_ROBOT_ID or not set(robot_id) <= _ROBOT_ID_CHARS:
+            raise ValueError(f"robot_id={robot_id!r} is not a name: allowed {_ROBOT_ID_ALLOWED}")
+        return robot_id
+
+    @field_validator("mqtt_discovery_prefix", mode="after")
+    @classmethod
+    def _check_topic(cls, prefix: str) -> str:
+        levels = prefix.split("/")
+        if any(not level or set(level) & set("+# ") for level in levels):
+            raise ValueError(
+                f"mqtt_discovery_prefix={prefix!r} is not a topic: allowed {_TOPIC_ALLOWED}"
+            )
+        return prefix
+
+    @field_validator("mqtt_rates", mode="after")
+    @classmethod
+    def _check_rates(cls, text: str) -> str:
+        _parse_rates(text)
+        return text
+
+    def mqtt_streams(self) -> dict[str, float]:
+        """``mqtt_rates`` as {stream name: Hz} (empty for ``none``); the names are checked
+        against the streams where they are published (:mod:`ohmni_tb.mqtt`)."""
+        return _parse_rates(self.mqtt_rates)
+
+    @model_validator(mode="after")
+    def _check_mqtt(self) -> Self:
+        if _ALONE.get():
+            return self
+        problems: list[tuple[str, str]] = []
+        if bool(self.mqtt_cert_file) != bool(self.mqtt_key_file):
+            given, missing = (
+                ("mqtt_cert_file", "mqtt_key_file")
+                if self.mqtt_cert_file
+                else ("mqtt_key_file", "mqtt_cert_file")
+            )
+            problems.append((given, f"{given} is set but {missing} is not: give both"))
+        address = mqtt_address(self.mqtt_url) if self.mqtt_url else None
+        tls = address is not None and address[2]
+        problems.extend(
+            (
+                name,
+                f"{name}={getattr(self, name)!r} needs TLS: mqtt_url must be "
+                f"mqtts://HOST[:PORT], not {self.mqtt_url!r}",
+            )
+            for name in ("mqtt_ca_file", "mqtt_cert_file")
+            if getattr(self, name) and not tls
+        )
+        if self.mqtt_password.get_secret_value() and not self.mqtt_username:
+            problems.append(("mqtt_username", "mqtt_password is set but mqtt_username is not"))
+        if problems:
+            raise _RelationError(problems)
+        return self
 
     @model_validator(mode="after")
     def _check_relations(self) -> Self:
@@ -1164,6 +1317,30 @@ def _extra(name: str) -> dict[str, Any]:
 def _allowed(name: str) -> str:
     """What field ``name`` allows, in words."""
     return str(_extra(name).get("allowed", "see RobotConfig.describe()"))
+
+
+def _parse_rates(text: str) -> dict[str, float]:
+    """``mqtt_rates``' text as {name: Hz}: ``"wheel_odom=5,tbcore_status=1"``, or ``none``."""
+    body = text.strip()
+    if body.lower() in {"", "none"}:
+        return {}
+    rates: dict[str, float] = {}
+    for part in body.split(","):
+        name, sep, value = (piece.strip() for piece in part.partition("="))
+        try:
+            hz = float(value)
+        except ValueError:
+            hz = math.nan
+        if not sep or not name or not 0 < hz <= _MAX_MQTT_HZ:
+            raise ValueError(
+                f"mqtt_rates={text!r}: {part.strip()!r} is not NAME=HZ with a rate "
+                f">0..{_num(_MAX_MQTT_HZ)} Hz (write rates like wheel_odom=5,tbcore_status=1, "
+                "or none)"
+            )
+        if name in rates:
+            raise ValueError(f"mqtt_rates={text!r} names {name} twice")
+        rates[name] = hz
+    return rates
 
 
 def _default_text(value: object) -> str:

@@ -93,6 +93,11 @@ COMMANDS: Final[dict[str, tuple[str, str, str]]] = {
         "serve",
         "Serve the robot to many local clients over WebSocket: readers, one driver.",
     ),
+    "fleet": (
+        "ohmni_tb.cli.fleet",
+        "fleet",
+        "Every robot on an MQTT broker: online, battery, dock, faults, last seen (--watch).",
+    ),
     "record": (
         "ohmni_tb.cli.record",
         "record",

@@ -12,7 +12,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 from urllib.parse import urlsplit
 
 import typer
@@ -143,6 +143,37 @@ def serve(
             "structured line each (it always runs in the foreground).",
         ),
     ] = False,
+    mqtt: Annotated[
+        str | None,
+        typer.Option(
+            "--mqtt",
+            metavar="URL",
+            help="Also publish the robot to this MQTT broker and take commands from it: "
+            "mqtt://HOST[:PORT] or mqtts://HOST[:PORT] (default: the mqtt_url setting). "
+            "Credentials and TLS files come from the settings (OHMNI_MQTT_USERNAME …). "
+            "Needs the mqtt extra (docs/fleet.md).",
+            show_default=False,
+        ),
+    ] = None,
+    robot_id: Annotated[
+        str | None,
+        typer.Option(
+            "--robot-id",
+            metavar="ID",
+            help="The robot's name on the broker: topics ohmni/ID/... (default: the "
+            "robot_id setting, else the host name).",
+            show_default=False,
+        ),
+    ] = None,
+    mqtt_discovery: Annotated[
+        bool | None,
+        typer.Option(
+            "--mqtt-discovery/--no-mqtt-discovery",
+            help="Announce the robot to Home Assistant over MQTT (default: the "
+            "mqtt_discovery setting).",
+            show_default=False,
+        ),
+    ] = None,
     supervisor_fd: Annotated[
         int | None,
         typer.Option(
@@ -191,6 +222,7 @@ def serve(
         else None
     )
     url = resolve_port(port)
+    fleet = _mqtt_settings(mqtt, robot_id, mqtt_discovery)
     origins = tuple(allow_origin or ())
     stop = asyncio.Event()
     if supervisor_fd is not None:
@@ -212,6 +244,7 @@ def serve(
             rt_priority=rt_priority,
             stop=stop,
             supervisor_fd=supervisor_fd,
+            mqtt=fleet,
         ),
         stop_requested=stop,
     )
@@ -231,6 +264,7 @@ async def _serve(
     rt_priority: int | None = None,
     stop: asyncio.Event | None = None,
     supervisor_fd: int | None = None,
+    mqtt: dict[str, Any] | None = None,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
@@ -242,7 +276,7 @@ async def _serve(
         set_realtime(rt_priority)
         _log.info("running under SCHED_FIFO at priority %d", rt_priority)
     async with (
-        open_robot(url) as robot,
+        open_robot(url, **(mqtt or {})) as robot,
         RobotServer(
             robot,
             host=host,
@@ -290,6 +324,11 @@ async def _serve(
             )
             write_line(bridge.url)
             _log.info("serving the Foxglove app on %s", bridge.url)
+        if robot.config.mqtt_url:
+            from ohmni_tb.mqtt import MqttBridge  # noqa: PLC0415  # the extra
+
+            # A client of the daemon like any other: its commands take the lease.
+            await stack.enter_async_context(MqttBridge(robot, server))
         # What is loaded and open now lives as long as the daemon: keep it out of the
         # cycle collector's full passes, which otherwise walk ~55,000 objects and pause
         # the loop 30–45 ms (two control periods) now and then. (A link reopened later
@@ -354,6 +393,48 @@ def parse_foxglove(
             err=True,
         )
     return host, port
+
+
+def _mqtt_settings(url: str | None, robot_id: str | None, discovery: bool | None) -> dict[str, Any]:
+    """The MQTT settings given as options, checked before the port opens (a bad one moves
+    nothing); and, when the robot goes on a broker, that the mqtt extra is there and the
+    streams of ``mqtt_rates`` exist."""
+    import importlib.util  # noqa: PLC0415
+
+    from ohmni_tb.config import RobotConfig  # noqa: PLC0415
+
+    given: dict[str, Any] = {}
+    for name, hint, value in (
+        ("mqtt_url", "--mqtt", url),
+        ("robot_id", "--robot-id", robot_id),
+        ("mqtt_discovery", "--mqtt-discovery", discovery),
+    ):
+        if value is None:
+            continue
+        try:
+            RobotConfig.check_setting(name, value)
+        except ConfigError as exc:
+            raise typer.BadParameter(str(exc), param_hint=hint) from None
+        given[name] = value
+    try:
+        config = RobotConfig.load(**given)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    if not config.mqtt_url:
+        return given
+    if importlib.util.find_spec("aiomqtt") is None:
+        raise typer.BadParameter(
+            "needs the mqtt extra: pip install 'ohmni_tb[mqtt]'", param_hint="--mqtt"
+        )
+    from ohmni_tb.robot.samples import STREAM_NAMES  # noqa: PLC0415
+
+    unknown = sorted(set(config.mqtt_streams()) - set(STREAM_NAMES))
+    if unknown:
+        raise typer.BadParameter(
+            f"mqtt_rates={config.mqtt_rates!r} names no stream {', '.join(unknown)}: the "
+            f"streams are {', '.join(STREAM_NAMES)}"
+        )
+    return given
 
 
 def _unlock_token(token: str | None) -> str:

@@ -346,6 +346,19 @@ class RobotServer:
         await asyncio.gather(*tasks, return_exceptions=True)
         _log.info("stopped serving on %s", self.url)
 
+    def _attach(self, client: _Client) -> None:
+        """A client inside this process joins (:class:`~ohmni_tb.daemon.local.LocalClient`):
+        it gets what every client gets (``lease`` messages), and counts among them."""
+        self._clients.add(client)
+        _log.info("client %s attached (%d now)", client.peer, len(self._clients))
+
+    def _detach(self, client: _Client) -> None:
+        """A client inside this process leaves: as a WebSocket client's departure."""
+        self._clients.discard(client)
+        if self._holder is client:
+            self._set_holder(None, f"released: {client.peer} left")
+        _log.info("client %s detached", client.peer)
+
     async def __aenter__(self) -> RobotServer:
         await self.start()
         return self
