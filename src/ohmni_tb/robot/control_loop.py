@@ -645,7 +645,7 @@ class ControlLoop:
         # A count moved less than this over a period is a wheel standing still.
         self._still_m = STALL_SPEED_MPS / config.wheel_hz
         self._stall_pwm = config.pid_ff_offset + STALL_PWM_MARGIN
-        # Each wheel's last tick not driven or turning (inf: none seen yet).
+        # Each wheel's last tick not driven or turning (inf: none since open or a stall).
         self._stall_since = [math.inf, math.inf]
         # A stall holds the wheels at zero until stop() or another command than this one.
         self._held = False
@@ -697,8 +697,10 @@ class ControlLoop:
             power = pwm[index]
             setpoint = 0.0 if step is None else step.setpoint
             if (
-                -low_pwm < power < low_pwm and -low_sp < setpoint < low_sp
-            ) or not -still < sample.delta_m < still:
+                (-low_pwm < power < low_pwm and -low_sp < setpoint < low_sp)
+                or not -still < sample.delta_m < still
+                or since[index] == math.inf  # driven and still from its first tick on
+            ):
                 since[index] = stamp
             elif stamp - since[index] >= self._stall_s:
                 stalled = [index] if stalled is None else [*stalled, index]

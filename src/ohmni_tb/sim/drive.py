@@ -22,8 +22,7 @@ the robot — the ground-truth pose moves as if that wheel's ground speed were z
 the robot pivots about it — and it turns free of the robot's load: its motor drives only
 the wheel's own inertia (:data:`FREE_INERTIA_SHARE` of the loaded one) against the
 drivetrain's own friction (:data:`FREE_FRICTION_SHARE` of the dead band; the ground's
-rolling drag is the rest). So, at the same PWM, it runs faster than a wheel on the ground,
-and stops coasting later.
+rolling drag is the rest). So, at the same PWM, it runs faster than a wheel on the ground.
 
 Board frame vs robot frame: each board counts up when driven with positive PWM. The
 right motor is mounted mirrored (``DriveProfile.right_mirrored``), so the right wheel
