@@ -666,46 +666,40 @@ class ControlLoop:
         return (self._mode, self._target, self._target_wheels, self._target_pwm, self._ramped)
 
     def _guard(self, counts: TakenCounts) -> None:
-        """Both guards on one slot's counts (module docstring)."""
+        """Both guards on one slot's counts (module docstring): the stall guard here, in
+        a few comparisons a wheel (it runs every control tick)."""
         stamp = counts.stamp_s
         lw, rw = self._wheels
         left_step, right_step = lw.last_step, rw.last_step
-        if self._stall_s > 0.0:
-            self._guard_stall(counts, stamp, left_step, right_step)
+        stall_s = self._stall_s
+        if stall_s > 0.0:
+            still = self._still_m
+            low_pwm = self._stall_pwm
+            low_sp = STALL_MIN_SETPOINT_MPS
+            since = self._stall_since
+            pwm = self._pwm
+            stalled = None
+            for index, sample, step in ((0, counts.left, left_step), (1, counts.right, right_step)):
+                power = pwm[index]
+                setpoint = 0.0 if step is None else step.setpoint
+                if (
+                    (-low_pwm < power < low_pwm and -low_sp < setpoint < low_sp)
+                    or not -still < sample.delta_m < still
+                    or since[index] == math.inf  # driven and still from its first tick on
+                ):
+                    since[index] = stamp
+                elif stamp - since[index] >= stall_s:
+                    stalled = [index] if stalled is None else [*stalled, index]
+            if stalled is not None:
+                self._stall(counts, stamp, stalled)
+                return
         if self._slip_s > 0.0:
-            if left_step is None or right_step is None:
-                self._slip_since = math.inf
-                if self._slipping is not None:
-                    self._unslip("the wheels stand")
-            else:
+            if left_step is not None and right_step is not None:
                 self._guard_slip(counts, stamp, left_step, right_step)
-
-    def _guard_stall(
-        self,
-        counts: TakenCounts,
-        stamp: float,
-        left_step: PidStep | None,
-        right_step: PidStep | None,
-    ) -> None:
-        still = self._still_m
-        low_pwm = self._stall_pwm
-        low_sp = STALL_MIN_SETPOINT_MPS
-        since = self._stall_since
-        pwm = self._pwm
-        stalled = None
-        for index, sample, step in ((0, counts.left, left_step), (1, counts.right, right_step)):
-            power = pwm[index]
-            setpoint = 0.0 if step is None else step.setpoint
-            if (
-                (-low_pwm < power < low_pwm and -low_sp < setpoint < low_sp)
-                or not -still < sample.delta_m < still
-                or since[index] == math.inf  # driven and still from its first tick on
-            ):
-                since[index] = stamp
-            elif stamp - since[index] >= self._stall_s:
-                stalled = [index] if stalled is None else [*stalled, index]
-        if stalled is not None:
-            self._stall(counts, stamp, stalled)
+            elif self._slipping is not None:
+                self._unslip("the wheels stand")
+            else:
+                self._slip_since = math.inf
 
     def _stall(self, counts: TakenCounts, stamp: float, wheels: list[int]) -> None:
         """A stall: the fault, the wheels held at zero, the brake at once, the goal told."""
@@ -809,5 +803,6 @@ class ControlLoop:
     def _unslip(self, why: str) -> None:
         index = self._slipping
         self._slipping = None
+        self._slip_since = math.inf
         self._state.faults.discard(f"wheel_slip:{index}")
         self._state.publish(f"wheel_slip cleared: {why}")
