@@ -33,6 +33,7 @@ from ohmni_tb.errors import (
     StopNotConfirmedError,
     TransportClosedError,
     TransportError,
+    WheelSlipError,
     WheelStallError,
 )
 
@@ -61,6 +62,7 @@ ALL_ERRORS: list[type[OhmniError]] = [
     StopNotConfirmedError,
     TransportClosedError,
     TransportError,
+    WheelSlipError,
     WheelStallError,
 ]
 
@@ -88,6 +90,7 @@ PARENT: dict[type[OhmniError], type[OhmniError] | None] = {
     MotionAbortedError: MotionError,
     MotionTimeoutError: MotionError,
     WheelStallError: MotionError,
+    WheelSlipError: MotionError,
     ConfigError: OhmniError,
     InvalidArgumentError: OhmniError,
     OutOfRangeError: InvalidArgumentError,

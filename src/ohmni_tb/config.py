@@ -373,6 +373,24 @@ class RobotConfig(BaseSettings):
         "ticks",
         "Control ticks without both wheel counts before the wheels are stopped.",
     )
+    stall_s: float = _setting(
+        0.5,
+        0.1,
+        10,
+        "s",
+        "Stall guard: a wheel driven but not turning this long is a stall (fault "
+        "wheel_stall:<sid>): the wheels are stopped and a motion goal ends, s.",
+        off="off",
+    )
+    slip_s: float = _setting(
+        1.0,
+        0.5,
+        10,
+        "s",
+        "Slip guard: the wheels off the commanded curve this long (one wheel slipping or "
+        "lifted) is a slip (fault wheel_slip:<sid>): a motion goal ends, s.",
+        off="off",
+    )
     implausible_mps: float = _setting(
         3.0,
         0.5,

@@ -28,7 +28,9 @@ catches the right thing::
     │       ├── MotionPreemptedError  another motion command took over             (.by)
     │       ├── MotionAbortedError  the watchdog, a lost link, no wheel counts or closing
     │       ├── MotionTimeoutError  not there within its time  (+ TimeoutError) (.timeout_s)
-    │       └── WheelStallError     a wheel commanded to turn did not turn         (.wheels)
+    │       ├── WheelStallError     a wheel driven did not turn   (.wheels, .pwm, .stalled_s)
+    │       └── WheelSlipError      the wheels ran off the commanded curve
+    │                                             (.wheel, .setpoint_mps, .measured_mps)
     ├── ConfigError                 bad settings or URL             (+ ValueError)
     └── InvalidArgumentError        a bad argument; nothing was sent (+ ValueError)
         └── OutOfRangeError         a value outside its allowed range (.name, .value, .low, .high)
@@ -39,6 +41,7 @@ transport boundary with ``raise ... from exc``, so the original stays in ``__cau
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -67,6 +70,7 @@ __all__ = [
     "StopNotConfirmedError",
     "TransportClosedError",
     "TransportError",
+    "WheelSlipError",
     "WheelStallError",
 ]
 
@@ -115,7 +119,15 @@ class StopReport:
 MotionKind = Literal["drive_distance", "rotate", "go_to"]
 #: Why a motion goal ended (:attr:`MotionResult.reason`).
 MotionEnd = Literal[
-    "arrived", "preempted", "stalled", "timeout", "watchdog", "link_lost", "no_counts", "closed"
+    "arrived",
+    "preempted",
+    "stalled",
+    "slipped",
+    "timeout",
+    "watchdog",
+    "link_lost",
+    "no_counts",
+    "closed",
 ]
 
 
@@ -130,7 +142,8 @@ class MotionResult:
     Attributes:
         kind: ``"drive_distance"``, ``"rotate"`` or ``"go_to"``.
         reason: Why it ended: ``"arrived"``, else ``"preempted"`` (another motion
-            command), ``"stalled"`` (a wheel did not turn), ``"timeout"``, ``"watchdog"``,
+            command), ``"stalled"`` (a wheel did not turn), ``"slipped"`` (the wheels ran
+            off the commanded curve), ``"timeout"``, ``"watchdog"``,
             ``"link_lost"``, ``"no_counts"`` (the wheel counts stopped coming) or
             ``"closed"`` (the Robot closed).
         distance_m: The mean travel of both wheels since the goal began, forward positive.
@@ -394,16 +407,60 @@ class MotionTimeoutError(MotionError, TimeoutError):
 
 
 class WheelStallError(MotionError):
-    """A wheel commanded to turn did not turn (an obstacle, a jammed motor); the robot was
-    stopped.
+    """A wheel driven to turn did not turn (an obstacle, a jammed motor, a board that
+    does not take the wheel command): the Robot's stall guard cut the wheels' power (the
+    fault ``wheel_stall:<sid>`` of ``robot_state``).
 
     Attributes:
         wheels: The stalled wheels, ``("left",)``, ``("right",)`` or both.
+        pwm: The PWM each of them was driven with when the guard tripped, in the order of
+            ``wheels`` (forward positive; empty when not known).
+        stalled_s: How long they were driven without turning, s (NaN when not known).
     """
 
-    def __init__(self, message: str, *, result: MotionResult, wheels: tuple[str, ...]) -> None:
+    def __init__(
+        self,
+        message: str,
+        *,
+        result: MotionResult,
+        wheels: tuple[str, ...],
+        pwm: tuple[int, ...] = (),
+        stalled_s: float = math.nan,
+    ) -> None:
         super().__init__(message, result=result)
         self.wheels = wheels
+        self.pwm = pwm
+        self.stalled_s = stalled_s
+
+
+class WheelSlipError(MotionError):
+    """The wheels ran off the curve the goal commanded for the Robot's ``slip_s`` (one
+    wheel slipping or lifted, or dragging): the odometry no longer says where the robot
+    is (the fault ``wheel_slip:<sid>`` of ``robot_state``). The goal set the target to
+    zero; the robot is at rest.
+
+    Attributes:
+        wheel: The wheel furthest off its setpoint, ``"left"`` or ``"right"``.
+        setpoint_mps: Its setpoint when the guard tripped, m/s (forward positive).
+        measured_mps: Its measured speed then, m/s.
+        slipped_s: How long the wheels were off the curve, s.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        result: MotionResult,
+        wheel: str,
+        setpoint_mps: float = math.nan,
+        measured_mps: float = math.nan,
+        slipped_s: float = math.nan,
+    ) -> None:
+        super().__init__(message, result=result)
+        self.wheel = wheel
+        self.setpoint_mps = setpoint_mps
+        self.measured_mps = measured_mps
+        self.slipped_s = slipped_s
 
 
 class ConfigError(OhmniError, ValueError):

@@ -126,7 +126,8 @@ async def test_a_servo_near_its_thermal_limit_is_warm() -> None:
 
 
 async def test_a_blocked_wheel_sits_at_the_pwm_limit_and_says_so() -> None:
-    async with LocalRobot.open("sim://") as robot:
+    # The stall guard off: it would cut the wheel's power after stall_s.
+    async with LocalRobot.open("sim://", stall_s=0) as robot:
         truth(robot).block_wheels(left=True, right=False)
         loop = asyncio.get_running_loop()
         until = loop.time() + 2.6

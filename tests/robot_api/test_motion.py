@@ -333,7 +333,10 @@ def test_a_blocked_wheel_is_a_stall_and_the_robot_is_stopped(
     assert isinstance(error, WheelStallError)
     assert error.wheels == ("left",)
     assert error.result.reason == "stalled"
-    assert "the left wheel did not turn for 0.5 s" in str(error)
+    assert "the left wheel did not turn for 0.50 s driven at PWM" in str(error)
+    assert len(error.pwm) == 1
+    assert error.pwm[0] > 100  # the PID pushed against the obstacle
+    assert error.stalled_s == pytest.approx(0.5, abs=0.03)
     # Commanded, not turning, for 0.5 s: the error comes well before the goal's time.
     assert took < 2.5
     assert rest

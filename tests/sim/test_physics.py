@@ -14,6 +14,7 @@ from collections.abc import Awaitable, Callable
 import pytest
 
 from ohmni_tb.bus import Bus
+from ohmni_tb.errors import InvalidArgumentError
 from ohmni_tb.protocol import Command, Packet, ReadReply
 from ohmni_tb.protocol.core import TbcoreStatus, parse_status, read_status
 from ohmni_tb.protocol.drive import (
@@ -228,6 +229,52 @@ def test_an_arc_ends_where_the_closed_form_says() -> None:
         radius = 0.5 * (d_left + d_right) / yaw
         assert pose.x == pytest.approx(radius * math.sin(yaw), rel=0.05)
         assert pose.y == pytest.approx(radius * (1 - math.cos(yaw)), rel=0.05)
+
+    _on_sim("sim://", body)
+
+
+# -- traction lost, wheels blocked --------------------------------------------------------
+
+
+def test_a_wheel_without_traction_turns_but_the_robot_pivots_about_it() -> None:
+    async def body(bus: Bus, robot: SimRobot, sim: SimTransport) -> None:
+        await _drive(bus, 400, 400, 1.0)  # straight ahead
+        before = robot.pose
+        start_left, start_right = await _counts(bus)
+        robot.slip(1)  # the right wheel (board 1) loses its grip
+        assert robot.slipping_wheels == (False, True)
+        await _drive(bus, 400, 400, 1.0)
+        left, right = await _counts(bus)
+        d_left = (left - start_left) * METRES_PER_TICK
+        d_right = -(right - start_right) * METRES_PER_TICK
+        # It turns and counts, and faster than the loaded wheel at the same PWM.
+        assert d_right > d_left * 1.05
+        # The ground under it stands: the robot pivots clockwise about the right wheel.
+        after = robot.pose
+        assert after.yaw - before.yaw == pytest.approx(-d_left / WHEEL_SEPARATION_M, rel=0.02)
+        robot.slip(1, on=False)
+        await _drive(bus, 400, 400, 0.5)  # the free-running wheel slows to the other's
+        turned = robot.pose.yaw
+        await _drive(bus, 400, 400, 1.0)
+        assert robot.pose.yaw == pytest.approx(turned, abs=1e-3)  # straight again
+
+    _on_sim("sim://", body)
+
+
+def test_stall_and_slip_name_the_drive_board_by_its_id() -> None:
+    async def body(bus: Bus, robot: SimRobot, sim: SimTransport) -> None:
+        robot.stall(0)
+        await _drive(bus, 400, 400, 0.5)
+        left, right = await _counts(bus)
+        assert left == 0  # blocked: it does not turn whatever its PWM
+        assert right < -1000
+        robot.stall(0, on=False)
+        await _drive(bus, 400, 400, 0.5)
+        assert (await _counts(bus))[0] > 1000
+        with pytest.raises(InvalidArgumentError, match=r"no drive board answers to id 7.*0 \(left"):
+            robot.stall(7)
+        with pytest.raises(InvalidArgumentError, match="id 20"):
+            robot.slip(20)
 
     _on_sim("sim://", body)
 

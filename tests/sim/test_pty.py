@@ -272,6 +272,51 @@ def test_operator_commands_on_stdin(start_sim: Callable[..., SimProcess]) -> Non
     assert "simulator stopped" in err
 
 
+def test_stall_and_slip_on_the_console_and_in_the_url(
+    start_sim: Callable[..., SimProcess],
+) -> None:
+    sim = start_sim("--url", "sim://?slip=1")
+
+    def left_turns() -> bool:
+        """Whether the left wheel turns at PWM 400 (the command resent for 0.2 s)."""
+        before = raw_count(port, 0)
+        for _ in range(4):
+            raw_wheels(port, 400, -400)
+            time.sleep(0.05)
+        raw_wheels(port, 0, 0)
+        return raw_count(port, 0) != before
+
+    def until(left: bool) -> None:
+        deadline = time.monotonic() + _IO_TIMEOUT_S
+        while left_turns() != left:
+            assert time.monotonic() < deadline, (
+                f"the left wheel never {'turned' if left else 'stood'}"
+            )
+
+    with serial.Serial(sim.path, 115200, timeout=_IO_TIMEOUT_S) as port:
+        until(left=True)
+        sim.command("stall 0")  # blocked: it does not turn whatever its PWM
+        until(left=False)
+        sim.command("status")
+        sim.command("stall 9")
+        sim.command("stall 0 maybe")
+        sim.command("slip 1 off")
+        sim.command("stall 0 off")
+        until(left=True)
+    sim.command("quit")
+    code, err = sim.finish()
+    assert code == 0
+    lines = err.splitlines()
+    assert any("stall SID [off] | slip SID [off]" in line for line in lines)  # the help
+    assert any("faults stall 0, slip 1" in line for line in lines)  # the URL's and the console's
+    assert (
+        "stall: no drive board answers to id 9: the drive boards answer to 0 (left) and 1 (right)"
+        in lines
+    )
+    assert "stall: say `stall SID` or `stall SID off`, not '0 maybe'" in lines
+    assert "Traceback" not in err
+
+
 def test_without_a_console_it_serves_and_stops_cleanly(
     start_sim: Callable[..., SimProcess],
 ) -> None:

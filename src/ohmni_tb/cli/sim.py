@@ -15,7 +15,7 @@ from urllib.parse import parse_qsl, urlsplit
 import typer
 
 from ohmni_tb.cli.common import run
-from ohmni_tb.errors import ConfigError, OhmniError
+from ohmni_tb.errors import ConfigError, InvalidArgumentError, OhmniError
 
 if TYPE_CHECKING:
     from ohmni_tb.sim.line import LineFaults, LineStats, SimLine
@@ -33,7 +33,8 @@ _CONSOLE_CLOSE_S: Final = 1.0
 _STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 _HELP_COMMANDS = """commands on stdin: dock | undock | power (cycle) | unplug | plug |
-  silent SID | talk SID | drop RATE | corrupt RATE | status | quit"""
+  silent SID | talk SID | stall SID [off] | slip SID [off] | drop RATE | corrupt RATE |
+  status | quit"""
 
 
 def sim(
@@ -279,6 +280,8 @@ def _command(words: list[str], line: SimLine, robot: SimRobot, stop: _Stop) -> s
             faults.silent.add(int(args[0], 0))
         elif verb == "talk":
             faults.silent.discard(int(args[0], 0))
+        elif verb in ("stall", "slip"):
+            return _wheel_fault(verb, args, robot)
         elif verb in ("drop", "corrupt"):
             rate = float(args[0])
             if not 0.0 <= rate <= 1.0:
@@ -294,7 +297,7 @@ def _command(words: list[str], line: SimLine, robot: SimRobot, stop: _Stop) -> s
                 f"pose x={pose.x:.3f} m y={pose.y:.3f} m yaw={pose.yaw:.3f} rad; "
                 f"pack {s.pack_mv} mV {s.charging_current_ma} mA "
                 f"{'docked' if s.docked else 'undocked'}; line {_line_text(line.stats)}; "
-                f"faults {_faults_text(faults)}"
+                f"faults {_faults_text(faults, robot)}"
             )
         elif verb in ("quit", "exit"):
             stop(verb)
@@ -322,9 +325,34 @@ def _line_text(stats: LineStats) -> str:
     return text + "".join(f", {count} {name}" for name, count in troubles.items() if count)
 
 
-def _faults_text(faults: LineFaults) -> str:
+def _wheel_fault(verb: str, args: list[str], robot: SimRobot) -> str:
+    """``stall SID [off]`` / ``slip SID [off]``: drive board SID's wheel blocked, or
+    without traction, or (``off``) back to normal.
+
+    Raises:
+        IndexError: No SID.
+        ValueError: SID is not a number.
+    """
+    sid = int(args[0], 0)
+    if args[1:] not in ([], ["off"]):
+        return f"{verb}: say `{verb} SID` or `{verb} SID off`, not {' '.join(args)!r}"
+    on = not args[1:]
+    set_fault = robot.stall if verb == "stall" else robot.slip
+    try:
+        set_fault(sid, on)
+    except InvalidArgumentError as exc:
+        return f"{verb}: {exc}"
+    return "ok"
+
+
+def _faults_text(faults: LineFaults, robot: SimRobot) -> str:
     """The injected faults in words, or ``none``."""
     parts = []
+    boards = (robot.left, robot.right)
+    for name, wheels in (("stall", robot.blocked_wheels), ("slip", robot.slipping_wheels)):
+        sids = [str(board.sid) for board, on in zip(boards, wheels, strict=True) if on]
+        if sids:
+            parts.append(f"{name} {','.join(sids)}")
     if faults.drop_rate:
         parts.append(f"drop {faults.drop_rate:g}")
     if faults.corrupt_rate:

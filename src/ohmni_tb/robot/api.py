@@ -748,7 +748,13 @@ class Robot(RobotStreams):
             StateError: An emergency stop is latched, the port is released, the robot
                 is closed, or the wheel_encoder or wheel_odom stream is off.
             MotionPreemptedError: Another motion command took over (``.by``).
-            WheelStallError: A wheel commanded to turn did not (0.5 s); stopped.
+            WheelStallError: A wheel driven did not turn for ``stall_s`` (the fault
+                ``wheel_stall:<sid>``): the wheels' power is cut and held so until
+                ``stop()`` or another drive command (``.wheels``, ``.pwm``,
+                ``.stalled_s``).
+            WheelSlipError: The wheels ran off the commanded curve for ``slip_s`` (the
+                fault ``wheel_slip:<sid>``); stopped (``.wheel``, ``.setpoint_mps``,
+                ``.measured_mps``, ``.slipped_s``).
             MotionTimeoutError: Not there in time; stopped.
             MotionAbortedError: The watchdog tripped, the link was lost, no wheel counts
                 came for 0.5 s, or the robot closed.

@@ -6,6 +6,28 @@ read in the same atomic slot and handed to :mod:`ohmni_tb.robot.wheels` (encoder
 odometry); the PIDs' terms go out as ``pid_debug``. Too many slots without the counts
 stop the wheels (``stale_ticks``). A changed command does not wait for the next slot
 when that is far off (:meth:`ControlLoop.write_early`).
+
+Two guards judge every slot's counts against what the wheels were told (a few
+comparisons a wheel; the rest only when one trips):
+
+- **Stall** (``stall_s``): a wheel *driven* — its setpoint at least
+  :data:`STALL_MIN_SETPOINT_MPS` either way, or its PWM :data:`STALL_PWM_MARGIN` beyond
+  the configured dead band (``pid_ff_offset``; open-loop PWM has no setpoint) — whose
+  count moved less than :data:`STALL_SPEED_MPS` would over a control period, for
+  ``stall_s``: an obstacle, a jammed motor, a board that does not take the wheel command.
+  The fault ``wheel_stall:<sid>`` is raised, the wheels get no power from that slot on
+  (the brake goes out at once) and a motion goal ends with
+  :class:`~ohmni_tb.errors.WheelStallError`. The fault holds the wheels stopped until
+  ``stop()`` or a drive command other than the one that stalled: a loop that keeps
+  sending the same command does not push against the obstacle again.
+- **Slip** (``slip_s``): with both wheels' setpoints holding steady (a ramp's lag, which
+  the PIDs share, is not judged), the measured wheel speeds' difference off the one the
+  setpoints ask by more than :data:`SLIP_MIN_MPS` + :data:`SLIP_SHARE` of the larger
+  setpoint, for ``slip_s``: one wheel slipping, lifted or dragging. The fault
+  ``wheel_slip:<sid>`` names the wheel furthest off its setpoint; a motion goal ends with
+  :class:`~ohmni_tb.errors.WheelSlipError`. The wheels keep their command (a wheel that
+  slips pushes against nothing, and a driver at the keys sees the robot); the fault
+  clears once the wheels agree again or stand.
 """
 
 from __future__ import annotations
@@ -14,6 +36,7 @@ import asyncio
 import contextlib
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,14 +55,22 @@ from ohmni_tb.protocol.drive import PWM_LIMIT, wheel_command
 from ohmni_tb.robot.samples import Link, PidDebugSample
 from ohmni_tb.robot.schedule import CycleResult, Periodic
 from ohmni_tb.robot.state import RobotState
-from ohmni_tb.robot.wheels import WheelCounts
+from ohmni_tb.robot.wheels import TakenCounts, WheelCounts
 
 __all__ = [
     "CONTROL_PRIORITY",
     "CONTROL_SLACK",
     "OVERSPEED_MARGIN_MPS",
     "OVERSPEED_SHARE",
+    "SLIP_MIN_MPS",
+    "SLIP_SHARE",
+    "SLIP_STEADY_MPS",
+    "STALL_MIN_SETPOINT_MPS",
+    "STALL_PWM_MARGIN",
+    "STALL_SPEED_MPS",
+    "WHEEL_NAMES",
     "ControlLoop",
+    "WheelFault",
 ]
 
 _log = logging.getLogger(__name__)
@@ -61,6 +92,55 @@ CONTROL_SLACK = 0.75
 #: plus a margin for the speed estimate's noise (a model that is wrong, a slope).
 OVERSPEED_SHARE = 1.1
 OVERSPEED_MARGIN_MPS = 0.03
+#: The stall guard (module docstring): a setpoint this fast either way drives a wheel
+#: (the motion goals creep at no less than 0.03 m/s); so does a PWM this far beyond the
+#: configured dead band (``pid_ff_offset``), which moves a free wheel at once.
+STALL_MIN_SETPOINT_MPS = 0.02
+STALL_PWM_MARGIN = 40
+#: A driven wheel whose count moved less than this speed's worth over a control period
+#: is not turning: 0.1 mm at 50 Hz, about nine ticks — slower than any motion the PIDs
+#: hold, far above a count's jitter.
+STALL_SPEED_MPS = 0.005
+#: The slip guard (module docstring): the wheel speeds' difference may be off the one
+#: the setpoints ask by SLIP_MIN_MPS (the speed estimate's noise, a bump) + SLIP_SHARE of
+#: the larger setpoint (the PIDs' steady error, a few per cent of each wheel's speed);
+#: a tick whose setpoints moved more than SLIP_STEADY_MPS since the tick before is not
+#: judged (a ramp: both PIDs trail it). A wheel that loses its grip loses its load and
+#: runs ahead of its setpoint by what the ground's drag took (~0.04 m/s on the
+#: simulator), until its PID's integral catches up a few seconds later; so the margins are
+#: small, and a slip that the PID already holds at its setpoint is not seen.
+SLIP_MIN_MPS = 0.015
+SLIP_SHARE = 0.01
+SLIP_STEADY_MPS = 0.001
+#: The wheels by index, as faults and errors name them.
+WHEEL_NAMES = ("left", "right")
+
+
+@dataclass(frozen=True, slots=True)
+class WheelFault:
+    """What a stall or slip guard saw when it tripped.
+
+    Attributes:
+        kind: ``"stall"`` or ``"slip"``.
+        wheels: The wheels it names (0 left, 1 right): the stalled ones, or the one
+            furthest off its setpoint.
+        pwm: The PWM each of them was driven with (forward positive).
+        setpoint_mps: Each one's setpoint (0 for open-loop PWM).
+        measured_mps: Each one's measured speed.
+        duration_s: How long the guard's condition held.
+    """
+
+    kind: Literal["stall", "slip"]
+    wheels: tuple[int, ...]
+    pwm: tuple[int, ...]
+    setpoint_mps: tuple[float, ...]
+    measured_mps: tuple[float, ...]
+    duration_s: float
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The wheels' names: ``("left",)``, ``("right",)`` or both."""
+        return tuple(WHEEL_NAMES[index] for index in self.wheels)
 
 
 @dataclass(eq=False)
@@ -132,6 +212,7 @@ class ControlLoop:
         self._early_pending = False
         self._early_slot: Slot | None = None
         self._early_writes = 0
+        self._init_guards()
 
     def periodic(self) -> Periodic:
         """The control slot on the schedule, at ``wheel_hz``."""
@@ -218,8 +299,11 @@ class ControlLoop:
         self._commanded(changed)
 
     def stop(self) -> None:
-        """Target zero; the first braking command goes at once (``Robot.stop``)."""
+        """Target zero; the first braking command goes at once (``Robot.stop``). Clears a
+        stall's hold."""
         self.stop_targets()
+        if self._held:
+            self._release("stop()")
         self._last_command_s = self._loop.time()
         if self._state.link is Link.CONNECTED:
             self.write_early(force=True)
@@ -304,6 +388,8 @@ class ControlLoop:
             self._mode = "twist"
 
     def _commanded(self, changed: bool) -> None:
+        if self._held and self._command_key() != self._held_command:
+            self._release("a new drive command")
         now = self._last_command_s = self._loop.time()
         if self._watchdog_timer is None and self._config.watchdog_s > 0:
             self._watchdog_timer = self._loop.call_at(
@@ -343,7 +429,12 @@ class ControlLoop:
         dt = 1.0 / config.wheel_hz if previous is None else max(now - previous, 1e-6)
         state = self._state
         self._watchdog_check(now)
-        if state.estopped or state.link is not Link.CONNECTED or "stale_feedback" in state.faults:
+        if (
+            self._held
+            or state.estopped
+            or state.link is not Link.CONNECTED
+            or "stale_feedback" in state.faults
+        ):
             self._limiter.reset()
             self._reset_pids()
             self._pwm = (0, 0)
@@ -544,9 +635,183 @@ class ControlLoop:
         if "stale_feedback" in state.faults:
             state.faults.discard("stale_feedback")
             state.publish("wheel feedback is back")
+        self._guard(counts)
         self._counts.publish(counts, self._limiter.current, self._requested)
         debug = state.topics["pid_debug"]
         lw, rw = self._wheels
         if debug.enabled and lw.last_step is not None and rw.last_step is not None:
             stamp_s = counts.stamp_s
             debug.publish(PidDebugSample(stamp_s, lw.last_step, rw.last_step), stamp_s)
+
+    # -- the stall and slip guards ---------------------------------------------------------
+
+    def _init_guards(self) -> None:
+        config = self._config
+        #: Set from outside (the motion goals): told of every guard that trips.
+        self.on_wheel_fault: Callable[[WheelFault], None] | None = None
+        self._stall_s = config.stall_s
+        self._slip_s = config.slip_s
+        # A count moved less than this over a period is a wheel standing still.
+        self._still_m = STALL_SPEED_MPS / config.wheel_hz
+        self._stall_pwm = config.pid_ff_offset + STALL_PWM_MARGIN
+        # Each wheel's last tick not driven or turning (inf: none since open or a stall).
+        self._stall_since = [math.inf, math.inf]
+        # A stall holds the wheels at zero until stop() or another command than this one.
+        self._held = False
+        self._held_command: tuple[object, ...] = ()
+        self._slip_since = math.inf
+        self._slip_prev = (0.0, 0.0)
+        self._slipping: int | None = None
+        #: Times each guard tripped since open, per wheel.
+        self.stalls = [0, 0]
+        self.slips = [0, 0]
+
+    def guard_trips(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """Each wheel's stalls and slips since open: ((left, right), (left, right))."""
+        return (self.stalls[0], self.stalls[1]), (self.slips[0], self.slips[1])
+
+    def _command_key(self) -> tuple[object, ...]:
+        """The drive command standing now, whatever its mode."""
+        return (self._mode, self._target, self._target_wheels, self._target_pwm, self._ramped)
+
+    def _guard(self, counts: TakenCounts) -> None:
+        """Both guards on one slot's counts (module docstring): the stall guard here, in
+        a few comparisons a wheel (it runs every control tick)."""
+        stamp = counts.stamp_s
+        lw, rw = self._wheels
+        left_step, right_step = lw.last_step, rw.last_step
+        stall_s = self._stall_s
+        if stall_s > 0.0:
+            still = self._still_m
+            low_pwm = self._stall_pwm
+            low_sp = STALL_MIN_SETPOINT_MPS
+            since = self._stall_since
+            pwm = self._pwm
+            stalled = None
+            for index, sample, step in ((0, counts.left, left_step), (1, counts.right, right_step)):
+                power = pwm[index]
+                setpoint = 0.0 if step is None else step.setpoint
+                if (
+                    (-low_pwm < power < low_pwm and -low_sp < setpoint < low_sp)
+                    or not -still < sample.delta_m < still
+                    or since[index] == math.inf  # driven and still from its first tick on
+                ):
+                    since[index] = stamp
+                elif stamp - since[index] >= stall_s:
+                    stalled = [index] if stalled is None else [*stalled, index]
+            if stalled is not None:
+                self._stall(counts, stamp, stalled)
+                return
+        if self._slip_s > 0.0:
+            if left_step is not None and right_step is not None:
+                self._guard_slip(counts, stamp, left_step, right_step)
+            elif self._slipping is not None:
+                self._unslip("the wheels stand")
+            else:
+                self._slip_since = math.inf
+
+    def _stall(self, counts: TakenCounts, stamp: float, wheels: list[int]) -> None:
+        """A stall: the fault, the wheels held at zero, the brake at once, the goal told."""
+        state = self._state
+        steps = (self._wheels[0].last_step, self._wheels[1].last_step)
+        measured = (counts.left.velocity_mps, counts.right.velocity_mps)
+        fault = WheelFault(
+            "stall",
+            tuple(wheels),
+            tuple(self._pwm[i] for i in wheels),
+            tuple(0.0 if (step := steps[i]) is None else step.setpoint for i in wheels),
+            tuple(measured[i] for i in wheels),
+            max(stamp - self._stall_since[i] for i in wheels),
+        )
+        self._held = True
+        self._held_command = self._command_key()
+        for index in wheels:
+            state.faults.add(f"wheel_stall:{index}")
+            self.stalls[index] += 1
+            self._stall_since[index] = math.inf
+        self.stop_targets()
+        self._limiter.reset()
+        self._reset_pids()
+        self._pwm = (0, 0)
+        said = "; ".join(
+            f"the {WHEEL_NAMES[i]} wheel (drive board {i}) driven at PWM {p}"
+            + (f", setpoint {sp:+.2f} m/s," if sp else "")
+            for i, p, sp in zip(wheels, fault.pwm, fault.setpoint_mps, strict=True)
+        )
+        state.publish(
+            f"wheel_stall: {said} did not turn for {fault.duration_s:.2f} s: the wheels are "
+            "stopped and held so until stop() or another drive command"
+        )
+        if self.on_wheel_fault is not None:
+            self.on_wheel_fault(fault)
+        self.write_early(force=True)
+
+    def _release(self, why: str) -> None:
+        """The stall's hold ends (``why``: what ended it); its faults clear."""
+        self._held = False
+        faults = self._state.faults
+        for index in (0, 1):
+            faults.discard(f"wheel_stall:{index}")
+        self._state.publish(f"wheel_stall cleared by {why}")
+
+    def _guard_slip(
+        self, counts: TakenCounts, stamp: float, left_step: PidStep, right_step: PidStep
+    ) -> None:
+        left_sp, right_sp = left_step.setpoint, right_step.setpoint
+        prev_left, prev_right = self._slip_prev
+        self._slip_prev = (left_sp, right_sp)
+        if not (
+            -SLIP_STEADY_MPS < left_sp - prev_left < SLIP_STEADY_MPS
+            and -SLIP_STEADY_MPS < right_sp - prev_right < SLIP_STEADY_MPS
+        ):
+            self._slip_since = math.inf  # a ramp: the PIDs trail it, both alike
+            return
+        left_v, right_v = counts.left.velocity_mps, counts.right.velocity_mps
+        off = (right_v - left_v) - (right_sp - left_sp)
+        top = left_sp if left_sp > right_sp else right_sp
+        bottom = -left_sp if left_sp < right_sp else -right_sp
+        allowed = SLIP_MIN_MPS + SLIP_SHARE * (top if top > bottom else bottom)
+        if -allowed < off < allowed:
+            self._slip_since = math.inf
+            if self._slipping is not None and -allowed / 2 < off < allowed / 2:
+                self._unslip("the wheels agree again")
+            return
+        if self._slip_since == math.inf:
+            self._slip_since = stamp
+        elif stamp - self._slip_since >= self._slip_s and self._slipping is None:
+            self._slip(stamp, (left_sp, right_sp), (left_v, right_v))
+
+    def _slip(
+        self, stamp: float, setpoints: tuple[float, float], measured: tuple[float, float]
+    ) -> None:
+        """A slip: the fault on the wheel furthest off its setpoint, the goal told."""
+        state = self._state
+        index = 0 if abs(measured[0] - setpoints[0]) >= abs(measured[1] - setpoints[1]) else 1
+        fault = WheelFault(
+            "slip",
+            (index,),
+            (self._pwm[index],),
+            (setpoints[index],),
+            (measured[index],),
+            stamp - self._slip_since,
+        )
+        self._slipping = index
+        self.slips[index] += 1
+        state.faults.add(f"wheel_slip:{index}")
+        other = 1 - index
+        state.publish(
+            f"wheel_slip: the {WHEEL_NAMES[index]} wheel (drive board {index}) ran at "
+            f"{measured[index]:+.3f} m/s, set to {setpoints[index]:+.3f} m/s, while the "
+            f"{WHEEL_NAMES[other]} ran at {measured[other]:+.3f} m/s, set to "
+            f"{setpoints[other]:+.3f} m/s, for {fault.duration_s:.2f} s: off the "
+            "commanded curve (slipping, lifted or dragging?)"
+        )
+        if self.on_wheel_fault is not None:
+            self.on_wheel_fault(fault)
+
+    def _unslip(self, why: str) -> None:
+        index = self._slipping
+        self._slipping = None
+        self._slip_since = math.inf
+        self._state.faults.discard(f"wheel_slip:{index}")
+        self._state.publish(f"wheel_slip cleared: {why}")

@@ -114,12 +114,15 @@ class LocalRobot(Robot):
             state,
             self._control.saturated_steps,
             lambda: (counts.wheels[0].rejected, counts.wheels[1].rejected),
+            self._control.guard_trips,
         )
         self._discovery.renumber = self._renumbering.servo
         self._discovery.zero_offset = self._zero_offset_set
         self._discovery.moved = self._renumbering.moved
         # Motion goals: every other motion command preempts the one under way.
         self._motion = MotionGoals(self, check=self._check_goal)
+        # The control loop's stall and slip guards end the goal under way.
+        self._control.on_wheel_fault = self._motion.wheel_fault
         self._port = config.port
         #: Why the stop on the way out was not confirmed, if it was not (also raised
         #: from ``async with`` when the block itself ended without an error).

@@ -16,8 +16,10 @@ control slot.
 
 Each entry's level is the worst of what its checks find, each check against one of the
 named thresholds below; every fault of ``robot_state`` is an ERROR of the entry it
-names (``thermal:3`` of sid 3's, ``battery_implausible`` of the core board's; a fault
-naming no device, or one the robot does not expect, of the link's).
+names (``thermal:3`` of sid 3's, ``wheel_stall:0`` of the left drive board's,
+``battery_implausible`` of the core board's; a fault naming no device, or one the robot
+does not expect, of the link's) — but a slipping wheel (``wheel_slip:<sid>``), a WARN:
+the robot still drives, only off its curve.
 """
 
 from __future__ import annotations
@@ -113,6 +115,8 @@ _FAULT_OWNERS: Final = {
     "link_lost": "link",
     "stale_feedback": "link",
 }
+#: Faults that are a WARN of their entry, by the part of their name before ``:``.
+_WARN_FAULTS: Final = frozenset({"wheel_slip"})
 #: The external servos' entries, in the order of ``ext_servo_ids`` (their streams'
 #: order: ``servo_ext1``, ``servo_ext2``).
 _EXT_NAMES: Final = tuple(stream.removeprefix("servo_") for stream in EXT_STREAMS)
@@ -168,6 +172,8 @@ class Diagnostics:
         saturated_steps: Each wheel's PID steps so far whose output sat at its limit
             (the control loop's counters).
         rejected_counts: Each wheel's counts so far refused as implausible.
+        guard_trips: Each wheel's stalls and slips so far (the control loop's guards):
+            ``((left stalls, right stalls), (left slips, right slips))``.
     """
 
     def __init__(
@@ -175,10 +181,12 @@ class Diagnostics:
         state: RobotState,
         saturated_steps: Callable[[], tuple[int, int]],
         rejected_counts: Callable[[], tuple[int, int]],
+        guard_trips: Callable[[], tuple[tuple[int, int], tuple[int, int]]] | None = None,
     ) -> None:
         self._state = state
         self._saturated_steps = saturated_steps
         self._rejected_counts = rejected_counts
+        self._guard_trips = guard_trips
         self._timer: asyncio.TimerHandle | None = None
         self._due_s = 0.0
         self._reads: asyncio.Task[None] | None = None
@@ -381,6 +389,10 @@ class Diagnostics:
         share = min(1.0, saturated / steps) if steps > 0 else 0.0
         values["pid_saturated_share"] = round(share, 3)
         values["rejected_counts"] = self._rejected_counts()[index]
+        if self._guard_trips is not None:
+            stalls, slips = self._guard_trips()
+            values["stalls"] = stalls[index]
+            values["slips"] = slips[index]
         if share > PID_SATURATION_WARN_SHARE:
             findings.append(
                 (
@@ -591,7 +603,7 @@ def _entry(
 
 def _with_faults(entries: list[DiagnosticEntry], faults: list[str]) -> list[DiagnosticEntry]:
     """Every fault of ``robot_state`` as an ERROR of the entry it names (by sid, or by
-    :data:`_FAULT_OWNERS`; else the link's)."""
+    :data:`_FAULT_OWNERS`; else the link's), a WARN for one of :data:`_WARN_FAULTS`."""
     by_name = {entry.name: index for index, entry in enumerate(entries)}
     by_sid = {entry.sid: index for index, entry in enumerate(entries) if entry.sid is not None}
     owned: dict[int, list[str]] = {}
@@ -609,7 +621,9 @@ def _with_faults(entries: list[DiagnosticEntry], faults: list[str]) -> list[Diag
         said = f"fault {', '.join(names)}"
         message = said if entry.level is _OK else f"{said}; {entry.message}"
         values = {**entry.values, "faults": ",".join(names)}
-        out[index] = DiagnosticEntry(entry.name, entry.sid, _ERROR, message, values)
+        warn_only = all(name.partition(":")[0] in _WARN_FAULTS for name in names)
+        level = DiagnosticLevel.worst((entry.level, _WARN if warn_only else _ERROR))
+        out[index] = DiagnosticEntry(entry.name, entry.sid, level, message, values)
     return out
 
 

@@ -30,15 +30,16 @@ One goal runs at a time. Any other motion command — ``drive``, ``drive_wheels`
 another goal — ends it with :class:`~ohmni_tb.errors.MotionPreemptedError` naming the
 command, and the newer command stands (the goal sends nothing more). So does
 ``reset_odometry``, which moves the frame the goal steers in; then the goal also sets
-the target to zero. The goal ends with
-:class:`~ohmni_tb.errors.WheelStallError` when a wheel commanded at
-:data:`STALL_MIN_COMMAND_MPS` or more turns slower than :data:`STALL_SPEED_MPS` for
-:data:`STALL_S`, with :class:`~ohmni_tb.errors.MotionTimeoutError` past its time, and with
-:class:`~ohmni_tb.errors.MotionAbortedError` when the watchdog trips, the link is lost,
-no wheel counts come for :data:`FEEDBACK_GAP_S` or the Robot closes. After a stall or a
-timeout the robot is stopped and at rest. Cancelling the task that awaits a goal sets
-the target to zero at once — the wheels ramp down at the deceleration limits — and the
-cancellation goes on; nothing waits.
+the target to zero. The Robot's guards end it too (:meth:`MotionGoals.wheel_fault`, from
+the control loop, :mod:`ohmni_tb.robot.control_loop`): a stall with
+:class:`~ohmni_tb.errors.WheelStallError` at once (the guard has cut the wheels' power
+already), a slip with :class:`~ohmni_tb.errors.WheelSlipError` once the goal's stop is at
+rest. The goal ends with :class:`~ohmni_tb.errors.MotionTimeoutError` past its time, and
+with :class:`~ohmni_tb.errors.MotionAbortedError` when the watchdog trips, the link is
+lost, no wheel counts come for :data:`FEEDBACK_GAP_S` or the Robot closes. After a slip
+or a timeout the robot is stopped and at rest. Cancelling the task that awaits a goal
+sets the target to zero at once — the wheels ramp down at the deceleration limits — and
+the cancellation goes on; nothing waits.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ from ohmni_tb.errors import (
     StateError,
     StopNotConfirmedError,
     StopReport,
+    WheelSlipError,
     WheelStallError,
 )
 from ohmni_tb.robot.samples import Link
@@ -71,6 +73,7 @@ from ohmni_tb.safety import DEFAULT_SETTLE_S, DEFAULT_TOLERANCE_TICKS, SettleWin
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
+    from ohmni_tb.robot.control_loop import WheelFault
     from ohmni_tb.robot.samples import RobotStateSample, WheelEncoderSample, WheelOdomSample
     from ohmni_tb.robot.stats import RobotStats
 
@@ -87,9 +90,6 @@ __all__ = [
     "MIN_GOAL_ANGULAR_RADPS",
     "MIN_GOAL_LINEAR_MPS",
     "PLAN_DECEL_SHARE",
-    "STALL_MIN_COMMAND_MPS",
-    "STALL_S",
-    "STALL_SPEED_MPS",
     "STOP_LEAD_S",
     "CountStream",
     "MotionGoals",
@@ -137,20 +137,15 @@ HEADING_HOLD_M = 0.05
 #: No wheel counts for this long: the goal stops (a cable, a silent board), whatever the
 #: watchdog and stale-feedback settings say.
 FEEDBACK_GAP_S = 0.5
-#: A wheel commanded at STALL_MIN_COMMAND_MPS or more (by the ramp, what the control tick
-#: drives toward) and measured slower than STALL_SPEED_MPS for STALL_S is stalled: 0.5 s
-#: is ten times what the PIDs take to start a free wheel on the simulator, short enough
-#: that a held motor does not heat.
-STALL_S = 0.5
-STALL_MIN_COMMAND_MPS = 0.02
-STALL_SPEED_MPS = 0.005
 #: A goal's subscription to the wheel counts: a few ticks of slack for a busy loop.
 _QUEUE = 8
-#: The reasons after which the goal stops the robot itself, and waits for it to rest.
+#: The reasons after which the goal stops the robot itself, and waits for it to rest. A
+#: stall is neither: the stall guard has cut the wheels' power and holds them so (a stop
+#: would end its hold), and its error is due at once.
 _STOPS: frozenset[str] = frozenset(
-    {"arrived", "stalled", "timeout", "watchdog", "link_lost", "no_counts"}
+    {"arrived", "slipped", "timeout", "watchdog", "link_lost", "no_counts"}
 )
-_SETTLES: frozenset[str] = frozenset({"arrived", "stalled", "timeout"})
+_SETTLES: frozenset[str] = frozenset({"arrived", "slipped", "timeout"})
 #: What is left of a goal, from the pose, the distance and the heading change since it
 #: began: (m, rad) as :class:`MotionResult` has them.
 _Remaining = Callable[["WheelOdomSample", float, float], tuple[float, float]]
@@ -233,8 +228,8 @@ class _Run:
         self.commanded = False  # a drive command went since the last stop
         # The watchdog flag was seen clear: a trip from before the goal is not its own.
         self.watchdog_clear = False
-        self.stall_since: list[float | None] = [None, None]
-        self.stalled: tuple[str, ...] = ()
+        #: The guard that ended the goal (a stall or a slip), if one did.
+        self.fault: WheelFault | None = None
         self.top_speed = 0.0  # the fastest this goal drives a wheel, for the rest wait
 
     @property
@@ -262,9 +257,9 @@ class _Run:
         """Wait for the next control tick's counts (the newest, if several wait).
 
         Raises:
-            _Ended: Ended from outside, past the deadline, no counts for
-                :data:`FEEDBACK_GAP_S`, the Robot closed; with ``checks``, the watchdog
-                tripped or a wheel stalled.
+            _Ended: Ended from outside (another command, a guard), past the deadline,
+                no counts for :data:`FEEDBACK_GAP_S`, the Robot closed; with ``checks``,
+                the watchdog tripped.
         """
         loop = asyncio.get_running_loop()
         if self.ended is not None:
@@ -291,32 +286,15 @@ class _Run:
         if odom is not None:  # published with every wheel_encoder sample
             self.odom = odom
         if checks:
-            self._check(enc, self.odom)
+            self._check()
 
-    def _check(self, enc: WheelEncoderSample, odom: WheelOdomSample) -> None:
+    def _check(self) -> None:
         tripped = self.goals.host.state.watchdog_tripped
         if tripped and self.commanded and self.watchdog_clear:
             raise _Ended("watchdog")
         self.watchdog_clear = self.watchdog_clear or not tripped
-        half = self.goals.host.config.wheel_separation_m / 2
-        linear, angular = odom.commanded_linear_mps, odom.commanded_angular_radps
-        commanded = (linear - angular * half, linear + angular * half)
-        measured = (enc.left_mps, enc.right_mps)
-        stalled = []
-        for index, name in enumerate(("left", "right")):
-            if abs(commanded[index]) < STALL_MIN_COMMAND_MPS or (
-                abs(measured[index]) >= STALL_SPEED_MPS
-            ):
-                self.stall_since[index] = None
-                continue
-            since = self.stall_since[index]
-            if since is None:
-                self.stall_since[index] = enc.stamp_s
-            elif enc.stamp_s - since >= STALL_S:
-                stalled.append(name)
-        if stalled:
-            self.stalled = tuple(stalled)
-            raise _Ended("stalled")
+        if self.fault is not None:  # the slip guard (a stall ends the goal at once)
+            raise _Ended("slipped")
 
     def command(self, linear_mps: float, angular_radps: float) -> None:
         """The goal's own drive command (it does not preempt the goal); none once ended."""
@@ -330,7 +308,6 @@ class _Run:
         with contextlib.suppress(OhmniError):
             self.goals.own(self.goals.host.stop)
         self.commanded = False
-        self.stall_since = [None, None]
 
     async def settle(self) -> None:
         """Wait until both wheel counts hold still (the rule of
@@ -354,7 +331,7 @@ class _Run:
                 try:
                     await self.next(checks=False)
                 except _Ended as end:
-                    if end.reason in ("preempted", "closed"):
+                    if end.reason in ("preempted", "closed", "stalled"):
                         raise
                     break  # the time is up, or the counts stopped: not confirmed
                 reads += 1
@@ -431,6 +408,18 @@ class MotionGoals:
         run = self._active
         if run is not None:
             run.end("closed")
+
+    def wheel_fault(self, fault: WheelFault) -> None:
+        """A guard of the control loop tripped: the running goal ends with
+        :class:`~ohmni_tb.errors.WheelStallError` or
+        :class:`~ohmni_tb.errors.WheelSlipError`."""
+        run = self._active
+        if run is None or run.ended is not None or run.fault is not None:
+            return
+        run.fault = fault
+        if fault.kind == "stall":
+            run.end("stalled")  # at once: the guard has stopped the wheels
+        # A slip ends the goal at its next tick, which then stops and settles.
 
     @property
     def active(self) -> MotionKind | None:
@@ -864,15 +853,33 @@ def _error(result: MotionResult, run: _Run, goal: str) -> MotionError:
             result=result,
             timeout_s=run.timeout_s,
         )
-    if reason == "stalled":
-        wheels = " and ".join(run.stalled)
+    fault = run.fault
+    if reason == "stalled" and fault is not None:
+        names = fault.names
+        wheels = " and ".join(names)
+        pwm = " and ".join(map(str, fault.pwm))
         return WheelStallError(
-            f"{goal}: the {wheels} wheel{'s' if len(run.stalled) > 1 else ''} did not turn "
-            f"for {STALL_S:g} s though commanded to (an obstacle? on a new robot, boards "
-            "that take another wheel command: `ohmni probe --allow-motion`); the robot is "
-            f"stopped, after it {went} by odometry",
+            f"{goal}: the {wheels} wheel{'s' if len(names) > 1 else ''} did not turn for "
+            f"{fault.duration_s:.2f} s driven at PWM {pwm} (an obstacle? on a new robot, "
+            "boards that take another wheel command: `ohmni probe --allow-motion`); the "
+            f"wheels' power is cut, after it {went} by odometry",
             result=result,
-            wheels=run.stalled,
+            wheels=names,
+            pwm=fault.pwm,
+            stalled_s=fault.duration_s,
+        )
+    if reason == "slipped" and fault is not None:
+        (name,) = fault.names
+        return WheelSlipError(
+            f"{goal}: the {name} wheel ran at {fault.measured_mps[0]:+.3f} m/s, set to "
+            f"{fault.setpoint_mps[0]:+.3f} m/s, off the commanded curve for "
+            f"{fault.duration_s:.2f} s (slipping, lifted or dragging?): the odometry no "
+            f"longer follows the ground; the robot is stopped, after it {went} by odometry",
+            result=result,
+            wheel=name,
+            setpoint_mps=fault.setpoint_mps[0],
+            measured_mps=fault.measured_mps[0],
+            slipped_s=fault.duration_s,
         )
     why = {
         "watchdog": "the motion watchdog tripped (the goal's commands came too late: a "
@@ -881,6 +888,8 @@ def _error(result: MotionResult, run: _Run, goal: str) -> MotionError:
         "no_counts": f"no wheel counts came for {FEEDBACK_GAP_S:g} s (is a drive board "
         "silent? `ohmni status`)",
         "closed": "the Robot closed",
+        "stalled": "a wheel stalled",
+        "slipped": "the wheels ran off the commanded curve",
     }[reason]
     stopped = "" if reason == "closed" else "; the target is zero"
     return MotionAbortedError(

@@ -351,7 +351,9 @@ class RobotStateSample:
         estopped: An emergency stop is latched (:meth:`Robot.clear_estop`).
         watchdog_tripped: No drive command for ``watchdog_s``: the wheels were stopped.
         faults: What is wrong now, short names: ``stale_feedback``, ``link_lost``,
-            ``thermal:<sid>``, ``drive_absent:<sid>``, ``neck_stalled``,
+            ``thermal:<sid>``, ``drive_absent:<sid>``, ``wheel_stall:<sid>`` (a wheel
+            driven did not turn: the wheels are held stopped), ``wheel_slip:<sid>`` (the
+            wheels off the commanded curve), ``neck_settings:<sid>``, ``neck_stalled``,
             ``battery_implausible`` (the battery block does not read as a pack: the
             profile's battery settings are likely not this robot's).
         neck: ``herkulex``, ``worm`` or ``none`` (found at open).

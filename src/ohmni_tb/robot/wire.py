@@ -26,6 +26,7 @@ of them all, checked in at ``docs/daemon-schema.json`` (regenerate it with
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,7 @@ from ohmni_tb.errors import (
     RobotClosedError,
     StateError,
     TransportError,
+    WheelSlipError,
     WheelStallError,
 )
 from ohmni_tb.herkulex.servo import ServoStatus
@@ -1022,6 +1024,13 @@ def goal_json(outcome: MotionResult | MotionError) -> dict[str, Any]:
         error["timeout_s"] = outcome.timeout_s
     elif isinstance(outcome, WheelStallError):
         error["wheels"] = list(outcome.wheels)
+        error["pwm"] = list(outcome.pwm)
+        error["stalled_s"] = _finite_or_none(outcome.stalled_s)
+    elif isinstance(outcome, WheelSlipError):
+        error["wheel"] = outcome.wheel
+        error["setpoint_mps"] = _finite_or_none(outcome.setpoint_mps)
+        error["measured_mps"] = _finite_or_none(outcome.measured_mps)
+        error["slipped_s"] = _finite_or_none(outcome.slipped_s)
     return {"result": _MOTION.dump_python(outcome.result, mode="json"), "error": error}
 
 
@@ -1043,10 +1052,35 @@ def goal_from_json(data: Any) -> MotionResult:
     if kind == "MotionTimeoutError":
         raise MotionTimeoutError(message, result=result, timeout_s=float(error["timeout_s"]))
     if kind == "WheelStallError":
-        raise WheelStallError(message, result=result, wheels=tuple(error.get("wheels", ())))
+        raise WheelStallError(
+            message,
+            result=result,
+            wheels=tuple(error.get("wheels", ())),
+            pwm=tuple(int(p) for p in error.get("pwm", ())),
+            stalled_s=_float_or_nan(error.get("stalled_s")),
+        )
+    if kind == "WheelSlipError":
+        raise WheelSlipError(
+            message,
+            result=result,
+            wheel=str(error.get("wheel")),
+            setpoint_mps=_float_or_nan(error.get("setpoint_mps")),
+            measured_mps=_float_or_nan(error.get("measured_mps")),
+            slipped_s=_float_or_nan(error.get("slipped_s")),
+        )
     if kind == "MotionAbortedError":
         raise MotionAbortedError(message, result=result)
     raise MotionError(message, result=result)
+
+
+def _finite_or_none(value: float) -> float | None:
+    """A float as JSON carries it: NaN (not known) as ``null``."""
+    return None if math.isnan(value) else value
+
+
+def _float_or_nan(value: Any) -> float:
+    """A JSON number back as a float; ``null`` (not known) as NaN."""
+    return math.nan if value is None else float(value)
 
 
 def stats_json(stats: RobotStats) -> dict[str, Any]:

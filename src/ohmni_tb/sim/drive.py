@@ -16,6 +16,14 @@ A wheel can be blocked (:meth:`DriveTrain.block`, ``SimRobot.block_wheels``): an
 obstacle holds it, so it stands still whatever the PWM, and its motor draws the stall
 current of its duty (``motor_current_a``) until it is freed.
 
+A wheel can lose its traction (:meth:`DriveTrain.slip`, ``SimRobot.slip_wheels``): on a
+slippery patch, or lifted, it still turns and its encoder counts, but it no longer moves
+the robot — the ground-truth pose moves as if that wheel's ground speed were zero, so
+the robot pivots about it — and it turns free of the robot's load: its motor drives only
+the wheel's own inertia (:data:`FREE_INERTIA_SHARE` of the loaded one) against the
+drivetrain's own friction (:data:`FREE_FRICTION_SHARE` of the dead band; the ground's
+rolling drag is the rest). So, at the same PWM, it runs faster than a wheel on the ground.
+
 Board frame vs robot frame: each board counts up when driven with positive PWM. The
 right motor is mounted mirrored (``DriveProfile.right_mirrored``), so the right wheel
 moves the robot *forward* when its board turns *negative* — the vendor's
@@ -41,7 +49,14 @@ from ohmni_tb.protocol.drive import (
 )
 from ohmni_tb.sim.board import BoardRegister, SimBoard
 
-__all__ = ["DriveTrain", "MotorModel", "Pose", "SimDriveBoard"]
+__all__ = [
+    "FREE_FRICTION_SHARE",
+    "FREE_INERTIA_SHARE",
+    "DriveTrain",
+    "MotorModel",
+    "Pose",
+    "SimDriveBoard",
+]
 
 #: Integration step of the motor model.
 _STEP_S = 0.001
@@ -50,6 +65,11 @@ _STEP_S = 0.001
 TICKS_PER_MOTOR_TURN = MOTOR_POSITION_MODULUS
 #: Motor turns per wheel turn (30/11, inferred from measurements).
 GEAR_RATIO = 30 / 11
+#: A wheel without traction (:meth:`DriveTrain.slip`) carries this share of the inertia it
+#: carries on the ground (its own, not the robot's), and keeps this share of its
+#: friction (the gearbox's: the ground's rolling drag is gone). Assumed, not measured.
+FREE_INERTIA_SHARE = 0.1
+FREE_FRICTION_SHARE = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,6 +91,20 @@ class MotorModel:
     viscous_per_s: float = 0.0
     brake_per_s: float = 40.0
     wheel_radius_m: float = 0.0760
+
+    def free(self) -> MotorModel:
+        """The same wheel off the ground (or with no grip): :data:`FREE_INERTIA_SHARE` of
+        the inertia, :data:`FREE_FRICTION_SHARE` of the friction (its brake and back-EMF
+        act on the lighter wheel alike)."""
+        lighter = 1.0 / FREE_INERTIA_SHARE
+        return MotorModel(
+            accel_mps2=self.accel_mps2 * lighter,
+            v_free_mps=self.v_free_mps,
+            coulomb_mps2=self.coulomb_mps2 * FREE_FRICTION_SHARE * lighter,
+            viscous_per_s=self.viscous_per_s * lighter,
+            brake_per_s=self.brake_per_s * lighter,
+            wheel_radius_m=self.wheel_radius_m,
+        )
 
     @property
     def dead_band_duty(self) -> float:
@@ -94,7 +128,7 @@ class Pose:
 
 
 class _Wheel:
-    __slots__ = ("blocked", "count_offset", "duty", "speed_mps", "torque", "turns")
+    __slots__ = ("blocked", "count_offset", "duty", "slipping", "speed_mps", "torque", "turns")
 
     def __init__(self, count_offset: int) -> None:
         self.duty = 0.0  # board frame
@@ -103,6 +137,7 @@ class _Wheel:
         self.torque = DriveTorque.ON
         self.count_offset = count_offset
         self.blocked = False  # an obstacle holds the wheel still
+        self.slipping = False  # no traction: it turns, the robot does not follow
 
     def step(self, model: MotorModel, dt: float) -> float:
         """Advance ``dt``; return the rim distance travelled (board frame)."""
@@ -159,6 +194,7 @@ class DriveTrain:
         profile: DriveProfile = DRIVE_PROFILE,
     ) -> None:
         self.model = model or MotorModel()
+        self._free_model = self.model.free()
         self.profile = profile
         # Board frame → robot frame for the right wheel.
         self._right_sign = -1.0 if profile.right_mirrored else 1.0
@@ -168,7 +204,9 @@ class DriveTrain:
         self._y = 0.0
         self._yaw = 0.0
         self._now_s = 0.0
-        self.distance_m = [0.0, 0.0]  # robot frame, forward-positive, left and right
+        # Robot frame, forward-positive, left and right: each wheel's travel over the
+        # ground (none while it slips).
+        self.distance_m = [0.0, 0.0]
 
     @property
     def pose(self) -> Pose:
@@ -196,6 +234,17 @@ class DriveTrain:
         """Whether the left and the right wheel are blocked."""
         left, right = self.wheels
         return left.blocked, right.blocked
+
+    def slip(self, side: int, slipping: bool) -> None:
+        """Take a wheel's traction away (a slippery patch, the wheel lifted), or give it
+        back: while slipping it turns (and counts) free of the robot's load, and the
+        robot moves as if that wheel stood (module docstring)."""
+        self.wheels[side].slipping = slipping
+
+    def slipping(self) -> tuple[bool, bool]:
+        """Whether the left and the right wheel have lost their traction."""
+        left, right = self.wheels
+        return left.slipping, right.slipping
 
     def motor_current_a(self) -> float:
         """Rough motor current drawn from the pack (for the battery sag): a motor held
@@ -228,8 +277,14 @@ class DriveTrain:
                 return
             dt = min(_STEP_S, now_s - self._now_s)
             left, right = self.wheels
-            d_left = left.step(self.model, dt)
-            d_right = self._right_sign * right.step(self.model, dt)
+            model, free = self.model, self._free_model
+            d_left = left.step(free if left.slipping else model, dt)
+            d_right = self._right_sign * right.step(free if right.slipping else model, dt)
+            # A wheel without traction turns; the ground under it does not move.
+            if left.slipping:
+                d_left = 0.0
+            if right.slipping:
+                d_right = 0.0
             self.distance_m[0] += d_left
             self.distance_m[1] += d_right
             self._integrate(d_left, d_right)
@@ -237,12 +292,16 @@ class DriveTrain:
 
     def _held(self) -> bool:
         """Both wheels at rest, held there by static friction (``_Wheel.step`` is a no-op)."""
-        m = self.model
         return all(
             w.blocked
             or (
                 w.speed_mps == 0.0
-                and (w.torque is not DriveTorque.ON or m.accel_mps2 * abs(w.duty) <= m.coulomb_mps2)
+                and (
+                    w.torque is not DriveTorque.ON
+                    or (m := self._free_model if w.slipping else self.model).accel_mps2
+                    * abs(w.duty)
+                    <= m.coulomb_mps2
+                )
             )
             for w in self.wheels
         )

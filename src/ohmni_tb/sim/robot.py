@@ -9,7 +9,10 @@ simulator can play any profile ``ohmni probe`` may meet.
 
 The :class:`SimRobot` is reachable from the transport (``transport.robot``) for tests
 and tools: its ground-truth pose, the dock, the power switch, obstacles against the
-wheels (:meth:`SimRobot.block_wheels`).
+wheels (:meth:`SimRobot.block_wheels`), wheels that lose their traction
+(:meth:`SimRobot.slip_wheels`). The URL options ``stall`` and ``slip`` (drive board ids)
+start it so, and ``ohmni sim``'s console sets them by board id (:meth:`SimRobot.stall`,
+:meth:`SimRobot.slip`).
 """
 
 from __future__ import annotations
@@ -154,6 +157,54 @@ class SimRobot:
         """Whether the left and the right wheel are blocked."""
         return self.train.blocked()
 
+    def slip_wheels(self, *, left: bool, right: bool) -> None:
+        """Take the left and/or right wheel's traction away, or give it back (from now on).
+
+        A wheel without traction (a slippery patch, or lifted) still turns and counts,
+        free of the robot's load, so it runs faster at the same PWM than on the ground;
+        the robot moves as if that wheel stood (:mod:`ohmni_tb.sim.drive`).
+        ``slip_wheels(left=False, right=False)`` gives both their grip back.
+        """
+        self.sync()
+        self.train.slip(0, left)
+        self.train.slip(1, right)
+
+    @property
+    def slipping_wheels(self) -> tuple[bool, bool]:
+        """Whether the left and the right wheel have lost their traction."""
+        return self.train.slipping()
+
+    def stall(self, sid: int, on: bool = True) -> None:
+        """Block the wheel of drive board ``sid`` (the id it answers to now), or free it
+        (``on=False``): :meth:`block_wheels` for one board.
+
+        Raises:
+            InvalidArgumentError: No drive board answers to ``sid``.
+        """
+        side = self._side(sid)
+        self.sync()
+        self.train.block(side, on)
+
+    def slip(self, sid: int, on: bool = True) -> None:
+        """Take the traction of drive board ``sid``'s wheel away, or give it back
+        (``on=False``): :meth:`slip_wheels` for one board.
+
+        Raises:
+            InvalidArgumentError: No drive board answers to ``sid``.
+        """
+        side = self._side(sid)
+        self.sync()
+        self.train.slip(side, on)
+
+    def _side(self, sid: int) -> int:
+        for board in (self.left, self.right):
+            if board.sid == sid:
+                return board.side
+        raise InvalidArgumentError(
+            f"no drive board answers to id {sid}: the drive boards answer to "
+            f"{self.left.sid} (left) and {self.right.sid} (right)"
+        )
+
     @classmethod
     def from_options(cls, options: dict[str, str]) -> SimRobot:
         """Build from ``sim://`` URL options, consuming the ones it knows.
@@ -177,7 +228,9 @@ class SimRobot:
             count_offset = int(options.pop("count_offset", "0"), 0)
         except ValueError:
             raise ConfigError("option count_offset must be an integer") from None
-        return cls(
+        stalled = _board_ids("stall", options.pop("stall", ""))
+        slipping = _board_ids("slip", options.pop("slip", ""))
+        robot = cls(
             neck=neck,
             ext_servo_ids=ext_ids,
             soc_percent=soc,
@@ -185,6 +238,27 @@ class SimRobot:
             count_offset=count_offset,
             profile=profile,
         )
+        for sid in stalled:
+            robot.stall(sid)
+        for sid in slipping:
+            robot.slip(sid)
+        return robot
+
+
+def _board_ids(name: str, text: str) -> tuple[int, ...]:
+    """The drive board ids of option ``name`` (``"0,1"``; ``""`` or ``none``: none).
+
+    Raises:
+        ConfigError: An id is not a drive board's (0 left, 1 right).
+    """
+    ids = parse_ids(name, text)
+    drives = (int(DeviceId.LEFT_DRIVE), int(DeviceId.RIGHT_DRIVE))
+    for sid in ids:
+        if sid not in drives:
+            raise ConfigError(
+                f"option {name}: id {sid} is not a drive board's: allowed 0 (left), 1 (right)"
+            )
+    return ids
 
 
 def _profile_from_options(options: dict[str, str]) -> BusProfile:

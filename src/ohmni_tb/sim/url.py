@@ -12,6 +12,10 @@ option              meaning                                                    d
 ``soc``             battery state of charge at start, percent                  ``80``
 ``docked``          start on the dock (1/0)                                    ``0``
 ``count_offset``    initial wheel count of both boards (int32 wrap tests)      ``0``
+``stall``           drive board ids whose wheel is blocked (it does not turn   none
+                    whatever its PWM), comma-separated
+``slip``            drive board ids whose wheel has no traction (it turns,     none
+                    the robot does not follow), comma-separated
 ``wheel_form``      the wheel command the drive boards take: ``s_jog`` or      ``s_jog``
                     ``i_jog``
 ``right_mirrored``  the right motor is mounted mirrored (1/0)                  ``1``
