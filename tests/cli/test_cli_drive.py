@@ -154,6 +154,7 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
     assert truth.urls == ["sim://"]
     assert set(result) == {
         "port",
+        "source",
         "mode",
         "command",
         "goal",
@@ -170,6 +171,7 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
         "missed_counts",
     }
     assert result["port"] == "sim://"
+    assert result["source"] == "local"  # a person at the robot: this computer opened the port
     assert result["mode"] == "duration"
     assert result["goal"] is None
     assert set(result["pose"]) == {"x_m", "y_m", "yaw_deg"}
