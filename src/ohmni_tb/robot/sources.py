@@ -7,11 +7,11 @@ sent, and publishes ``robot_state`` when the source that drives changes: at once
 source takes over, and on a timer of its own when one lapses (nothing runs in the
 control tick).
 
-When the source that drives lapses while the robot still follows its last command (a
-timeout shorter than ``watchdog_s``), the target goes to zero then, as the watchdog
-would later: no source live means the robot stands. With the default table the
-watchdog has already stopped it. With the watchdog off (``watchdog_s=0``) a lapse
-changes only who may drive.
+The watchdog and the sources agree: no source live means the robot stands. A source
+whose timeout is ``watchdog_s`` or longer (the default table's) lapses as the watchdog
+stops the robot or after. One whose timeout is shorter lapses first: if the robot still
+follows its last command then, the target goes to zero at once, as the watchdog would
+later. With the watchdog off (``watchdog_s=0``) a lapse changes only who may drive.
 """
 
 from __future__ import annotations
@@ -43,7 +43,12 @@ class CommandSources:
         self._mux = state.sources
         self._loop = state.loop
         self._control = control
-        self._watchdog_on = state.config.watchdog_s > 0
+        watchdog_s = state.config.watchdog_s
+        #: The sources that lapse before the watchdog would stop the robot: a lapse of
+        #: one of them stops it.
+        self._stop_on_lapse = frozenset(
+            row.name for row in self._mux.table if 0 < watchdog_s and row.timeout_s < watchdog_s
+        )
         #: The source a command names when it names none (``Robot.open(source=…)``).
         self.default = DEFAULT_SOURCE
         # The active source as last published, and the timer of its lapse.
@@ -181,7 +186,7 @@ class CommandSources:
             timeout = self._mux.table[self._mux.names.index(lapsed)].timeout_s
             after = f"command source {lapsed} lapsed (no command for {timeout:g} s)"
             stopping = ""
-            if self._watchdog_on and self._control.moving():
+            if lapsed in self._stop_on_lapse and self._control.moving():
                 # Its last command still drives: no live source, no motion.
                 self._control.stop()
                 stopping = ", stopping"
