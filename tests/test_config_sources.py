@@ -108,7 +108,7 @@ def test_a_bad_entry_in_the_file_names_the_file(hermetic: Path) -> None:
 )
 def test_a_bad_table_is_refused_naming_the_entry(value: object, message: str) -> None:
     with pytest.raises(ConfigError) as caught:
-        RobotConfig(command_sources=value)
+        RobotConfig(command_sources=value)  # type: ignore[arg-type]  # bad kinds on purpose
     assert str(caught.value) == message
 
 

@@ -1037,6 +1037,10 @@ _KIND_ERRORS = {
 }
 
 
+#: The settings that are lists of text (the others' lists are of integers).
+_TEXT_LIST_SETTINGS = frozenset({"command_sources"})
+
+
 def toml_value(name: str, value: object) -> str:
     """``value`` as a TOML value (what :func:`toml_settings` reads back as the same):
     a bool, a number, a string, or a list of integers (the servo ids) or of strings (the
@@ -1058,11 +1062,15 @@ def toml_value(name: str, value: object) -> str:
         isinstance(v, int) and not isinstance(v, bool) for v in value
     ):
         return "[" + ", ".join(str(v) for v in value) + "]"
-    if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
-        return "[" + ", ".join(json.dumps(v) for v in value) + "]"  # command_sources
+    if (
+        name in _TEXT_LIST_SETTINGS
+        and isinstance(value, (list, tuple))
+        and all(isinstance(v, str) for v in value)
+    ):
+        return "[" + ", ".join(json.dumps(v) for v in value) + "]"
     raise ConfigError(
         f"{name}={value!r}: a setting is a number, a string, a boolean or a list of "
-        "integers or strings"
+        "integers (command_sources: of strings)"
     )
 
 

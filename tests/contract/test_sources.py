@@ -29,12 +29,17 @@ async def drive_as(robot: Robot, source: str, seconds: float, linear_mps: float 
         await asyncio.sleep(0.05)
 
 
+async def drive_confirmed(robot: Robot, source: str, linear_mps: float) -> None:
+    """A drive command of ``source``, and the daemon's answer to it (a local robot answers
+    at once)."""
+    robot.drive(linear_mps, 0.0, source=source)
+    await robot.confirm()
+
+
 async def refused(robot: Robot, source: str, linear_mps: float = 0.3) -> SourceOverriddenError:
-    """A drive command of ``source`` that the robot refuses (a local robot at once, a
-    daemon's with its answer)."""
+    """A drive command of ``source`` that the robot refuses."""
     with pytest.raises(SourceOverriddenError) as raised:
-        robot.drive(linear_mps, 0.0, source=source)
-        await robot.confirm()
+        await drive_confirmed(robot, source, linear_mps)
     return raised.value
 
 

@@ -30,7 +30,12 @@ def test_the_default_table_is_safety_local_remote_autonomy_with_their_timeouts()
         ("remote", 0.5),
         ("autonomy", 1.0),
     ]
-    assert format_sources(DEFAULT_SOURCES) == ("safety:0.5", "local:0.5", "remote:0.5", "autonomy:1")
+    assert format_sources(DEFAULT_SOURCES) == (
+        "safety:0.5",
+        "local:0.5",
+        "remote:0.5",
+        "autonomy:1",
+    )
 
 
 def test_a_higher_source_overrides_a_lower_one_until_it_lapses() -> None:
@@ -125,7 +130,7 @@ def test_beyond_loopback_a_client_may_claim_remote_and_below_only() -> None:
     ],
 )
 def test_a_bad_table_is_refused_naming_the_entry(text: str, said: str) -> None:
-    with pytest.raises(ValueError, match="^command_sources") as raised:
+    with pytest.raises(ValueError, match=r"^command_sources") as raised:
         parse_sources(text)
     assert said in str(raised.value)
 

@@ -25,6 +25,14 @@ from .test_control import drive_for, speed, until
 TOKEN = "s" * 20 + "-a-sources-token"
 
 
+async def drive_confirmed(robot: Robot) -> None:
+    """Drive as a teleop does for half a second, and wait for the daemon's answers."""
+    for _ in range(10):
+        robot.drive(0.3, 0.0)
+        await asyncio.sleep(0.05)
+    await robot.confirm()
+
+
 def drain(stream: SampleStream[WheelOdomSample]) -> list[WheelOdomSample]:
     """The samples queued in ``stream``."""
     got = []
@@ -50,7 +58,7 @@ async def beyond_loopback(robot: Robot) -> AsyncIterator[tuple[str, str]]:
     address = this_computers_address()
     if address is None:
         pytest.skip("this computer has no address beyond loopback")
-    async with RobotServer(robot, host="0.0.0.0", port=0, token=TOKEN) as server:  # noqa: S104
+    async with RobotServer(robot, host="0.0.0.0", port=0, token=TOKEN) as server:
         port = server.url.rsplit(":", 1)[1]
         yield f"ws://{address}:{port}", f"ws://127.0.0.1:{port}"
 
@@ -73,10 +81,7 @@ async def test_beyond_loopback_a_client_cannot_claim_local_and_nothing_moves(rob
         # nothing reaches the wheels.
         async with Robot.open(far, token=TOKEN, source="local") as script:
             with pytest.raises(LeaseError, match="is for programs on the robot's own computer"):
-                for _ in range(10):
-                    script.drive(0.3, 0.0)
-                    await asyncio.sleep(0.05)
-                await script.confirm()
+                await drive_confirmed(script)
             assert speed(robot) == 0.0
         # remote and autonomy it may take; on loopback, local too.
         async with RobotClient.connect(far, token=TOKEN, source="remote") as client:
@@ -109,8 +114,7 @@ async def test_one_lease_per_source_and_the_highest_drives(
         # The person takes over; the script's commands are refused meanwhile.
         await drive_for(person, 0.3, 0.0)
         with pytest.raises(SourceOverriddenError, match="source 'local'"):
-            script.drive(0.3, 0.0)
-            await script.confirm()
+            await drive_confirmed(script)
         await until(lambda: speed(robot) == 0.0, 1.0)
         assert robot.state.active_source == "local"
 

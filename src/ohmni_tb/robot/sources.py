@@ -47,7 +47,7 @@ class CommandSources:
         #: The sources that lapse before the watchdog would stop the robot: a lapse of
         #: one of them stops it.
         self._stop_on_lapse = frozenset(
-            row.name for row in self._mux.table if 0 < watchdog_s and row.timeout_s < watchdog_s
+            row.name for row in self._mux.table if watchdog_s > 0 and row.timeout_s < watchdog_s
         )
         #: The source a command names when it names none (``Robot.open(source=…)``).
         self.default = DEFAULT_SOURCE
@@ -161,7 +161,7 @@ class CommandSources:
     def _arm(self, now: float) -> None:
         """The timer at the lapse of the source that drives (none while it is held)."""
         active = self._mux.active(now)
-        if active is None:
+        if active is None or self._state.closed:
             return
         due = self._mux.lapses_at(active)
         if math.isinf(due) or (self._timer is not None and self._timer_due <= due):
