@@ -27,7 +27,7 @@ from typing import Any, ClassVar, Protocol, overload
 
 from ohmni_tb.errors import LeaseError, TransportError
 from ohmni_tb.robot.remote import DEFAULT_TIMEOUT_S, DEFAULT_URL, RemoteRobot
-from ohmni_tb.robot.wire import AcquireArgs, Hello
+from ohmni_tb.robot.wire import AcquireArgs, Hello, ReleaseArgs
 
 __all__ = ["DEFAULT_TIMEOUT_S", "DEFAULT_URL", "RobotClient"]
 
@@ -40,6 +40,7 @@ class _Opener(Protocol):
         token: str | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         reconnect: bool = False,
+        source: str | None = None,
     ) -> AbstractAsyncContextManager[RobotClient]: ...
 
 
@@ -67,8 +68,11 @@ class _OpenOrConnect:
                 token: str | None = None,
                 timeout_s: float = DEFAULT_TIMEOUT_S,
                 reconnect: bool = False,
+                source: str | None = None,
             ) -> AbstractAsyncContextManager[RobotClient]:
-                return owner.open(url, token=token, timeout_s=timeout_s, reconnect=reconnect)
+                return owner.open(
+                    url, token=token, timeout_s=timeout_s, reconnect=reconnect, source=source
+                )
 
             return opener
         return functools.partial(RemoteRobot.connect, instance)
@@ -101,51 +105,65 @@ class RobotClient(RemoteRobot):
 
     @property
     def has_lease(self) -> bool:
-        """Whether this connection holds the control lease."""
+        """Whether this connection holds the control lease of its command source
+        (:attr:`source`)."""
         return self._connection.has_lease
 
-    async def acquire(self, *, steal: bool = False) -> str | None:
-        """Take the control lease: from now on this connection's commands move the robot.
+    async def acquire(self, *, steal: bool = False, source: str | None = None) -> str | None:
+        """Take the control lease of command source ``source`` (default :attr:`source`):
+        from now on this connection's commands move the robot as that source.
 
-        Only one client holds it. ``steal`` takes it from the holder (an operator taking
-        over a misbehaving script); the loser is told, and the robot stops whenever the
-        lease changes hands. Closing the connection releases it (and stops the robot).
+        One client at most holds each source's lease; the daemon's Robot takes the drive
+        commands of the highest source that drives. ``steal`` takes it from the holder
+        (an operator taking over a misbehaving script); the loser is told, and the robot
+        stops whenever the lease changes hands while its source drives. Closing the
+        connection releases it (and so stops the robot). Only a program on the daemon's
+        computer may take ``local`` or ``safety``.
 
         Returns:
             The peer it was stolen from, or ``None``.
 
         Raises:
-            LeaseError: Another client holds it and ``steal`` is not set; ``.holder``
-                names it.
+            LeaseError: Another client holds it and ``steal`` is not set (``.holder``
+                names it), or a source this client may not take (beyond loopback).
+            InvalidArgumentError: ``source`` is not a command source of the daemon's robot.
             StateError: The daemon takes no commands (started read-only).
         """
-        data = await self._call("acquire", AcquireArgs(steal=bool(steal)))
-        self._connection.holder = data["holder"]
+        name = self._source_name(source)
+        data = await self._call("acquire", AcquireArgs(steal=bool(steal), source=name))
+        self._connection.holders[name] = data["holder"]
         stolen_from: str | None = data["stolen_from"]
         return stolen_from
 
-    async def release(self) -> None:
-        """Give the control lease back (the robot stops). Without the lease: nothing."""
-        if not self.has_lease:
+    async def release(self, *, source: str | None = None) -> None:
+        """Give the control lease of ``source`` (default :attr:`source`) back: the robot
+        stops unless a higher source drives it. Without that lease: nothing."""
+        name = self._source_name(source)
+        if not self._connection.holds(name):
             return
         self._check_open()
-        self._connection.holder = None  # before the daemon's lease message: ours, not a loss
-        await self._connection.call("release")
+        # Before the daemon's lease message: ours, not a loss.
+        self._connection.holders.pop(name, None)
+        await self._connection.call("release", ReleaseArgs(source=name))
 
     @asynccontextmanager
-    async def lease(self, *, steal: bool = False) -> AsyncIterator[RobotClient]:
-        """``async with client.lease():`` — hold the control lease for the block."""
-        await self.acquire(steal=steal)
+    async def lease(
+        self, *, steal: bool = False, source: str | None = None
+    ) -> AsyncIterator[RobotClient]:
+        """``async with client.lease():`` — hold the control lease (of ``source``) for the
+        block."""
+        await self.acquire(steal=steal, source=source)
         try:
             yield self
         finally:
             if self.connected and not self.closed:
                 with contextlib.suppress(TransportError, LeaseError):
-                    await self.release()
+                    await self.release(source=source)
 
-    def _lease_refusal(self, method: str, holder: str | None) -> str:
-        return f"{method} needs the control lease: " + (
+    def _lease_refusal(self, method: str, holder: str | None, source: str) -> str:
+        whose = "" if source == self.source else f" of command source {source}"
+        return f"{method} needs the control lease{whose}: " + (
             f"{holder} holds it (acquire(steal=True) takes it)"
             if holder
-            else "call await client.acquire() first"
+            else f"call await client.acquire({'' if not whose else f'source={source!r}'}) first"
         )

@@ -75,6 +75,14 @@ from ohmni_tb.control.encoder import EncoderConfig
 from ohmni_tb.control.kinematics import DiffDrive, VelocityLimits
 from ohmni_tb.control.limiter import AccelLimits, TwistLimiter
 from ohmni_tb.control.pid import PidGains
+from ohmni_tb.control.sources import (
+    DEFAULT_SOURCES,
+    REQUIRED_SOURCES,
+    TIMEOUT_RANGE_S,
+    CommandSource,
+    format_sources,
+    parse_sources,
+)
 from ohmni_tb.errors import ConfigError, OhmniError
 from ohmni_tb.herkulex.registers import RAM as SERVO_RAM
 from ohmni_tb.protocol.connection import DEFAULT_TIMEOUT_S
@@ -365,6 +373,17 @@ class RobotConfig(BaseSettings):
         "s",
         "Motion watchdog: the wheels are stopped this long after the last drive command, s.",
         off="off",
+    )
+    command_sources: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=format_sources(DEFAULT_SOURCES),
+        description="The command sources, highest priority first, each name:seconds: the "
+        "highest source that commanded within its seconds drives, a lower one's drive "
+        "commands are refused meanwhile (docs/robot.md, Command sources). From the "
+        "environment or TOML: a list, or 'safety:0.5,local:0.5,remote:0.5,autonomy:1'. "
+        f"Allowed: up to 16 sources, names of lower case letters, digits and _, each "
+        f"{TIMEOUT_RANGE_S[0]:g}..{TIMEOUT_RANGE_S[1]:g} s; {', '.join(REQUIRED_SOURCES)} "
+        "among them.",
+        json_schema_extra={"allowed": "name:seconds entries, highest priority first"},
     )
     stale_ticks: int = _setting(
         5,
@@ -867,6 +886,10 @@ class RobotConfig(BaseSettings):
             ),
         )
 
+    def source_table(self) -> tuple[CommandSource, ...]:
+        """The command sources, highest priority first (``command_sources``)."""
+        return parse_sources(self.command_sources)
+
     def pid_gains(self) -> PidGains:
         """The wheel PID gains."""
         return PidGains(
@@ -971,6 +994,22 @@ class RobotConfig(BaseSettings):
             except ValueError:
                 return value
         return value
+
+    @field_validator("command_sources", mode="before")
+    @classmethod
+    def _parse_sources(cls, value: object) -> object:
+        # One entry or the whole table in a line ("safety:0.5,local:0.5,…"), a list of
+        # entries, or CommandSource rows: the same canonical entries either way.
+        if isinstance(value, str) or (
+            isinstance(value, list | tuple) and any(isinstance(v, CommandSource) for v in value)
+        ):
+            return format_sources(parse_sources(value))
+        return value
+
+    @field_validator("command_sources", mode="after")
+    @classmethod
+    def _check_sources(cls, entries: tuple[str, ...]) -> tuple[str, ...]:
+        return format_sources(parse_sources(entries))
 
     @field_validator("ext_servo_ids", mode="before")
     @classmethod
@@ -1196,9 +1235,14 @@ _KIND_ERRORS = {
 }
 
 
+#: The settings that are lists of text (the others' lists are of integers).
+_TEXT_LIST_SETTINGS = frozenset({"command_sources"})
+
+
 def toml_value(name: str, value: object) -> str:
     """``value`` as a TOML value (what :func:`toml_settings` reads back as the same):
-    a bool, a number, a string, or a list of integers (the servo ids).
+    a bool, a number, a string, or a list of integers (the servo ids) or of strings (the
+    command sources).
 
     Raises:
         ConfigError: A kind of value a setting never holds; the message names it.
@@ -1216,8 +1260,15 @@ def toml_value(name: str, value: object) -> str:
         isinstance(v, int) and not isinstance(v, bool) for v in value
     ):
         return "[" + ", ".join(str(v) for v in value) + "]"
+    if (
+        name in _TEXT_LIST_SETTINGS
+        and isinstance(value, (list, tuple))
+        and all(isinstance(v, str) for v in value)
+    ):
+        return "[" + ", ".join(json.dumps(v) for v in value) + "]"
     raise ConfigError(
-        f"{name}={value!r}: a setting is a number, a string, a boolean or a list of integers"
+        f"{name}={value!r}: a setting is a number, a string, a boolean or a list of "
+        "integers (command_sources: of strings)"
     )
 
 

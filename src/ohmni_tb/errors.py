@@ -24,6 +24,8 @@ catches the right thing::
     │   ├── DeadlineMissedError     a slot could not start before its deadline
     │   │                                                 (+ TimeoutError)  (.deadline, .late_s)
     │   ├── LeaseError              a daemon command without its control lease (.holder)
+    │   ├── SourceOverriddenError   a higher command source drives: refused, nothing sent
+    │   │                                               (.source, .active, .lapses_in_s)
     │   └── MotionError             a motion goal ended short of its goal          (.result)
     │       ├── MotionPreemptedError  another motion command took over             (.by)
     │       ├── MotionAbortedError  the watchdog, a lost link, no wheel counts or closing
@@ -66,6 +68,7 @@ __all__ = [
     "PositionTimeoutError",
     "ProtocolError",
     "RobotClosedError",
+    "SourceOverriddenError",
     "StateError",
     "StopNotConfirmedError",
     "TransportClosedError",
@@ -361,6 +364,28 @@ class LeaseError(StateError):
         self.holder = holder
 
 
+class SourceOverriddenError(StateError):
+    """A drive command or motion goal from one command source, refused because a source
+    of higher priority drives now (``robot_state``'s ``active_source``): nothing was sent
+    and nothing changed. Its commands are taken again once that source lapses (no command
+    from it for its timeout, its motion goal ended).
+
+    Attributes:
+        source: The source the refused command came from (``"remote"``…).
+        active: The source that drives (``"local"``…).
+        lapses_in_s: When ``active`` lapses if it gives no other command, seconds from the
+            refusal; ``None`` while a motion goal of it runs (it lapses after the goal).
+    """
+
+    def __init__(
+        self, message: str, *, source: str, active: str, lapses_in_s: float | None
+    ) -> None:
+        super().__init__(message)
+        self.source = source
+        self.active = active
+        self.lapses_in_s = lapses_in_s
+
+
 class MotionError(StateError):
     """A motion goal (``Robot.drive_distance``, ``rotate``, ``go_to``) ended short of its goal.
 
@@ -377,15 +402,21 @@ class MotionError(StateError):
 class MotionPreemptedError(MotionError):
     """Another motion command took over the goal: ``drive``, ``drive_wheels``,
     ``drive_pwm``, ``stop``, ``estop``, ``enable_controllers(False)``, ``release_port`` or
-    another goal. The newer command stands: the goal sent nothing after it.
+    another goal — from the goal's own command source, a higher one, or (a stop) any.
+    The newer command stands: the goal sent nothing after it.
 
     Attributes:
         by: The command that took over (``"drive"``, ``"stop"``, ``"rotate"``…).
+        source: The command source it came from (``"local"``…), or ``None`` for a command
+            that has none (``release_port``, ``set_odometry``…).
     """
 
-    def __init__(self, message: str, *, result: MotionResult, by: str) -> None:
+    def __init__(
+        self, message: str, *, result: MotionResult, by: str, source: str | None = None
+    ) -> None:
         super().__init__(message, result=result)
         self.by = by
+        self.source = source
 
 
 class MotionAbortedError(MotionError):

@@ -87,3 +87,21 @@ def test_sigterm_and_sighup_end_a_command_through_its_cleanup(signum: int, code:
     assert exit_info.value.exit_code == code
     assert done == ["cleaned up"]
     assert signal.getsignal(signum) is signal.SIG_DFL
+
+
+@pytest.mark.parametrize(
+    ("via", "source"),
+    [
+        (None, "local"),  # the port opened on this computer: the robot's
+        ("ws://127.0.0.1:8766", "local"),
+        ("ws://[::1]:8766", "local"),
+        ("ws://localhost:8766", "local"),
+        ("wss://127.0.0.2:8766", "local"),
+        ("ws://192.0.2.7:8766", "remote"),
+        ("ws://robot.lan:8766", "remote"),
+    ],
+)
+def test_a_person_drives_as_local_on_the_robots_computer_and_remote_elsewhere(
+    via: str | None, source: str
+) -> None:
+    assert common.drive_source(via) == source

@@ -154,6 +154,7 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
     assert truth.urls == ["sim://"]
     assert set(result) == {
         "port",
+        "source",
         "mode",
         "command",
         "goal",
@@ -170,6 +171,7 @@ def test_the_json_has_one_schema_for_every_drive(truth: Truth) -> None:
         "missed_counts",
     }
     assert result["port"] == "sim://"
+    assert result["source"] == "local"  # a person at the robot: this computer opened the port
     assert result["mode"] == "duration"
     assert result["goal"] is None
     assert set(result["pose"]) == {"x_m", "y_m", "yaw_deg"}
@@ -698,3 +700,23 @@ def test_a_goal_drive_whose_counts_stop_coming_stops_at_once(
     [error] = [line for line in out.splitlines() if line.startswith("error:")]
     assert "WHEEL STOP NOT CONFIRMED" in error
     assert time.monotonic() - started < 10  # not the goal's timeout of 38.9 s
+
+
+# -- the command source -------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("virtual_time")
+def test_the_drive_goes_as_the_source_named(truth: Truth) -> None:
+    result = run_json("--linear", "0.2", "--duration", "0.2", "--source", "remote")
+    assert result["source"] == "remote"
+    assert result["distance_m"] > 0.005  # nothing above remote drives: taken
+    assert_stopped(truth)
+
+
+def test_a_source_not_in_the_table_is_refused_before_the_port_opens() -> None:
+    code, out = invoke("--linear", "0.2", "--source", "operator", *SIM)
+    assert code == 2
+    assert (
+        "--source='operator' is not a command source: allowed safety, local, remote, autonomy "
+        "(command_sources)" in words(out)
+    )

@@ -133,6 +133,7 @@ def test_info_and_light_go_through_the_daemon(via: str) -> None:
 
 
 def test_a_command_that_moves_is_refused_while_another_client_drives(via: str) -> None:
+    # Another person at the robot holds the lease of ohmni drive's source here (local).
     holder = subprocess.Popen(
         [
             sys.executable,
@@ -140,7 +141,7 @@ def test_a_command_that_moves_is_refused_while_another_client_drives(via: str) -
             "import asyncio, sys\n"
             "from ohmni_tb.client import RobotClient\n"
             "async def main():\n"
-            f"    async with RobotClient.connect({via!r}) as client:\n"
+            f"    async with RobotClient.connect({via!r}, source='local') as client:\n"
             "        await client.acquire()\n"
             "        print(client.peer, flush=True)\n"
             "        sys.stdin.readline()\n"
@@ -165,6 +166,49 @@ def test_a_command_that_moves_is_refused_while_another_client_drives(via: str) -
     # Released when it left: the command may drive now.
     again = invoke("drive", "--linear", "0.2", "--duration", "0.3", "--yes")
     assert again.code == 0, again.out
+
+
+def test_a_drive_at_the_robot_overrides_a_script_and_the_script_is_told(via: str) -> None:
+    script = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import asyncio, sys\n"
+            "from ohmni_tb import Robot\n"
+            "from ohmni_tb.errors import SourceOverriddenError\n"
+            "async def main():\n"
+            f"    async with Robot.open({via!r}) as robot:\n"  # a script: autonomy
+            "        robot.drive(-0.1, 0.0)\n"
+            "        await robot.confirm()\n"
+            "        print('driving', flush=True)\n"
+            "        refused = set()\n"
+            "        for _ in range(60):\n"
+            "            try:\n"
+            "                robot.drive(-0.1, 0.0)\n"
+            "                await robot.confirm()\n"
+            "            except SourceOverriddenError as exc:\n"
+            "                refused.add(exc.active)\n"
+            "            await asyncio.sleep(0.05)\n"
+            "        print(sorted(refused), flush=True)\n"
+            "asyncio.run(main())\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert script.stdout is not None
+        assert script.stdout.readline().strip() == "driving"
+        # The person's drive, on the robot's computer: local, above the script.
+        result = invoke("drive", "--linear", "0.2", "--duration", "0.5", "--yes", "--json")
+        assert result.code == 0, result.out
+        drove = json.loads(result.stdout)
+        assert drove["source"] == "local"
+        assert drove["distance_m"] > 0.03  # forward: the script's backward commands refused
+        told, _ = script.communicate(timeout=20)
+    finally:
+        if script.poll() is None:
+            script.kill()
+    assert told.strip() == "['local']"
 
 
 def test_direct_opens_the_port_even_while_the_daemon_runs(via: str) -> None:

@@ -291,6 +291,6 @@ async def test_loopback_addresses_serve(robot: Robot, host: str) -> None:
         pytest.skip(f"{host}: {exc}")
     try:
         async with RobotClient.connect(server.url) as client:
-            assert client.hello.protocol == PROTOCOL_VERSION == 6
+            assert client.hello.protocol == PROTOCOL_VERSION == 7
     finally:
         await server.aclose()

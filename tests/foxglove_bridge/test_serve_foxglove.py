@@ -18,7 +18,7 @@ from daemon_api._serving import free_port, start_serving, stop_serving
 from ohmni_tb.cli import app
 from ohmni_tb.client import RobotClient
 from ohmni_tb.control.pid import PidGains
-from ohmni_tb.errors import LeaseError
+from ohmni_tb.errors import LeaseError, SourceOverriddenError
 from ohmni_tb.foxglove.bridge import parse_twist
 
 from ._wire import FoxgloveClient
@@ -160,7 +160,7 @@ async def lease_is_free_again(url: str) -> None:
     loop = asyncio.get_running_loop()
     deadline = loop.time() + 10.0
     await asyncio.sleep(1.0)
-    async with RobotClient.connect(url) as after:
+    async with RobotClient.connect(url, source="remote") as after:
         while True:
             try:
                 await after.acquire()
@@ -177,16 +177,26 @@ def test_the_teleop_panel_drives_only_with_control_and_the_lease(config_home: Pa
     try:
 
         async def drive() -> None:
-            # Another client holds the lease: the panel's Twists move nothing.
-            async with RobotClient.connect(url) as holder:
+            # Another client holds the lease of the panel's command source (remote): the
+            # panel's Twists move nothing.
+            async with RobotClient.connect(url, source="remote") as holder:
                 await holder.acquire()
                 await publish_twists(view, 0.3, 1.0, token)
                 assert await travelled(url) == pytest.approx(0.0, abs=0.002)
                 # Given back in order (a closing connection frees it only once the daemon
                 # has seen the close).
                 await holder.release()
-            # Free: the panel takes the lease and drives; the wheels follow.
-            await publish_twists(view, 0.3, 1.5, token)
+            # Free: the panel takes the lease and drives; the wheels follow. A script
+            # (autonomy, below remote) holding its own lease does not hold it back: the
+            # panel overrides it, and the script's drive commands are refused meanwhile.
+            async with RobotClient.connect(url) as script:
+                await script.acquire()
+                panel = asyncio.create_task(publish_twists(view, 0.3, 1.5, token))
+                await asyncio.sleep(1.0)
+                script.drive(-0.3, 0.0)
+                with pytest.raises(SourceOverriddenError, match="'remote'"):
+                    await script.confirm()
+                await panel
             assert await travelled(url) > 0.2
             # It gives the lease back after its last Twist: another client may drive.
             await lease_is_free_again(url)
@@ -215,7 +225,7 @@ def test_parameters_and_services_change_the_robot_only_through_the_lease(
                 }
                 assert await foxglove.unlock(token) == {"unlocked": True}
                 # Another client holds the lease: refused, named, nothing changed.
-                async with RobotClient.connect(url) as holder:
+                async with RobotClient.connect(url, source="remote") as holder:
                     await holder.acquire()
                     refused = await foxglove.call_service(
                         "/tb_control/reset_odom", {"x_m": 2.0}, call_id=1

@@ -44,6 +44,7 @@ __all__ = [
     "confirm_stop",
     "console",
     "daemon_for",
+    "drive_source",
     "emit_json",
     "error_line",
     "is_simulated",
@@ -203,7 +204,12 @@ def _daemon_simulated(port: str) -> bool:
 
 @asynccontextmanager
 async def open_robot(
-    port: str, *, via: str | None = None, control: bool = False, **overrides: Any
+    port: str,
+    *,
+    via: str | None = None,
+    control: bool = False,
+    source: str | None = None,
+    **overrides: Any,
 ) -> AsyncIterator[Robot]:
     """``Robot.open`` with the settings from the environment and config file — or, with
     ``via`` (a daemon's URL from :func:`daemon_for`), the daemon's robot.
@@ -212,8 +218,10 @@ async def open_robot(
         port: The port to open (resolved: :func:`resolve_port`).
         via: Use the daemon at this URL instead of opening ``port``.
         control: The command moves the robot: through the daemon it is refused at once,
-            naming the holder, when another client holds the control lease (its first
-            command takes the lease otherwise).
+            naming the holder, when another client holds the control lease of its command
+            source (its first command takes the lease otherwise).
+        source: The command source of the robot's drive commands (default: the Robot's,
+            ``autonomy``).
         overrides: RobotConfig settings for a Robot this opens (not the daemon's).
 
     Raises:
@@ -224,12 +232,13 @@ async def open_robot(
         from ohmni_tb.errors import LeaseError  # noqa: PLC0415
         from ohmni_tb.robot import RemoteRobot  # noqa: PLC0415  # the client: when used
 
-        async with RemoteRobot.open(via) as remote:
+        async with RemoteRobot.open(via, source=source) as remote:
             holder = remote.lease_holder
             if control and holder is not None:
                 raise LeaseError(
                     f"another client of the daemon at {via} drives the robot ({holder}): "
-                    "this command needs the control lease",
+                    "this command needs the control lease"
+                    + ("" if source is None else f" of command source {source}"),
                     holder=holder,
                 )
             _err.print(
@@ -241,7 +250,7 @@ async def open_robot(
     from ohmni_tb.config import RobotConfig  # noqa: PLC0415  # the Robot only when used
     from ohmni_tb.robot import Robot  # noqa: PLC0415
 
-    async with Robot.open(port, config=RobotConfig.load(), **overrides) as robot:
+    async with Robot.open(port, config=RobotConfig.load(), source=source, **overrides) as robot:
         if not robot.state.present:
             from ohmni_tb.errors import TransportError  # noqa: PLC0415
 
@@ -251,6 +260,23 @@ async def open_robot(
                 f"{port}` asks every id)"
             )
         yield robot
+
+
+def drive_source(via: str | None) -> str:
+    """The command source a person's commands go as: ``local`` on the robot's own
+    computer (the port opened here, or a daemon on loopback), ``remote`` elsewhere."""
+    if via is None:
+        return "local"
+    address = ws_address(via)
+    host = "" if address is None else address[0].strip("[]")
+    if host == "localhost":
+        return "local"
+    import ipaddress  # noqa: PLC0415  # only for a daemon's URL
+
+    try:
+        return "local" if ipaddress.ip_address(host).is_loopback else "remote"
+    except ValueError:
+        return "remote"  # a host name: another computer, as far as can be told
 
 
 def daemon_for(port_option: str | None, direct: bool) -> str | None:

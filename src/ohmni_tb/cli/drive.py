@@ -15,6 +15,11 @@ Three ways to move, one at a time:
 Every timed or goal drive ends with the stop confirmed by the wheel counts standing still
 (the rule of :mod:`ohmni_tb.safety`), then prints what the odometry measured. Every
 argument is checked against the Robot's limits before the port is opened.
+
+A person drives: the commands go as the command source ``local`` on the robot's own
+computer (the port opened here, or a daemon on loopback) and ``remote`` from elsewhere
+(``--source`` names another), so ``ohmni drive`` at the robot overrides a remote script
+for a while (:mod:`ohmni_tb.control.sources`).
 """
 
 from __future__ import annotations
@@ -44,12 +49,19 @@ from ohmni_tb.cli.common import (
     confirm_motion,
     console,
     daemon_for,
+    drive_source,
     emit_json,
     error_line,
     resolve_port,
     run,
 )
-from ohmni_tb.errors import MotionError, OhmniError, StateError, StopNotConfirmedError
+from ohmni_tb.errors import (
+    MotionError,
+    OhmniError,
+    SourceOverriddenError,
+    StateError,
+    StopNotConfirmedError,
+)
 
 if TYPE_CHECKING:
     from ohmni_tb.config import RobotConfig
@@ -405,6 +417,16 @@ def drive(
             "watchdog, and the stop still ramps down.",
         ),
     ] = False,
+    source: Annotated[
+        str | None,
+        typer.Option(
+            "--source",
+            help="The command source the commands go as (command_sources): default local on "
+            "the robot's own computer (the port opened here, or a daemon on loopback), remote "
+            "from elsewhere. A higher source that drives refuses them meanwhile.",
+            show_default=False,
+        ),
+    ] = None,
     port: PortOption = None,
     direct: DirectOption = False,
     yes: YesOption = False,
@@ -418,7 +440,9 @@ def drive(
     reached in time or a wheel does not turn. --teleop drives from the keyboard: each key
     press drives for the watchdog time, so releasing the key stops the robot. Speeds past
     the Robot's limits are refused. On a real robot it asks first (--yes skips that); on
-    sim:// it does not, nor through a daemon serving sim://.
+    sim:// it does not, nor through a daemon serving sim://. The commands go as the
+    command source local on the robot's computer and remote elsewhere (--source): a
+    higher source that drives refuses them meanwhile.
 
     Examples:
 
@@ -478,6 +502,13 @@ def drive(
     except OhmniError as exc:
         error_line(str(exc))
         raise typer.Exit(1) from exc
+    sources = [row.name for row in config.source_table()]
+    if source is not None and via is None and source not in sources:
+        raise typer.BadParameter(
+            f"--source={source!r} is not a command source: allowed {', '.join(sources)} "
+            "(command_sources)"
+        )
+    source = source if source is not None else drive_source(via)
     what = {
         "duration": "ohmni drive",
         "distance": "ohmni drive --distance",
@@ -500,7 +531,11 @@ def drive(
         with _raw_terminal(fd):
             summary = run(
                 lambda: _with_robot(
-                    url, via, watch, lambda robot, watch: _teleop(robot, watch, plan, fd, url)
+                    url,
+                    via,
+                    watch,
+                    lambda robot, watch: _teleop(robot, watch, plan, fd, url),
+                    source,
                 ),
                 on_interrupt=interrupted,
             )
@@ -508,12 +543,12 @@ def drive(
         return
     result = run(
         lambda: _with_robot(
-            url, via, watch, lambda robot, _watch: _timed_or_goal(robot, plan, as_json)
+            url, via, watch, lambda robot, _watch: _timed_or_goal(robot, plan, as_json), source
         ),
         on_interrupt=interrupted,
     )
     if as_json:
-        emit_json({"port": url, **result})
+        emit_json({"port": url, "source": source, **result})
     else:
         _print_result(result, teleop=False)
 
@@ -568,6 +603,7 @@ async def _with_robot(
     via: str | None,
     watch: RobotWarnings,
     body: Callable[[Robot, RobotWarnings], Awaitable[T]],
+    source: str,
 ) -> T:
     """Open the Robot, check it can drive, run ``body``; the Robot stops on the way out.
 
@@ -578,7 +614,7 @@ async def _with_robot(
     logger = logging.getLogger(_LOGGER)
     logger.addHandler(watch)
     try:
-        async with common.open_robot(port, via=via, control=True) as robot:
+        async with common.open_robot(port, via=via, control=True, source=source) as robot:
             watch.opened = True
             await _ready(robot)
             return await body(robot, watch)
@@ -953,6 +989,14 @@ def _teleop_screen(robot: Robot, state: KeyTeleop, start: _Snapshot, port: str, 
         *(["watchdog tripped"] if state_sample.watchdog_tripped else []),
     ]
     robot_line = f"{port}, link {state_sample.link}" + (f", {', '.join(flags)}" if flags else "")
+    active = state_sample.active_source
+    table.add_row(
+        "source",
+        escape(
+            f"{robot.source}"
+            + ("" if active in (None, robot.source) else f" (overridden: {active} drives)")
+        ),
+    )
     table.add_row("robot", escape(robot_line))
     if note:
         table.add_row("note", escape(note))
@@ -987,6 +1031,8 @@ async def _teleop(
         try:
             for action in parser.feed(data):
                 state.press(action, loop.time())
+        except SourceOverriddenError as exc:  # a higher source drives: told, not fatal
+            notes[0] = str(exc)
         except OhmniError as exc:  # an emergency stop latched, the robot closed
             failure.append(exc)
             state.quit = True

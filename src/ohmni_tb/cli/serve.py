@@ -302,10 +302,12 @@ async def _serve(
             unlock = None
             if foxglove_control:
                 # The app is one more client of the daemon: the same lease as any other,
-                # for its Twists, its parameter changes and its service calls; connected
-                # again when the daemon closes the connection.
+                # for its Twists, its parameter changes and its service calls, as the
+                # command source of an operator elsewhere (remote: a person at the robot
+                # overrides it, it overrides a script); connected again when the daemon
+                # closes the connection.
                 operator = await stack.enter_async_context(
-                    RobotClient.connect(server.url, token=token, reconnect=True)
+                    RobotClient.connect(server.url, token=token, reconnect=True, source="remote")
                 )
                 teleop = await stack.enter_async_context(FoxgloveTeleop(operator))
                 control = RobotControl(operator, writable=True, before_change=teleop.hold)

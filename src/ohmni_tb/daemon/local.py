@@ -63,7 +63,11 @@ class LocalClient:
         self.on_lease: Callable[[LeaseMessage], None] | None = None
         #: The dispatch's fields for every client (the server reads and sets them).
         self.subscriptions: dict[str, Any] = {}
-        self.lease_since = 0.0
+        #: The command sources whose leases it holds, and since when (the server keeps it).
+        self.leases: dict[str, float] = {}
+        #: Not a loopback peer: what it relays comes from the network (a broker), so it
+        #: may claim no source above ``remote``.
+        self.loopback = False
         self.refusals = _Throttled(_REFUSAL_LOG_S)
         self._server = server
         self._ids = itertools.count(1)
@@ -76,8 +80,8 @@ class LocalClient:
 
     @property
     def holds_lease(self) -> bool:
-        """Whether this client holds the control lease."""
-        return self._server._holder is self  # type: ignore[comparison-overlap]
+        """Whether this client holds a control lease (of any command source)."""
+        return bool(self.leases)
 
     async def call(self, method: str, args: dict[str, Any] | None = None) -> Any:
         """Call the daemon's service ``method`` (:data:`~ohmni_tb.robot.wire.METHODS`) with

@@ -13,10 +13,15 @@ sends from its queues; a client that reads slowly or not at all fills only its o
 queues, whose **oldest** samples are dropped and counted (the next sample it gets says
 how many in ``dropped``). Neither the Robot's control tick nor other clients wait for it.
 
-Commands go through one control lease (:meth:`RobotServer` ``acquire``): any number of
-readers, one driver; ``stop`` and ``estop`` are anyone's. On loopback every local program
-may connect; any other address needs a token (:mod:`ohmni_tb.daemon.auth`), and a
-browser's handshake (it carries ``Origin``) is refused unless its origin is allowed.
+Commands go through a control lease (:meth:`RobotServer` ``acquire``): any number of
+readers; one lease per command source (``local``, ``remote``, ``autonomy``… of the
+Robot's ``command_sources``), each held by one client at most, whose drive commands and
+motion goals go as that source — the Robot takes the highest live source's, so a person
+at the robot overrides a remote script for a while. Only a client on the robot's own
+computer (loopback, a unix socket) may take ``local`` or ``safety``. ``stop`` and
+``estop`` are anyone's. On loopback every local program may connect; any other address
+needs a token (:mod:`ohmni_tb.daemon.auth`), and a browser's handshake (it carries
+``Origin``) is refused unless its origin is allowed.
 
 No load of clients holds the control tick back. At most ``max_clients`` connections
 (:data:`DEFAULT_MAX_CLIENTS`, fewer when the process may open too few files to keep some
@@ -45,6 +50,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb._checks import integer
 from ohmni_tb._version import __version__
+from ohmni_tb.control.sources import LOOPBACK_SOURCES, claimable_beyond_loopback
 from ohmni_tb.daemon.auth import MIN_TOKEN_CHARS, check_origin, check_token, presented_token
 from ohmni_tb.errors import (
     ConfigError,
@@ -64,6 +70,7 @@ from ohmni_tb.robot.wire import (
     LeaseMessage,
     Limits,
     Motion,
+    ReleaseArgs,
     RequestError,
     Result,
     ServoCommand,
@@ -255,7 +262,8 @@ class RobotServer:
         self._clients: set[_Client] = set()
         self._pumps: dict[str, _Pump] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
-        self._holder: _Client | None = None
+        #: Each command source's lease and the client holding it.
+        self._leases: dict[str, _Client] = {}
         self._flusher = _Flusher(SAMPLE_FLUSH_S)
         self._closed = False
         self._door = _Doorkeeper(max_clients, token, tuple(origins))
@@ -276,8 +284,22 @@ class RobotServer:
 
     @property
     def lease_holder(self) -> str | None:
-        """The peer (``host:port``) holding the control lease, or ``None``."""
-        return None if self._holder is None else self._holder.peer
+        """The peer (``host:port``) holding the control lease of the highest command source
+        held, or ``None``: nobody holds one."""
+        for source in self._source_names():
+            holder = self._leases.get(source)
+            if holder is not None:
+                return holder.peer
+        return None
+
+    @property
+    def leases(self) -> dict[str, str]:
+        """Each command source's lease held, and its holder (``host:port``), highest first."""
+        return {
+            source: self._leases[source].peer
+            for source in self._source_names()
+            if source in self._leases
+        }
 
     @property
     def max_clients(self) -> int:
@@ -355,8 +377,8 @@ class RobotServer:
     def _detach(self, client: _Client) -> None:
         """A client inside this process leaves: as a WebSocket client's departure."""
         self._clients.discard(client)
-        if self._holder is client:
-            self._set_holder(None, f"released: {client.peer} left")
+        for source in list(client.leases):
+            self._set_holder(source, None, f"released: {client.peer} left")
         _log.info("client %s detached", client.peer)
 
     async def __aenter__(self) -> RobotServer:
@@ -391,8 +413,8 @@ class RobotServer:
             for topic in list(client.subscriptions):
                 self._unsubscribe(client, topic)
             self._clients.discard(client)
-            if self._holder is client:
-                self._set_holder(None, f"released: {client.peer} disconnected")
+            for source in list(client.leases):
+                self._set_holder(source, None, f"released: {client.peer} disconnected")
             client.refusals.close()
             _log.info(
                 "client %s left (%s; sent %d, dropped %d, refused %d messages, "
@@ -417,7 +439,7 @@ class RobotServer:
                 # a stop or an estop it sent last still is.
                 client.unhandled += 1
                 continue
-            if self._holder is not client and not _may_stop(frame, size):
+            if not client.leases and not _may_stop(frame, size):
                 # The readers' shared budget, before any work on the frame: beyond it the
                 # frame waits here, and the next ones in the socket (backpressure). A
                 # short call that may be a stop or an estop never waits for it.
@@ -494,6 +516,7 @@ class RobotServer:
             version=__version__,
             peer=client.peer,
             lease=self.lease_holder,
+            leases=self.leases,
             topics={name: s.requested_hz for name, s in stats.streams.items()},
             motion=Motion(
                 wheel_radius_m=config.wheel_radius_m,
@@ -526,7 +549,7 @@ class RobotServer:
                 "stop and estop are still anyone's",
                 call.id,
             )
-        if spec.lease and self._holder is not client:
+        if spec.lease and not client.leases:
             holder = self.lease_holder
             raise RequestError(
                 "no_lease",
@@ -534,6 +557,9 @@ class RobotServer:
                 + (f"{holder} holds it" if holder else "nobody holds it; acquire it first"),
                 call.id,
             )
+        kwargs = args.call_kwargs()
+        if spec.sourced:
+            kwargs["source"] = self._source_of(client, call, spec.lease, kwargs.get("source"))
         if call.method == "stats":
             # One encoding for every caller within the interval: only the id differs.
             _, text = self._shared_stats()
@@ -541,7 +567,7 @@ class RobotServer:
             return
         if spec.awaited and spec.call is not None:
             task = asyncio.get_running_loop().create_task(
-                self._call_later(client, call, spec.call, args),
+                self._call_later(client, call, spec.call, args, kwargs),
                 name=f"ohmni-daemon-call {call.method}",
             )
             self._tasks.add(task)
@@ -551,7 +577,7 @@ class RobotServer:
             if spec.call is None:
                 data = self._OWN[call.method](self, client, args)
             else:
-                data = result_json(call.method, self._bound(spec.call, args)(**args.call_kwargs()))
+                data = result_json(call.method, self._bound(spec.call, args)(**kwargs))
         except OhmniError as exc:
             raise _robot_refusal(call, exc) from exc
         except RequestError as exc:
@@ -561,10 +587,12 @@ class RobotServer:
             self._stats = None  # the next stats shows the change, as on the Robot
         client.reply(Result(id=call.id, data=data))
 
-    async def _call_later(self, client: _Client, call: Call, name: str, args: Any) -> None:
+    async def _call_later(
+        self, client: _Client, call: Call, name: str, args: Any, kwargs: dict[str, Any]
+    ) -> None:
         try:
             try:
-                data = result_json(call.method, await self._bound(name, args)(**args.call_kwargs()))
+                data = result_json(call.method, await self._bound(name, args)(**kwargs))
             except MotionError as exc:
                 # A goal that ended short of its goal: what it did, and why, are its result.
                 data = goal_json(exc)
@@ -600,42 +628,126 @@ class RobotServer:
     # The server's own services: the lease and the settings.
 
     def _acquire(self, client: _Client, args: AcquireArgs) -> Any:
-        holder = self._holder
+        source = args.source
+        self._check_claim(client, source)
+        holder = self._leases.get(source)
         if holder is None or holder is client:
             if holder is None:
-                self._set_holder(client, f"acquired by {client.peer}")
-            return {"holder": client.peer, "you": True, "stolen_from": None}
+                self._set_holder(source, client, f"acquired by {client.peer}")
+            return {"holder": client.peer, "you": True, "stolen_from": None, "source": source}
         if not args.steal:
             raise RequestError(
                 "lease_held",
-                f"the control lease is held by {holder.peer} (for "
-                f"{time.monotonic() - holder.lease_since:.0f} s): acquire with steal to take it",
+                f"the control lease of command source {source} is held by {holder.peer} (for "
+                f"{time.monotonic() - holder.leases.get(source, 0.0):.0f} s): acquire "
+                "with steal to take it",
             )
-        _log.warning("client %s: stole the control lease from %s", client.peer, holder.peer)
-        self._set_holder(client, f"stolen by {client.peer} from {holder.peer}")
-        return {"holder": client.peer, "you": True, "stolen_from": holder.peer}
+        _log.warning(
+            "client %s: stole the control lease of command source %s from %s",
+            client.peer,
+            source,
+            holder.peer,
+        )
+        self._set_holder(source, client, f"stolen by {client.peer} from {holder.peer}")
+        return {"holder": client.peer, "you": True, "stolen_from": holder.peer, "source": source}
 
-    def _release(self, client: _Client, args: object) -> Any:
-        self._set_holder(None, f"released by {client.peer}")
-        return {"holder": None, "you": False}
+    def _check_claim(self, client: _Client, source: str) -> None:
+        """A client may take the lease of ``source``: one of the Robot's command sources,
+        and (beyond loopback) not one of a person or safety layer at the robot.
 
-    def _set_holder(self, client: _Client | None, reason: str) -> None:
-        """Hand the lease over. The robot stops whenever it changes hands: whoever drives
-        next starts from standstill, and a driver that left does not leave it moving."""
-        previous, self._holder = self._holder, client
-        if client is not None:
-            client.lease_since = time.monotonic()
+        Raises:
+            RequestError: ``bad_value`` (no such source) or ``source_forbidden``.
+        """
+        table = self._robot.config.source_table()
+        names = [row.name for row in table]
+        if source not in names:
+            raise RequestError(
+                "bad_value",
+                f"source={source!r} is not a command source of this robot: allowed "
+                f"{', '.join(names)}",
+            )
+        if not client.loopback and not claimable_beyond_loopback(table, source):
+            mine = [name for name in names if claimable_beyond_loopback(table, name)]
+            raise RequestError(
+                "source_forbidden",
+                f"command source {source!r} is for programs on the robot's own computer "
+                f"({' and '.join(sorted(LOOPBACK_SOURCES))}, and any above remote): "
+                f"{client.peer} is beyond loopback and may take {', '.join(mine)}",
+            )
+
+    def _release(self, client: _Client, args: ReleaseArgs) -> Any:
+        if args.source is not None and args.source not in client.leases:
+            raise RequestError(
+                "no_lease",
+                f"release of the {args.source} lease: this client does not hold it (it holds "
+                f"{', '.join(client.leases) or 'none'})",
+            )
+        released = [args.source] if args.source is not None else list(client.leases)
+        for source in released:
+            self._set_holder(source, None, f"released by {client.peer}")
+        return {"holder": None, "you": False, "released": released}
+
+    def _set_holder(self, source: str, client: _Client | None, reason: str) -> None:
+        """Hand the lease of ``source`` over. The robot stops whenever it changes hands while
+        that source drives (or none does): whoever drives next starts from standstill,
+        and a driver that left does not leave it moving; a source above it that drives
+        goes on."""
+        previous = self._leases.pop(source, None)
         if previous is not None:
-            self._robot.stop()
-        _log.info("lease: %s", reason)
+            previous.leases.pop(source, None)
+        if client is not None:
+            self._leases[source] = client
+            client.leases[source] = time.monotonic()
+        if previous is not None:
+            self._stop_for(source)
+        _log.info("lease of command source %s: %s", source, reason)
+        holder = None if client is None else client.peer
         for other in self._clients:
-            other.reply(LeaseMessage(holder=self.lease_holder, you=other is client, reason=reason))
+            other.reply(
+                LeaseMessage(holder=holder, you=other is client, reason=reason, source=source)
+            )
+
+    def _stop_for(self, source: str) -> None:
+        """Stop the robot as ``source``, unless another source drives it."""
+        active = self._robot.state.active_source
+        if active is None or active == source:
+            self._robot.stop(source=source)
+
+    def _source_of(self, client: _Client, call: Call, leased: bool, given: str | None) -> str:
+        """The command source ``call`` goes as: ``given`` when the client holds its lease,
+        else the highest lease it holds; a stop from a client without one goes as the
+        lowest source (obeyed, and it takes over from no one above it).
+
+        Raises:
+            RequestError: ``no_lease``: a command that needs a lease names a source whose
+                lease the client does not hold.
+        """
+        names = self._source_names()
+        held = [name for name in names if name in client.leases]
+        if given is not None and given in client.leases:
+            return given
+        if leased and given is not None:
+            holder = self._leases.get(given)
+            raise RequestError(
+                "no_lease",
+                f"{call.method} as command source {given!r} needs the {given} lease: "
+                + (f"{holder.peer} holds it" if holder else "acquire it first")
+                + f" (this client holds {', '.join(held) or 'none'})",
+                call.id,
+            )
+        return held[0] if held else names[-1]
+
+    def _source_names(self) -> list[str]:
+        """The Robot's command sources, highest priority first."""
+        return [row.name for row in self._robot.config.source_table()]
 
     _OWN: Final[dict[str, _OwnCall]] = {
         "config": lambda self, client, args: self._robot.config.model_dump(mode="json"),
         "lease": lambda self, client, args: {
             "holder": self.lease_holder,
-            "you": self._holder is client,
+            "you": bool(client.leases),
+            "leases": self.leases,
+            "yours": [name for name in self._source_names() if name in client.leases],
         },
         "acquire": _acquire,
         "release": _release,
@@ -831,8 +943,10 @@ class _Client:
         self._turn = 0
         self.overflowed = False
         self.sent = 0
-        #: When it took the control lease (monotonic), if it holds it.
-        self.lease_since = 0.0
+        #: The command sources whose lease it holds, each with when it took it (monotonic).
+        self.leases: dict[str, float] = {}
+        #: On the robot's own computer (loopback, a unix socket): it may take every source.
+        self.loopback = _is_local_peer(ws)
         #: Its messages refused, logged at most once per REFUSAL_LOG_S.
         self.refusals = _Throttled(REFUSAL_LOG_S)
         #: Its messages left unhandled: read after its connection closed.
@@ -1242,6 +1356,20 @@ def check_listen(host: str, token: str | None) -> None:
             f"refusing to listen on {host!r} without a token: beyond loopback (127.0.0.1, "
             "::1, localhost) every client must present one (ohmni serve makes it)"
         )
+
+
+def _is_local_peer(connection: ServerConnection) -> bool:
+    """Whether ``connection`` comes from this computer: a loopback address (an IPv4 one
+    mapped into IPv6 included), or a unix socket (no address)."""
+    address = connection.remote_address
+    if not isinstance(address, tuple):
+        return True
+    try:
+        ip = ipaddress.ip_address(str(address[0]).split("%")[0])
+    except ValueError:
+        return False
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return ip.is_loopback or (mapped is not None and mapped.is_loopback)
 
 
 def _peer(connection: ServerConnection) -> str:

@@ -75,6 +75,7 @@ _ERRORS: dict[str, type[OhmniError]] = {
     "robot_state": StateError,
     "no_lease": LeaseError,
     "lease_held": LeaseError,
+    "source_forbidden": LeaseError,
     "rate_limited": ProtocolError,
 }
 #: The codes whose message is the daemon's Robot's own (after ``method: ``): raised as the
@@ -94,6 +95,7 @@ class DaemonConnection:
         *,
         headers: dict[str, str] | None = None,
         reconnect: bool = False,
+        source: str = "remote",
     ) -> None:
         self._ws = ws
         self.url = url
@@ -103,8 +105,10 @@ class DaemonConnection:
         self._reconnect = reconnect
         #: Times the connection was made again after the daemon went away.
         self.reconnects = 0
-        #: Who holds the control lease (a peer), as last told by the daemon.
-        self.holder: str | None = hello.lease
+        #: The command source this connection drives as (the lease it takes).
+        self.source = source
+        #: Who holds each command source's lease (a peer), as last told by the daemon.
+        self.holders: dict[str, str] = dict(hello.leases)
         #: Called with each sample message, each lease message, and the new ``hello``
         #: after connecting again.
         self.on_sample: Callable[[SampleMessage], None] = lambda message: None
@@ -132,9 +136,25 @@ class DaemonConnection:
         return self.hello.peer
 
     @property
+    def holder(self) -> str | None:
+        """Who holds the lease of this connection's command source, as last told."""
+        return self.holders.get(self.source)
+
+    @holder.setter
+    def holder(self, peer: str | None) -> None:
+        if peer is None:
+            self.holders.pop(self.source, None)
+        else:
+            self.holders[self.source] = peer
+
+    @property
     def has_lease(self) -> bool:
-        """Whether this connection holds the control lease."""
-        return self.holder is not None and self.holder == self.hello.peer
+        """Whether this connection holds the lease of its command source."""
+        return self.holds(self.source)
+
+    def holds(self, source: str) -> bool:
+        """Whether this connection holds the lease of command source ``source``."""
+        return self.holders.get(source) == self.hello.peer
 
     @property
     def connected(self) -> bool:
@@ -295,10 +315,10 @@ class DaemonConnection:
             self._reconnected(ws, hello)
 
     def _reconnected(self, ws: ClientConnection, hello: Hello) -> None:
-        had_lease = self.has_lease
+        had_lease = any(peer == self.hello.peer for peer in self.holders.values())
         self._ws = ws
         self.hello = hello
-        self.holder = hello.lease
+        self.holders = dict(hello.leases)
         self.lost = None
         self.reconnects += 1
         _log.warning(
@@ -331,10 +351,14 @@ class DaemonConnection:
         elif isinstance(message, SampleMessage):
             self.on_sample(message)
         elif isinstance(message, LeaseMessage):
-            had = self.has_lease
-            self.holder = message.holder
+            had = self.holds(message.source)
+            if message.holder is None:
+                self.holders.pop(message.source, None)
+            else:
+                self.holders[message.source] = message.holder
             if had and not message.you:
-                _log.warning("lost the control lease at %s: %s", self.url, message.reason)
+                which = "" if message.source == self.source else f" of {message.source}"
+                _log.warning("lost the control lease%s at %s: %s", which, self.url, message.reason)
             self.on_lease(message)
         elif isinstance(message, Result | ErrorMessage):
             waiting = self._pending.get(message.id) if message.id is not None else None

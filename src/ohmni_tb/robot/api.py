@@ -397,7 +397,8 @@ class RobotStreams(abc.ABC):
     @abc.abstractmethod
     def state(self) -> RobotStateSample:
         """The robot's state (as ``robot_state`` publishes it): link, emergency stop,
-        watchdog, faults, neck, devices present and absent."""
+        watchdog, faults, neck, devices present and absent, the command source that
+        drives (``active_source``)."""
 
     @abc.abstractmethod
     def enable_stream(self, name: str, enabled: bool = True) -> None:
@@ -463,6 +464,7 @@ class Robot(RobotStreams):
         token: str | None = None,
         config: RobotConfig | None = None,
         profile: BusProfile | None = None,
+        source: str | None = None,
         **overrides: Any,
     ) -> AbstractAsyncContextManager[Robot]:
         """Open the robot on ``port`` and run it: ``async with Robot.open(port) as robot:``.
@@ -491,19 +493,26 @@ class Robot(RobotStreams):
                 :class:`~ohmni_tb.protocol.profile.BusProfile`, e.g. what ``ohmni probe``
                 found; it replaces the config's profile settings. A remote robot runs with
                 the daemon's.
+            source: The command source of this robot's drive commands and motion goals
+                that name none (:attr:`source`): ``"local"`` for a person at the robot,
+                ``"remote"`` for an operator elsewhere…, one of ``command_sources``;
+                default ``"autonomy"``, a script's. Through the daemon it is the lease
+                this robot takes (only a program on the daemon's computer may take
+                ``local`` or ``safety``).
             overrides: Settings that replace the config's, by field name (a local robot);
                 a remote robot takes ``timeout_s`` (each call, 5 s) and ``reconnect``.
 
         Raises:
             ConfigError: A setting is invalid (the message names it), a token for a local
-                robot, settings for a remote one, or a malformed daemon URL.
+                robot, settings for a remote one, a ``source`` not in the robot's
+                ``command_sources``, or a malformed daemon URL.
             TransportError: The port cannot be opened, or the daemon does not answer or
                 refused the connection.
         """
         for implementation in Robot._implementations:
             if implementation._opens(port):
                 return implementation.open(
-                    port, token=token, config=config, profile=profile, **overrides
+                    port, token=token, config=config, profile=profile, source=source, **overrides
                 )
         raise ConfigError(f"no Robot implementation opens {port!r}")
 
@@ -528,9 +537,32 @@ class Robot(RobotStreams):
 
     # -- motion --------------------------------------------------------------------------------
 
+    @property
+    @abc.abstractmethod
+    def source(self) -> str:
+        """The command source of this robot's drive commands and motion goals that name
+        none: ``Robot.open(..., source=…)``, default ``"autonomy"``.
+
+        Command sources (the ``command_sources`` setting; docs/robot.md, *Command
+        sources*): each has a priority, its place in the table — by default ``safety``,
+        ``local`` (a person at the robot), ``remote`` (an operator elsewhere),
+        ``autonomy`` (a script) — and a timeout. A source is live from a drive command
+        of it that was taken until its timeout passes without another, and all the
+        while one of its motion goals runs. The highest live source drives
+        (``robot_state``'s ``active_source``): a drive command or goal from a lower one
+        raises :class:`~ohmni_tb.errors.SourceOverriddenError` and sends nothing, and
+        its commands are taken again once the higher one lapses. :meth:`stop` and
+        :meth:`estop` are obeyed from any source.
+        """
+
     @abc.abstractmethod
     def drive(
-        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+        self,
+        linear_mps: float,
+        angular_radps: float = 0.0,
+        *,
+        ramped: bool = True,
+        source: str | None = None,
     ) -> LimitedTwist:
         """Set the body velocity target (m/s forward, rad/s counter-clockwise).
 
@@ -545,22 +577,32 @@ class Robot(RobotStreams):
         at 5..20 Hz to keep moving), and a stop, the watchdog's included, ramps down at
         the deceleration limits, never held back by a jerk limit.
 
+        It comes from command source ``source`` (default :attr:`source`): taken, it
+        makes that source live; it ends a motion goal under way (``MotionPreemptedError``).
+
         Raises:
-            InvalidArgumentError: A value is not a finite number, or ``ramped`` not a bool.
+            InvalidArgumentError: A value is not a finite number, ``ramped`` not a bool, or
+                ``source`` not a command source.
+            SourceOverriddenError: A source of higher priority drives (named, with when
+                it lapses); nothing sent, a goal under way goes on.
             StateError: An emergency stop is latched, a wheel's controller is off
                 (:meth:`enable_controllers`), the port is released (:meth:`release_port`),
                 or the robot is closed.
         """
 
     @abc.abstractmethod
-    def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
+    def drive_wheels(
+        self, left_mps: float, right_mps: float, *, source: str | None = None
+    ) -> WheelSpeeds:
         """Set each wheel's rim speed target (m/s, forward positive), no ramp.
 
         Both are scaled by one factor into ``max_wheel_mps``; the return value is what
-        is driven.
+        is driven. From command source ``source``, as :meth:`drive`.
 
         Raises:
-            InvalidArgumentError: A value is not a finite number.
+            InvalidArgumentError: A value is not a finite number, or ``source`` not a
+                command source.
+            SourceOverriddenError: A source of higher priority drives; nothing sent.
             StateError: An emergency stop is latched, a wheel's controller is off
                 (:meth:`enable_controllers`), the port is released (:meth:`release_port`),
                 or the robot is closed.
@@ -574,9 +616,11 @@ class Robot(RobotStreams):
         *,
         left_enabled: bool = True,
         right_enabled: bool = True,
+        source: str | None = None,
     ) -> tuple[int, int]:
         """Drive the wheels open loop with PWM −1000..1000 (the controllers step aside),
-        as tb_control's ``/tb_cmd_motor_pwm`` takes it.
+        as tb_control's ``/tb_cmd_motor_pwm`` takes it; from command source ``source``,
+        as :meth:`drive`.
 
         Forward positive for both wheels (the right board's mirror is handled in the
         packet). A value may be a float: it is rounded once to the whole PWM step the
@@ -588,33 +632,41 @@ class Robot(RobotStreams):
             The PWM sent for (left, right), before the governor.
 
         Raises:
-            InvalidArgumentError: A value is not a finite number, or a flag not a bool.
+            InvalidArgumentError: A value is not a finite number, a flag not a bool, or
+                ``source`` not a command source.
             OutOfRangeError: A value outside −1000..1000 (a disabled motor's too);
                 nothing changes.
+            SourceOverriddenError: A source of higher priority drives; nothing sent.
             StateError: An emergency stop is latched, the port is released
                 (:meth:`release_port`), or the robot is closed.
         """
 
     @abc.abstractmethod
-    def stop(self) -> None:
+    def stop(self, *, source: str | None = None) -> None:
         """Target zero: the wheels ramp down at the deceleration limits.
 
         The first braking command goes on the wire at once (in the next free slot), not
-        at the next control tick. Through the daemon anyone may stop the robot, without
-        the control lease.
+        at the next control tick. A stop is obeyed from any command source, and ends a
+        motion goal under way whatever its source; from a source no higher one
+        overrides, it also takes over as a drive command does (the robot stays
+        stopped until that source lapses or drives again). Through the daemon anyone
+        may stop the robot, without the control lease.
 
         Raises:
+            InvalidArgumentError: ``source`` is not a command source.
             RobotClosedError: The robot is closed (closing stopped the wheels).
         """
 
     @abc.abstractmethod
-    async def estop(self) -> None:
+    async def estop(self, *, source: str | None = None) -> None:
         """Emergency stop: zero PWM ahead of everything queued, latched until cleared.
 
-        Drive commands are refused until :meth:`clear_estop`. Through the daemon anyone
-        may, without the control lease.
+        Drive commands are refused until :meth:`clear_estop`. Obeyed from any command
+        source, as :meth:`stop`. Through the daemon anyone may, without the control
+        lease.
 
         Raises:
+            InvalidArgumentError: ``source`` is not a command source.
             RobotClosedError: The robot is closed (closing stopped the wheels).
         """
 
@@ -720,6 +772,7 @@ class Robot(RobotStreams):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Drive straight ``distance_m`` by odometry and stop there, at rest.
 
@@ -731,11 +784,17 @@ class Robot(RobotStreams):
         and stands; cancelling the awaiting task sets the target to zero (the wheels ramp
         down) and the cancellation goes on.
 
+        It runs under command source ``source`` (default :attr:`source`), which stays
+        live while it runs: a drive command of a lower source is refused meanwhile and
+        leaves it alone; one of a higher source ends it (``MotionPreemptedError``, its
+        ``.source`` naming that source).
+
         Args:
             distance_m: How far, m, −100..100 (negative: backward).
             speed_mps: The cruising speed, m/s, from 0.03 up to ``max_linear_mps`` (and
                 ``max_wheel_mps``); default 0.3 within them.
             timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s.
+            source: The command source it runs under (see :attr:`source`).
 
         Returns:
             What it did (:class:`~ohmni_tb.errors.MotionResult`): distance and heading
@@ -743,11 +802,14 @@ class Robot(RobotStreams):
             ``reason="arrived"``.
 
         Raises:
-            InvalidArgumentError: A value is not a finite number; nothing sent.
+            InvalidArgumentError: A value is not a finite number, or ``source`` not a
+                command source; nothing sent.
             OutOfRangeError: A value is outside its range (named with it); nothing sent.
+            SourceOverriddenError: A source of higher priority drives; nothing sent.
             StateError: An emergency stop is latched, the port is released, the robot
                 is closed, or the wheel_encoder or wheel_odom stream is off.
-            MotionPreemptedError: Another motion command took over (``.by``).
+            MotionPreemptedError: Another motion command took over (``.by``, and
+                ``.source``: its command source).
             WheelStallError: A wheel driven did not turn for ``stall_s`` (the fault
                 ``wheel_stall:<sid>``): the wheels' power is cut and held so until
                 ``stop()`` or another drive command (``.wheels``, ``.pwm``,
@@ -769,17 +831,20 @@ class Robot(RobotStreams):
         *,
         speed_radps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Turn on the spot ``angle_rad`` by odometry (positive: counter-clockwise, as
         ``wheel_odom``'s heading) and stop there, at rest: within about 0.1° by odometry.
 
-        As :meth:`drive_distance` (where it runs, preemption, cancellation, the errors).
+        As :meth:`drive_distance` (where it runs, its command source, preemption,
+        cancellation, the errors).
 
         Args:
             angle_rad: How far, rad, −20π..20π (ten turns either way).
             speed_radps: The turning rate, rad/s, from 0.2 up to ``max_angular_radps``
                 (and what ``max_wheel_mps`` allows); default 1.0 within them.
             timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s.
+            source: The command source it runs under (see :attr:`source`).
 
         Returns:
             What it did (:class:`~ohmni_tb.errors.MotionResult`).
@@ -794,6 +859,7 @@ class Robot(RobotStreams):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Go to the point (``x_m``, ``y_m``) of the odometry frame (``wheel_odom``), then
         turn to ``yaw_rad`` if given; stop there, at rest.
@@ -801,8 +867,8 @@ class Robot(RobotStreams):
         It turns on the spot to face the point, drives there steering toward it and
         slowing on the braking curve, and faces and drives again while the point is more
         than 1 cm away; then turns to ``yaw_rad`` (within about 0.1°). As
-        :meth:`drive_distance` otherwise (where it runs, preemption, cancellation, the
-        errors).
+        :meth:`drive_distance` otherwise (where it runs, its command source, preemption,
+        cancellation, the errors).
 
         Args:
             x_m: The point, m (±1e6; at most 100 m from where the robot is).
@@ -813,6 +879,7 @@ class Robot(RobotStreams):
                 go at 1.0 rad/s within the limits.
             timeout_s: The time it may take, 0..3600 s; default twice the plan's + 2 s
                 for each part.
+            source: The command source it runs under (see :attr:`source`).
 
         Returns:
             What it did (:class:`~ohmni_tb.errors.MotionResult`); ``remaining_m`` is the

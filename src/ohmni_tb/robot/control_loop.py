@@ -554,6 +554,10 @@ class ControlLoop:
         if not isinstance(exc, OhmniError):
             _log.error("control cycle failed", exc_info=exc)
 
+    def moving(self) -> bool:
+        """Whether the drive target moves the wheels (not zero, not a stop)."""
+        return self._moving_target()
+
     def _moving_target(self) -> bool:
         if self._mode == "pwm":
             return self._target_pwm != (0, 0)

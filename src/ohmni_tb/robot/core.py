@@ -31,7 +31,8 @@ the work to parts of one job each, which share one
 :class:`~ohmni_tb.robot.state.RobotState`: :mod:`~ohmni_tb.robot.discovery`,
 :mod:`~ohmni_tb.robot.control_loop`, :mod:`~ohmni_tb.robot.wheels`,
 :mod:`~ohmni_tb.robot.feedback`, :mod:`~ohmni_tb.robot.guards`,
-:mod:`~ohmni_tb.robot.diagnostics` and :mod:`~ohmni_tb.robot.link`.
+:mod:`~ohmni_tb.robot.diagnostics`, :mod:`~ohmni_tb.robot.link` and
+:mod:`~ohmni_tb.robot.sources` (which command source drives).
 """
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ from ohmni_tb.robot.motion import MotionGoals, MotionResult
 from ohmni_tb.robot.renumber import Renumbering
 from ohmni_tb.robot.samples import Link, RobotStateSample
 from ohmni_tb.robot.servo_settings import NeckSettings
+from ohmni_tb.robot.sources import CommandSources
 from ohmni_tb.robot.state import RobotState
 from ohmni_tb.robot.stats import BusFigures, RobotStats
 from ohmni_tb.robot.wheels import WheelCounts
@@ -119,8 +121,10 @@ class LocalRobot(Robot):
         self._discovery.renumber = self._renumbering.servo
         self._discovery.zero_offset = self._zero_offset_set
         self._discovery.moved = self._renumbering.moved
+        # Which command source drives; a motion goal holds its own live while it runs.
+        self._sources = CommandSources(state, self._control)
         # Motion goals: every other motion command preempts the one under way.
-        self._motion = MotionGoals(self, check=self._check_goal)
+        self._motion = MotionGoals(self, check=self._check_goal, sources=self._sources)
         # The control loop's stall and slip guards end the goal under way.
         self._control.on_wheel_fault = self._motion.wheel_fault
         self._port = config.port
@@ -144,6 +148,7 @@ class LocalRobot(Robot):
         token: str | None = None,
         config: RobotConfig | None = None,
         profile: BusProfile | None = None,
+        source: str | None = None,
         **overrides: Any,
     ) -> AsyncIterator[LocalRobot]:
         """:meth:`Robot.open <ohmni_tb.robot.api.Robot.open>` on a port this process opens;
@@ -170,6 +175,11 @@ class LocalRobot(Robot):
             config = RobotConfig(**overrides)
         elif overrides:
             config = config.replace(**overrides)
+        if source is not None and source not in {row.name for row in config.source_table()}:
+            names = ", ".join(row.name for row in config.source_table())
+            raise ConfigError(
+                f"source={source!r} is not a command source of command_sources: allowed {names}"
+            )
         if isinstance(port, Transport):
             transport = port  # an open link, injected (a test's, a tap's)
         else:
@@ -186,6 +196,8 @@ class LocalRobot(Robot):
         robot: LocalRobot | None = None
         try:
             robot = cls(bus, config, sim=transport.simulated)
+            if source is not None:
+                robot._sources.set_default(source)
             asked = config.port if port is None else port if isinstance(port, str) else repr(port)
             robot._port = _port_name(transport, asked)
             await robot._start()
@@ -231,6 +243,7 @@ class LocalRobot(Robot):
         state.closed = True
         state.closing = asyncio.current_task()
         self._motion.close()
+        self._sources.close()
         self._diagnostics.close()
         self.exit_error = await self._link.close()
 
@@ -356,24 +369,40 @@ class LocalRobot(Robot):
 
     # -- motion commands (public) ----------------------------------------------------------
 
+    @property
+    def source(self) -> str:
+        """The command source of the commands that name none (the contract)."""
+        return self._sources.default
+
     def drive(
-        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+        self,
+        linear_mps: float,
+        angular_radps: float = 0.0,
+        *,
+        ramped: bool = True,
+        source: str | None = None,
     ) -> LimitedTwist:
         """The body velocity target (:meth:`Robot.drive <ohmni_tb.robot.api.Robot.drive>`)."""
         twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
         check_ramped(ramped)
+        name = self._sources.name(source)
         self._control.check_can_drive()
         self._control.check_closed_loop("drive()")
-        self._motion.preempt("drive")
+        self._sources.take(name, "drive()")
+        self._motion.preempt("drive", source=name)
         # A motion goal's own command follows the goal's braking curve, not the jerk limit.
         return self._control.drive(twist, ramped=ramped, jerk_limited=not self._motion.owning)
 
-    def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
+    def drive_wheels(
+        self, left_mps: float, right_mps: float, *, source: str | None = None
+    ) -> WheelSpeeds:
         """Each wheel's speed target (the contract: ohmni_tb.robot.api.Robot)."""
         asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
+        name = self._sources.name(source)
         self._control.check_can_drive()
         self._control.check_closed_loop("drive_wheels()")
-        self._motion.preempt("drive_wheels")
+        self._sources.take(name, "drive_wheels()")
+        self._motion.preempt("drive_wheels", source=name)
         return self._control.drive_wheels(asked)
 
     def drive_pwm(
@@ -383,24 +412,31 @@ class LocalRobot(Robot):
         *,
         left_enabled: bool = True,
         right_enabled: bool = True,
+        source: str | None = None,
     ) -> tuple[int, int]:
         """Open-loop PWM (:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>`)."""
         pwm = pwm_command(left, right, left_enabled, right_enabled)
+        name = self._sources.name(source)
         self._control.check_can_drive()
-        self._motion.preempt("drive_pwm")
+        self._sources.take(name, "drive_pwm()")
+        self._motion.preempt("drive_pwm", source=name)
         self._control.drive_pwm(*pwm)
         return pwm
 
-    def stop(self) -> None:
-        """Target zero, the first braking command at once."""
+    def stop(self, *, source: str | None = None) -> None:
+        """Target zero, the first braking command at once, from any source."""
+        name = self._sources.name(source)
         self._state.check_open()
-        self._motion.preempt("stop")
+        self._sources.stop(name)
+        self._motion.preempt("stop", source=name)
         self._control.stop()
 
-    async def estop(self) -> None:
+    async def estop(self, *, source: str | None = None) -> None:
         """Zero PWM ahead of everything, latched (the contract: ohmni_tb.robot.api.Robot)."""
+        name = self._sources.name(source)
         self._state.check_open()
-        self._motion.preempt("estop")
+        self._sources.stop(name)
+        self._motion.preempt("estop", source=name)
         await self._control.estop()
 
     def clear_estop(self) -> None:
@@ -460,10 +496,11 @@ class LocalRobot(Robot):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Drive straight by odometry (the contract: ohmni_tb.robot.api.Robot)."""
         return await self._motion.drive_distance(
-            distance_m, speed_mps=speed_mps, timeout_s=timeout_s
+            distance_m, speed_mps=speed_mps, timeout_s=timeout_s, source=self._sources.name(source)
         )
 
     async def rotate(
@@ -472,9 +509,15 @@ class LocalRobot(Robot):
         *,
         speed_radps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Turn on the spot by odometry (the contract: ohmni_tb.robot.api.Robot)."""
-        return await self._motion.rotate(angle_rad, speed_radps=speed_radps, timeout_s=timeout_s)
+        return await self._motion.rotate(
+            angle_rad,
+            speed_radps=speed_radps,
+            timeout_s=timeout_s,
+            source=self._sources.name(source),
+        )
 
     async def go_to(
         self,
@@ -484,9 +527,17 @@ class LocalRobot(Robot):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Go to a point of the odometry frame (the contract: ohmni_tb.robot.api.Robot)."""
-        return await self._motion.go_to(x_m, y_m, yaw_rad, speed_mps=speed_mps, timeout_s=timeout_s)
+        return await self._motion.go_to(
+            x_m,
+            y_m,
+            yaw_rad,
+            speed_mps=speed_mps,
+            timeout_s=timeout_s,
+            source=self._sources.name(source),
+        )
 
     # -- devices (public) --------------------------------------------------------------------
 

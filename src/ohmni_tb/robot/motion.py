@@ -28,7 +28,10 @@ robot at rest and returns a :class:`~ohmni_tb.errors.MotionResult`.
 One goal runs at a time. Any other motion command — ``drive``, ``drive_wheels``,
 ``drive_pwm``, ``stop``, ``estop``, ``enable_controllers(False)``, ``release_port`` or
 another goal — ends it with :class:`~ohmni_tb.errors.MotionPreemptedError` naming the
-command, and the newer command stands (the goal sends nothing more). So does
+command, and the newer command stands (the goal sends nothing more). A goal runs under
+the command source that started it (:mod:`ohmni_tb.robot.sources`), which stays live
+while it runs: a drive command of a lower source is refused meanwhile and leaves it
+alone; one of a higher source takes over and ends it. So does
 ``reset_odometry``, which moves the frame the goal steers in; then the goal also sets
 the target to zero. The Robot's guards end it too (:meth:`MotionGoals.wheel_fault`, from
 the control loop, :mod:`ohmni_tb.robot.control_loop`): a stall with
@@ -92,6 +95,7 @@ __all__ = [
     "PLAN_DECEL_SHARE",
     "STOP_LEAD_S",
     "CountStream",
+    "GoalSources",
     "MotionGoals",
     "MotionHost",
     "MotionResult",
@@ -182,15 +186,27 @@ class MotionHost(Protocol):
     @property
     def state(self) -> RobotStateSample: ...
 
-    def drive(self, linear_mps: float, angular_radps: float = 0.0) -> object: ...
+    def drive(
+        self, linear_mps: float, angular_radps: float = 0.0, *, source: str | None = None
+    ) -> object: ...
 
-    def stop(self) -> None: ...
+    def stop(self, *, source: str | None = None) -> None: ...
 
     def latest(self, name: Literal["wheel_odom"]) -> WheelOdomSample | None: ...
 
     def subscribe(self, name: Literal["wheel_encoder"], *, maxlen: int = ...) -> CountStream: ...
 
     def stats(self) -> RobotStats: ...
+
+
+class GoalSources(Protocol):
+    """What the goals use of the Robot's command sources (:mod:`ohmni_tb.robot.sources`)."""
+
+    def check(self, source: str, what: str) -> None: ...
+
+    def hold(self, source: str) -> None: ...
+
+    def release(self, source: str) -> None: ...
 
 
 class _Ended(Exception):  # noqa: N818  # control flow inside this module, never raised out
@@ -213,9 +229,12 @@ class _Run:
         enc: WheelEncoderSample,
         odom: WheelOdomSample,
         started_s: float,
+        source: str | None = None,
     ) -> None:
         self.goals = goals
         self.kind: MotionKind = kind
+        #: The command source it runs under (its own commands are that source's).
+        self.source = source
         self.sub = sub
         self.enc = self.start_enc = enc
         self.odom = self.start_odom = odom
@@ -225,6 +244,7 @@ class _Run:
         #: Set from outside (another command, closing): why, and by what.
         self.ended: MotionEnd | None = None
         self.by = ""
+        self.by_source: str | None = None
         self.commanded = False  # a drive command went since the last stop
         # The watchdog flag was seen clear: a trip from before the goal is not its own.
         self.watchdog_clear = False
@@ -247,10 +267,10 @@ class _Run:
         """The heading's change since the goal began (unwrapped)."""
         return self.odom.heading_rad - self.start_odom.heading_rad
 
-    def end(self, reason: MotionEnd, by: str = "") -> None:
+    def end(self, reason: MotionEnd, by: str = "", source: str | None = None) -> None:
         """End the goal from outside: it sends nothing more and raises at its next step."""
         if self.ended is None:
-            self.ended, self.by = reason, by
+            self.ended, self.by, self.by_source = reason, by, source
         self.sub.close()  # wakes a goal waiting for counts
 
     async def next(self, *, checks: bool = True) -> None:
@@ -300,13 +320,13 @@ class _Run:
         """The goal's own drive command (it does not preempt the goal); none once ended."""
         if self.ended is not None:
             raise _Ended(self.ended)
-        self.goals.own(lambda: self.goals.host.drive(linear_mps, angular_radps))
+        self.goals.own(lambda: self.goals.host.drive(linear_mps, angular_radps, source=self.source))
         self.commanded = True
 
     def stop(self) -> None:
         """The goal's own stop; best effort (the Robot may be closing or released)."""
         with contextlib.suppress(OhmniError):
-            self.goals.own(self.goals.host.stop)
+            self.goals.own(lambda: self.goals.host.stop(source=self.source))
         self.commanded = False
 
     async def settle(self) -> None:
@@ -381,24 +401,34 @@ class MotionGoals:
         host: The Robot (or what stands for it: its commands, settings and streams).
         check: Called before a goal sends anything; raises to refuse (an emergency stop
             latched, the port released, the Robot closed).
+        sources: The Robot's command sources: a goal is refused while a source above its
+            own drives, and holds its own live while it runs.
     """
 
-    def __init__(self, host: MotionHost, *, check: Callable[[], None] | None = None) -> None:
+    def __init__(
+        self,
+        host: MotionHost,
+        *,
+        check: Callable[[], None] | None = None,
+        sources: GoalSources | None = None,
+    ) -> None:
         self.host = host
         self._check = check
+        self._sources = sources
         self._active: _Run | None = None
         self._own = False  # a goal's own command is being given
 
     # -- the hooks -------------------------------------------------------------------------
 
-    def preempt(self, what: str, *, stop: bool = False) -> None:
-        """Another motion command (``what``, as the error names it) takes over: the running
-        goal ends with :class:`~ohmni_tb.errors.MotionPreemptedError`. A goal's own
-        commands do not count. ``stop``: ``what`` does not drive the wheels itself (an
-        odometry reset), so the goal sets the target to zero as it ends."""
+    def preempt(self, what: str, *, stop: bool = False, source: str | None = None) -> None:
+        """Another motion command (``what``, as the error names it, from command source
+        ``source`` if it has one) takes over: the running goal ends with
+        :class:`~ohmni_tb.errors.MotionPreemptedError`. A goal's own commands do not count.
+        ``stop``: ``what`` does not drive the wheels itself (an odometry reset), so the
+        goal sets the target to zero as it ends."""
         run = self._active
         if run is not None and not self._own:
-            run.end("preempted", what)
+            run.end("preempted", what, source)
             if stop:
                 run.stop()
 
@@ -455,8 +485,10 @@ class MotionGoals:
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
-        """Drive straight ``distance_m`` by odometry (negative: backward) and stop there.
+        """Drive straight ``distance_m`` by odometry (negative: backward) and stop there,
+        under command source ``source``.
 
         See :meth:`ohmni_tb.robot.Robot.drive_distance`.
         """
@@ -484,7 +516,9 @@ class MotionGoals:
         def goal_text() -> str:
             return f"drive_distance({distance:+.3f} m)"
 
-        return await self._run("drive_distance", lambda _: timeout, body, remaining, goal_text)
+        return await self._run(
+            "drive_distance", lambda _: timeout, body, remaining, goal_text, source=source
+        )
 
     async def rotate(
         self,
@@ -492,8 +526,10 @@ class MotionGoals:
         *,
         speed_radps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
-        """Turn on the spot ``angle_rad`` by odometry (positive: counter-clockwise).
+        """Turn on the spot ``angle_rad`` by odometry (positive: counter-clockwise), under
+        command source ``source``.
 
         See :meth:`ohmni_tb.robot.Robot.rotate`.
         """
@@ -522,7 +558,9 @@ class MotionGoals:
         def goal_text() -> str:
             return f"rotate({math.degrees(angle):+.1f}°)"
 
-        return await self._run("rotate", lambda _: timeout, body, remaining, goal_text)
+        return await self._run(
+            "rotate", lambda _: timeout, body, remaining, goal_text, source=source
+        )
 
     async def go_to(
         self,
@@ -532,9 +570,11 @@ class MotionGoals:
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """Go to the point (``x_m``, ``y_m``) of the odometry frame, then turn to
-        ``yaw_rad`` if given. See :meth:`ohmni_tb.robot.Robot.go_to`."""
+        ``yaw_rad`` if given, under command source ``source``. See
+        :meth:`ohmni_tb.robot.Robot.go_to`."""
         x = _within("x_m", x_m, -MAX_POSE_M, MAX_POSE_M, "m")
         y = _within("y_m", y_m, -MAX_POSE_M, MAX_POSE_M, "m")
         yaw = (
@@ -599,7 +639,7 @@ class MotionGoals:
             towards = "" if yaw is None else f", yaw {math.degrees(yaw):+.1f}°"
             return f"go_to({x:+.3f} m, {y:+.3f} m{towards})"
 
-        return await self._run("go_to", timeout_from, body, remaining, goal_text)
+        return await self._run("go_to", timeout_from, body, remaining, goal_text, source=source)
 
     # -- running a goal ----------------------------------------------------------------------
 
@@ -610,6 +650,8 @@ class MotionGoals:
         body: Callable[[_Run], Awaitable[None]],
         remaining: _Remaining,
         goal_text: Callable[[], str],
+        *,
+        source: str | None = None,
     ) -> MotionResult:
         """Start a goal on fresh counts, run ``body``, stop, and say how it ended.
 
@@ -617,6 +659,9 @@ class MotionGoals:
         """
         if self._check is not None:
             self._check()
+        sources = self._sources if source is not None else None
+        if sources is not None and source is not None:
+            sources.check(source, kind)
         for stream in ("wheel_encoder", "wheel_odom"):
             if not self.host.stats().streams[stream].enabled:
                 raise StateError(
@@ -636,11 +681,17 @@ class MotionGoals:
             if odom is None:
                 raise _abort(kind, "no_counts", goal_text(), self.host, remaining, started)
             timeout = timeout_from(odom)  # may refuse (go_to's distance): nothing sent
-            self.preempt(kind)  # a goal is a motion command too
-            run = _Run(self, kind, sub=sub, enc=enc, odom=odom, started_s=started)
+            if sources is not None and source is not None:
+                # Again, with no wait before the goal starts: a higher source may have
+                # taken over while the first counts came.
+                sources.check(source, kind)
+            self.preempt(kind, source=source)  # a goal is a motion command too
+            run = _Run(self, kind, sub=sub, enc=enc, odom=odom, started_s=started, source=source)
             run.timeout_s = timeout
             run.deadline_s = started + timeout
             self._active = run
+            if sources is not None and source is not None:
+                sources.hold(source)
             try:
                 reason = await self._steer(run, body, remaining, goal_text)
             except BaseException:
@@ -652,6 +703,8 @@ class MotionGoals:
             finally:
                 if self._active is run:
                     self._active = None
+                if sources is not None and source is not None:
+                    sources.release(source)
         finally:
             sub.close()
         result = run.result(reason, remaining)
@@ -833,11 +886,15 @@ def _error(result: MotionResult, run: _Run, goal: str) -> MotionError:
     went = _went(result)
     reason = result.reason
     if reason == "preempted":
+        by = run.by_source
+        higher = by is not None and run.source is not None and by != run.source
+        whence = f" of command source {by!r}" if higher else ""
         return MotionPreemptedError(
-            f"{goal} was preempted by {run.by}() after it {went} by odometry: the newer "
-            "command stands",
+            f"{goal} was preempted by {run.by}(){whence} after it {went} by odometry: the "
+            "newer command stands",
             result=result,
             by=run.by,
+            source=by,
         )
     if reason == "timeout":
         if result.kind == "drive_distance":

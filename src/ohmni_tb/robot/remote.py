@@ -31,10 +31,16 @@ the samples are the same frozen dataclasses. How the plain calls are served:
   command or :meth:`~RemoteRobot.confirm`. Awaited ones (``estop``, ``light_ring``, the
   neck, the motion goals) return the daemon's answer; the motion goals run inside the
   daemon and answer when they end.
-- **The control lease** is taken by the first command that needs it, when nobody holds
-  it (never stolen: while another client drives, such a command raises
-  :class:`~ohmni_tb.errors.LeaseError` naming the holder). ``stop`` and ``estop`` need
-  none. Closing the connection gives it back, and the daemon stops the robot then.
+- **The control lease** of the robot's command source (:attr:`RemoteRobot.source`, or a
+  command's own ``source``) is taken by the first command that needs it, when nobody
+  holds it (never stolen: while another client holds it, such a command raises
+  :class:`~ohmni_tb.errors.LeaseError` naming the holder). The daemon keeps one lease per
+  source, and its Robot takes the drive commands of the highest source that drives:
+  while a higher one does, this robot's are refused
+  (:class:`~ohmni_tb.errors.SourceOverriddenError`, raised by the next command or
+  :meth:`~RemoteRobot.confirm`). ``stop`` and ``estop`` need none. Closing the
+  connection gives the leases back, and the daemon stops the robot then (unless a
+  higher source drives it).
 """
 
 from __future__ import annotations
@@ -55,6 +61,7 @@ from ohmni_tb.control.kinematics import (
     limit_twist,
     saturate_wheel_speeds,
 )
+from ohmni_tb.control.sources import DEFAULT_SOURCE, SourceMux
 from ohmni_tb.errors import (
     ConfigError,
     LeaseError,
@@ -117,6 +124,7 @@ from ohmni_tb.robot.wire import (
     ServoArgs,
     ServoIdArgs,
     ServoWriteArgs,
+    SourceArgs,
     StreamArgs,
     Subscribe,
     TorqueArgs,
@@ -182,16 +190,23 @@ class RemoteRobot(Robot):
     #: Whether a command takes the control lease by itself when nobody holds it.
     _auto_lease: ClassVar[bool] = True
 
-    def __init__(self, connection: DaemonConnection, config: RobotConfig) -> None:
+    def __init__(
+        self, connection: DaemonConnection, config: RobotConfig, source: str = DEFAULT_SOURCE
+    ) -> None:
         self._connection = connection
         self.config = config
+        # The daemon's robot's command sources, to check a source named here.
+        self._sources = SourceMux(config.source_table())
+        self._source = self._sources.check_name(source)
+        connection.source = self._source
         self.sim = None  # the simulator runs in the daemon
         self._closed = False
         self._topics: dict[str, _Mirror] = {name: _Mirror(name) for name in STREAM_NAMES}
         self._figures = _Figures(connection)
         self._drive = config.drive()
         self._limits = config.velocity_limits()
-        self._acquiring: asyncio.Future[Any] | None = None
+        #: An ``acquire`` sent for a command source, not answered yet.
+        self._acquiring: dict[str, asyncio.Future[Any]] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
         self._refetches: set[asyncio.Task[Any]] = set()
         self._port: str | None = None
@@ -221,6 +236,7 @@ class RemoteRobot(Robot):
         token: str | None = None,
         config: RobotConfig | None = None,
         profile: BusProfile | None = None,
+        source: str | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         reconnect: bool = False,
         **overrides: Any,
@@ -233,6 +249,9 @@ class RemoteRobot(Robot):
             token: The daemon's token (default ``$OHMNI_DAEMON_TOKEN``, else none).
             config: Not taken: the daemon's robot runs with the daemon's settings.
             profile: Not taken: the daemon's robot runs with the daemon's bus profile.
+            source: The command source whose lease the commands take (default
+                ``autonomy``); only a program on the daemon's computer may take ``local``
+                or ``safety``.
             timeout_s: How long connecting, and each call, may take.
             reconnect: When the daemon goes away (restarted, its machine rebooted),
                 connect again and again (backing off to one try every 2 s) instead of
@@ -242,7 +261,7 @@ class RemoteRobot(Robot):
 
         Raises:
             ConfigError: Not a daemon's URL (``ws://HOST:PORT`` or ``wss://``, a port in
-                1..65535), or settings given.
+                1..65535), settings given, or a ``source`` the daemon's robot has not.
             TransportError: Nothing answers at the URL, it is not the daemon, or it
                 refused the connection (no token or a wrong one: the message says).
         """
@@ -267,7 +286,14 @@ class RemoteRobot(Robot):
         )
         connection.start()
         try:
-            robot = cls(connection, await _fetch_config(connection))
+            fetched = await _fetch_config(connection)
+            known = [row.name for row in fetched.source_table()]
+            if source is not None and source not in known:
+                raise ConfigError(
+                    f"source={source!r} is not a command source of the daemon's robot: "
+                    f"allowed {', '.join(known)}"
+                )
+            robot = cls(connection, fetched, DEFAULT_SOURCE if source is None else source)
             await robot._start()
         except BaseException:
             await connection.aclose()
@@ -331,9 +357,20 @@ class RemoteRobot(Robot):
 
     @property
     def lease_holder(self) -> str | None:
-        """Who holds the control lease (``host:port`` as the daemon names it), as last told
-        by the daemon; ``None``: nobody."""
+        """Who holds the control lease of this robot's command source (``host:port`` as
+        the daemon names it), as last told by the daemon; ``None``: nobody."""
         return self._connection.holder
+
+    @property
+    def leases(self) -> dict[str, str]:
+        """Each command source's lease held at the daemon and its holder, as last told."""
+        return dict(self._connection.holders)
+
+    @property
+    def source(self) -> str:
+        """:attr:`Robot.source <ohmni_tb.robot.api.Robot.source>`: the command source of the
+        commands that name none, and of the lease they take."""
+        return self._source
 
     @property
     def simulated(self) -> bool:
@@ -387,25 +424,40 @@ class RemoteRobot(Robot):
     # -- motion ------------------------------------------------------------------------------
 
     def drive(
-        self, linear_mps: float, angular_radps: float = 0.0, *, ramped: bool = True
+        self,
+        linear_mps: float,
+        angular_radps: float = 0.0,
+        *,
+        ramped: bool = True,
+        source: str | None = None,
     ) -> LimitedTwist:
         """:meth:`Robot.drive <ohmni_tb.robot.api.Robot.drive>`, scaled here as the daemon's
         robot will scale it."""
         twist = Twist(number("linear_mps", linear_mps), number("angular_radps", angular_radps))
         check_ramped(ramped)
+        name = self._source_name(source)
         self._command(
             "drive",
             DriveArgs(
-                linear_mps=twist.linear_mps, angular_radps=twist.angular_radps, ramped=ramped
+                linear_mps=twist.linear_mps,
+                angular_radps=twist.angular_radps,
+                ramped=ramped,
+                source=name,
             ),
+            source=name,
         )
         return limit_twist(twist, self._limits, self._drive)
 
-    def drive_wheels(self, left_mps: float, right_mps: float) -> WheelSpeeds:
+    def drive_wheels(
+        self, left_mps: float, right_mps: float, *, source: str | None = None
+    ) -> WheelSpeeds:
         """:meth:`Robot.drive_wheels <ohmni_tb.robot.api.Robot.drive_wheels>`."""
         asked = WheelSpeeds(number("left_mps", left_mps), number("right_mps", right_mps))
+        name = self._source_name(source)
         self._command(
-            "drive_wheels", DriveWheelsArgs(left_mps=asked.left_mps, right_mps=asked.right_mps)
+            "drive_wheels",
+            DriveWheelsArgs(left_mps=asked.left_mps, right_mps=asked.right_mps, source=name),
+            source=name,
         )
         return saturate_wheel_speeds(asked, self._limits.max_wheel_mps)
 
@@ -416,28 +468,36 @@ class RemoteRobot(Robot):
         *,
         left_enabled: bool = True,
         right_enabled: bool = True,
+        source: str | None = None,
     ) -> tuple[int, int]:
         """:meth:`Robot.drive_pwm <ohmni_tb.robot.api.Robot.drive_pwm>` (converted here as
         the daemon's robot converts it)."""
         pwm = pwm_command(left, right, left_enabled, right_enabled)
+        name = self._source_name(source)
         self._command(
             "drive_pwm",
             DrivePwmArgs(
-                left=left, right=right, left_enabled=left_enabled, right_enabled=right_enabled
+                left=left,
+                right=right,
+                left_enabled=left_enabled,
+                right_enabled=right_enabled,
+                source=name,
             ),
+            source=name,
         )
         return pwm
 
-    def stop(self) -> None:
+    def stop(self, *, source: str | None = None) -> None:
         """:meth:`Robot.stop <ohmni_tb.robot.api.Robot.stop>` (while the connection is down
         there is nothing to send: the daemon stopped the robot when it went)."""
+        name = self._source_name(source)
         self._check_open()
         if self._connection.connected:
-            self._command("stop")
+            self._command("stop", SourceArgs(source=name))
 
-    async def estop(self) -> None:
+    async def estop(self, *, source: str | None = None) -> None:
         """:meth:`Robot.estop <ohmni_tb.robot.api.Robot.estop>`."""
-        await self._call("estop")
+        await self._call("estop", SourceArgs(source=self._source_name(source)))
 
     def clear_estop(self) -> None:
         """:meth:`Robot.clear_estop <ohmni_tb.robot.api.Robot.clear_estop>`."""
@@ -508,11 +568,15 @@ class RemoteRobot(Robot):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """:meth:`Robot.drive_distance <ohmni_tb.robot.api.Robot.drive_distance>`, run by
         the daemon's robot."""
-        args = DriveDistanceArgs(distance_m=distance_m, speed_mps=speed_mps, timeout_s=timeout_s)
-        return await self._goal("drive_distance", args)
+        name = self._source_name(source)
+        args = DriveDistanceArgs(
+            distance_m=distance_m, speed_mps=speed_mps, timeout_s=timeout_s, source=name
+        )
+        return await self._goal("drive_distance", args, name)
 
     async def rotate(
         self,
@@ -520,10 +584,14 @@ class RemoteRobot(Robot):
         *,
         speed_radps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """:meth:`Robot.rotate <ohmni_tb.robot.api.Robot.rotate>`, run by the daemon's robot."""
-        args = RotateArgs(angle_rad=angle_rad, speed_radps=speed_radps, timeout_s=timeout_s)
-        return await self._goal("rotate", args)
+        name = self._source_name(source)
+        args = RotateArgs(
+            angle_rad=angle_rad, speed_radps=speed_radps, timeout_s=timeout_s, source=name
+        )
+        return await self._goal("rotate", args, name)
 
     async def go_to(
         self,
@@ -533,19 +601,28 @@ class RemoteRobot(Robot):
         *,
         speed_mps: float | None = None,
         timeout_s: float | None = None,
+        source: str | None = None,
     ) -> MotionResult:
         """:meth:`Robot.go_to <ohmni_tb.robot.api.Robot.go_to>`, run by the daemon's robot."""
-        args = GoToArgs(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad, speed_mps=speed_mps, timeout_s=timeout_s)
-        return await self._goal("go_to", args)
+        name = self._source_name(source)
+        args = GoToArgs(
+            x_m=x_m,
+            y_m=y_m,
+            yaw_rad=yaw_rad,
+            speed_mps=speed_mps,
+            timeout_s=timeout_s,
+            source=name,
+        )
+        return await self._goal("go_to", args, name)
 
-    async def _goal(self, method: str, args: BaseModel) -> MotionResult:
+    async def _goal(self, method: str, args: BaseModel, source: str) -> MotionResult:
         """A motion goal in the daemon: its result, or its error as the daemon's robot
         raised it; cancelled, the robot is told to stop (the goal ends there)."""
         try:
-            data = await self._call(method, args, until_done=True)
+            data = await self._call(method, args, until_done=True, source=source)
         except asyncio.CancelledError:
             if not self._closed and self._connection.connected:
-                self._command("stop")
+                self._command("stop", SourceArgs(source=source))
             raise
         return goal_from_json(data)
 
@@ -685,49 +762,75 @@ class RemoteRobot(Robot):
         if self._closed:
             raise RobotClosedError
 
-    def _command(self, method: str, args: BaseModel | None = None) -> asyncio.Future[Any]:
+    def _source_name(self, source: str | None) -> str:
+        """A command's source: the robot's for ``None``, else one of the daemon's robot's.
+
+        Raises:
+            InvalidArgumentError: Not a command source; the message lists them.
+        """
+        return self._source if source is None else self._sources.check_name(source)
+
+    def _command(
+        self, method: str, args: BaseModel | None = None, *, source: str | None = None
+    ) -> asyncio.Future[Any]:
         """Send ``method`` without waiting (module docstring), after the lease it needs."""
         self._check_open()
         self._connection.check()
-        self._lease_for(method)
+        self._lease_for(method, source)
         future = self._connection.command(method, args)
         if method in _CHANGES_SCHEDULE:
             future.add_done_callback(self._refetch_after)
         return future
 
     async def _call(
-        self, method: str, args: BaseModel | None = None, *, until_done: bool = False
+        self,
+        method: str,
+        args: BaseModel | None = None,
+        *,
+        until_done: bool = False,
+        source: str | None = None,
     ) -> Any:
         """Call ``method`` and wait for its answer, after the lease it needs."""
         self._check_open()
         self._connection.check()
-        self._lease_for(method)
+        self._lease_for(method, source)
         data = await self._connection.call(method, args, until_done=until_done)
         if method in _CHANGES_SCHEDULE:
             await self._figures.fetch()
         return data
 
-    def _lease_for(self, method: str) -> None:
+    def _lease_for(self, method: str, source: str | None = None) -> None:
         """Take the control lease for ``method`` when it needs it and nobody holds it: an
-        ``acquire`` goes just before it (the daemon answers in order).
+        ``acquire`` goes just before it (the daemon answers in order). A drive command or
+        goal needs the lease of its ``source``; another command any lease of this
+        connection (else this robot's source's).
 
         Raises:
             LeaseError: Another client holds it (or, without the automatic lease, this
                 connection does not); nothing sent.
         """
         connection = self._connection
-        if not METHOD_SPECS[method].lease or connection.has_lease:
+        if not METHOD_SPECS[method].lease:
             return
-        if self._acquiring is not None and not self._acquiring.done():
+        if source is None:
+            if any(connection.holds(name) for name in connection.holders):
+                return
+            source = self._source
+        if connection.holds(source):
             return
-        holder = connection.holder
+        acquiring = self._acquiring.get(source)
+        if acquiring is not None and not acquiring.done():
+            return
+        holder = connection.holders.get(source)
         if holder is not None or not self._auto_lease:
-            raise LeaseError(self._lease_refusal(method, holder), holder=holder)
-        self._acquiring = connection.command("acquire", AcquireArgs())
+            raise LeaseError(self._lease_refusal(method, holder, source), holder=holder)
+        self._acquiring[source] = connection.command("acquire", AcquireArgs(source=source))
 
-    def _lease_refusal(self, method: str, holder: str | None) -> str:
+    def _lease_refusal(self, method: str, holder: str | None, source: str) -> str:
+        whose = "" if source == self._source else f" of command source {source}"
         return (
-            f"{method} needs the control lease: {holder} holds it (another client drives the robot)"
+            f"{method} needs the control lease{whose}: {holder} holds it (another client "
+            "drives the robot)"
         )
 
     # -- what the daemon sends ---------------------------------------------------------------

@@ -360,6 +360,9 @@ class RobotStateSample:
         present: Ids of the devices that answer.
         absent: Ids of expected devices that do not (re-probed slowly).
         event: What changed, in words (``None`` on a periodic sample).
+        active_source: The command source that drives (``"local"``, ``"remote"``…: the
+            highest one live, whose drive commands are taken), or ``None`` when none is
+            live (``command_sources``; a change is published with an event).
     """
 
     stamp_s: float
@@ -371,6 +374,7 @@ class RobotStateSample:
     present: tuple[int, ...]
     absent: tuple[int, ...]
     event: str | None = None
+    active_source: str | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 
 from ohmni_tb.bus import Bus
 from ohmni_tb.config import RobotConfig
+from ohmni_tb.control.sources import SourceMux
 from ohmni_tb.errors import InvalidArgumentError, RobotClosedError, StateError
 from ohmni_tb.protocol import Packet
 from ohmni_tb.robot.devices import ServoHandle, WormNeckHandle
@@ -89,6 +90,9 @@ class RobotState:
     def __post_init__(self) -> None:
         #: The bus profile, fixed while the Robot is open (its packets are built once).
         self.profile = self.config.profile()
+        #: Which command source drives (``command_sources``, fixed while open):
+        #: :mod:`ohmni_tb.robot.sources` feeds it.
+        self.sources = SourceMux(self.config.source_table())
         self.topics = {name: Topic(name) for name in STREAM_NAMES}
         self.topics["pid_debug"].enabled = self.config.pid_debug
 
@@ -109,8 +113,9 @@ class RobotState:
 
     def sample(self, event: str | None) -> RobotStateSample:
         """The state now, as ``robot_state`` publishes it."""
+        now = self.loop.time()
         return RobotStateSample(
-            stamp_s=self.loop.time(),
+            stamp_s=now,
             link=self.link,
             estopped=self.estopped,
             watchdog_tripped=self.watchdog_tripped,
@@ -119,6 +124,7 @@ class RobotState:
             present=tuple(sorted(self.present)),
             absent=tuple(sorted(self.expected - self.present)),
             event=event,
+            active_source=self.sources.active(now),
         )
 
     def publish(self, event: str | None) -> None:

@@ -13,10 +13,13 @@ Every message is one JSON object in one WebSocket text frame, with ``op`` naming
 ``id`` is the client's (an integer or a short string); the ``result`` or ``error`` that
 answers a request carries it back. A ``call`` names one of :data:`METHODS`; its ``args``
 are checked against that method's model in :data:`METHOD_ARGS` (:func:`call_args`).
-Methods in :data:`LEASE_METHODS` change the robot and need the control lease
-(``acquire``); ``stop`` and ``estop`` are anyone's. A sample's ``data`` is the Robot's
-sample dataclass as JSON (enums by value, tuples as lists, nested dataclasses as
-objects): :func:`sample_json` and :func:`sample_from_json` go both ways.
+Methods in :data:`LEASE_METHODS` change the robot and need a control lease
+(``acquire``): one lease per command source, each held by at most one client; the drive
+commands and motion goals go as the command source of the lease (``source``), and the
+daemon's Robot takes the highest source's. ``stop`` and ``estop`` are anyone's. A
+sample's ``data`` is the Robot's sample dataclass as JSON (enums by value, tuples as
+lists, nested dataclasses as objects): :func:`sample_json` and :func:`sample_from_json`
+go both ways.
 :func:`parse_client_message` turns one frame into a message or raises
 :class:`RequestError` with the ``error`` to send back. :func:`json_schema` is the schema
 of them all, checked in at ``docs/daemon-schema.json`` (regenerate it with
@@ -48,6 +51,7 @@ from ohmni_tb.errors import (
     PositionError,
     PositionTimeoutError,
     RobotClosedError,
+    SourceOverriddenError,
     StateError,
     TransportError,
     WheelSlipError,
@@ -98,6 +102,7 @@ __all__ = [
     "PidArgs",
     "PoseArgs",
     "RateArgs",
+    "ReleaseArgs",
     "ReleasePortArgs",
     "RequestError",
     "RestArgs",
@@ -109,6 +114,8 @@ __all__ = [
     "ServoCommand",
     "ServoIdArgs",
     "ServoWriteArgs",
+    "SourceArgs",
+    "SourceName",
     "StreamArgs",
     "Subscribe",
     "TorqueArgs",
@@ -144,8 +151,10 @@ __all__ = [
 #: 3: strict types, ``hello`` says what the daemon serves; 4: the motion goals, and the
 #: Robot's own exception in ``error.raised``; 5: tb_control's sample fields, and the
 #: frame settings in ``config``, which a client of 4 refuses as unknown; 6: the
-#: ``diagnostics`` topic, ``set_odometry``, and ``wheel_odom``'s requested twist).
-PROTOCOL_VERSION: Final = 6
+#: ``diagnostics`` topic, ``set_odometry``, and ``wheel_odom``'s requested twist; 7: a
+#: lease per command source, the drive commands' ``source``, ``robot_state``'s
+#: ``active_source``).
+PROTOCOL_VERSION: Final = 7
 #: The environment variable a client takes the daemon's token from.
 TOKEN_ENV: Final = "OHMNI_DAEMON_TOKEN"
 #: What a client may ask (``op``).
@@ -172,6 +181,7 @@ ErrorCode = Literal[
     "rate_limited",  # over the message rate limit (the connection is then closed)
     "no_lease",  # a command that needs the control lease, from a client without it
     "lease_held",  # acquire while another client holds the lease (steal to take it)
+    "source_forbidden",  # a client beyond loopback claims a source of the robot's own computer
     "read_only",  # the daemon takes no commands (``ohmni serve --read-only``)
     "bad_value",  # the Robot refused a value (out of range, not finite): nothing sent
     "robot_state",  # the Robot cannot do it now (an emergency stop, no such device …)
@@ -221,10 +231,39 @@ class LatestArgs(_Request):
         return {"name": self.topic}
 
 
+#: A command source's name (the daemon's Robot's ``command_sources`` say which exist).
+SourceName = Annotated[str, Field(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_]*$")]
+
+
 class AcquireArgs(_Request):
-    """``acquire``: take the control lease; ``steal`` takes it from its holder (told so)."""
+    """``acquire``: take the control lease of command source ``source``; ``steal`` takes it
+    from its holder (told so). A client beyond loopback may not take ``local`` nor
+    ``safety`` (nor a source above ``remote``)."""
 
     steal: bool = False
+    source: SourceName = Field(
+        "remote", description="The command source the lease is for (default remote)."
+    )
+
+
+class ReleaseArgs(_Request):
+    """``release``: give back the lease of ``source``, or (``null``) every lease held."""
+
+    source: SourceName | None = None
+
+
+class SourceArgs(_Request):
+    """``stop``, ``estop``: obeyed from anyone; ``source`` (one of this client's leases,
+    default its highest) is the command source it comes from."""
+
+    source: SourceName | None = None
+
+
+#: A drive command's or goal's command source: one this client holds the lease of
+#: (``null``: its highest).
+_SOURCE_FIELD = Field(
+    None, description="The command source (a lease this client holds; null: its highest)."
+)
 
 
 #: A wheel by name, or ``null`` for both (``set_pid``, ``get_pid``, ``enable_controllers``).
@@ -238,6 +277,7 @@ class DriveArgs(_Request):
     linear_mps: Number
     angular_radps: Number = 0.0
     ramped: bool = True
+    source: SourceName | None = _SOURCE_FIELD
 
 
 class DriveWheelsArgs(_Request):
@@ -245,6 +285,7 @@ class DriveWheelsArgs(_Request):
 
     left_mps: Number
     right_mps: Number
+    source: SourceName | None = _SOURCE_FIELD
 
 
 class DrivePwmArgs(_Request):
@@ -255,6 +296,7 @@ class DrivePwmArgs(_Request):
     right: Number
     left_enabled: bool = True
     right_enabled: bool = True
+    source: SourceName | None = _SOURCE_FIELD
 
 
 class EnabledArgs(_Request):
@@ -460,6 +502,7 @@ class DriveDistanceArgs(_Request):
     distance_m: Number
     speed_mps: Number | None = None
     timeout_s: Number | None = None
+    source: SourceName | None = _SOURCE_FIELD
 
 
 class RotateArgs(_Request):
@@ -468,6 +511,7 @@ class RotateArgs(_Request):
     angle_rad: Number
     speed_radps: Number | None = None
     timeout_s: Number | None = None
+    source: SourceName | None = _SOURCE_FIELD
 
 
 class GoToArgs(_Request):
@@ -479,6 +523,7 @@ class GoToArgs(_Request):
     yaw_rad: Number | None = None
     speed_mps: Number | None = None
     timeout_s: Number | None = None
+    source: SourceName | None = _SOURCE_FIELD
 
 
 @dataclass(frozen=True, slots=True)
@@ -493,6 +538,8 @@ class MethodSpec:
             servo's handle for ``move``, ``torque``, ``rest``), or ``None``: the
             server's own (the lease, the shared stats, the settings).
         awaited: Whether that method is a coroutine (the answer comes when it ends).
+        sourced: Whether it goes as a command source (``source``: the drive commands,
+            the goals, the stops).
     """
 
     args: type[_Request]
@@ -500,11 +547,14 @@ class MethodSpec:
     result: str
     call: str | None = None
     awaited: bool = False
+    sourced: bool = False
 
 
 #: What a motion goal's ``result`` carries: it ended short of its goal when ``error`` is
 #: not null (``type`` is the ``MotionError``'s class, with its fields).
-_GOAL_RESULT = "{result: MotionResult, error: null or {type, message, by?, timeout_s?, wheels?}}"
+_GOAL_RESULT = (
+    "{result: MotionResult, error: null or {type, message, by?, source?, timeout_s?, wheels?}}"
+)
 #: Every service a ``call`` may name.
 METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     # Read-only: anyone.
@@ -531,21 +581,33 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
         "{left: {kp, ki, kd, kff, ff_offset}, right: {…}, enabled: {left: bool, right: bool}}",
     ),
     "config": MethodSpec(NoArgs, False, "the daemon's RobotConfig: every setting by name"),
-    "lease": MethodSpec(NoArgs, False, "{holder: peer or null, you: bool}"),
-    # The lease itself.
-    "acquire": MethodSpec(AcquireArgs, False, "{holder, you: true, stolen_from: peer or null}"),
-    "release": MethodSpec(NoArgs, True, "{holder: null, you: false}"),
+    "lease": MethodSpec(
+        NoArgs,
+        False,
+        "{holder: peer or null, you: bool, leases: {source: peer}, yours: [source]}",
+    ),
+    # The leases themselves: one per command source.
+    "acquire": MethodSpec(
+        AcquireArgs, False, "{holder, you: true, stolen_from: peer or null, source}"
+    ),
+    "release": MethodSpec(ReleaseArgs, True, "{holder: null, you: false, released: [source]}"),
     # Stopping: anyone may.
-    "stop": MethodSpec(NoArgs, False, "null", "stop"),
-    "estop": MethodSpec(NoArgs, False, "null", "estop", awaited=True),
-    # Commands: the lease holder only.
+    "stop": MethodSpec(SourceArgs, False, "null", "stop", sourced=True),
+    "estop": MethodSpec(SourceArgs, False, "null", "estop", awaited=True, sourced=True),
+    # Commands: the lease holders only.
     "drive": MethodSpec(
-        DriveArgs, True, "{requested: [m/s, rad/s], twist: [m/s, rad/s], scale}", "drive"
+        DriveArgs,
+        True,
+        "{requested: [m/s, rad/s], twist: [m/s, rad/s], scale}",
+        "drive",
+        sourced=True,
     ),
     "drive_wheels": MethodSpec(
-        DriveWheelsArgs, True, "{left_mps, right_mps} driven", "drive_wheels"
+        DriveWheelsArgs, True, "{left_mps, right_mps} driven", "drive_wheels", sourced=True
     ),
-    "drive_pwm": MethodSpec(DrivePwmArgs, True, "[left, right]: the PWM sent", "drive_pwm"),
+    "drive_pwm": MethodSpec(
+        DrivePwmArgs, True, "[left, right]: the PWM sent", "drive_pwm", sourced=True
+    ),
     "clear_estop": MethodSpec(NoArgs, True, "null", "clear_estop"),
     "enable_controllers": MethodSpec(EnabledArgs, True, "null", "enable_controllers"),
     "set_pid": MethodSpec(PidArgs, True, "null", "set_pid"),
@@ -618,10 +680,10 @@ METHOD_SPECS: Final[dict[str, MethodSpec]] = {
     ),
     # Motion goals: they run in the daemon; the answer comes when the goal ends.
     "drive_distance": MethodSpec(
-        DriveDistanceArgs, True, _GOAL_RESULT, "drive_distance", awaited=True
+        DriveDistanceArgs, True, _GOAL_RESULT, "drive_distance", awaited=True, sourced=True
     ),
-    "rotate": MethodSpec(RotateArgs, True, _GOAL_RESULT, "rotate", awaited=True),
-    "go_to": MethodSpec(GoToArgs, True, _GOAL_RESULT, "go_to", awaited=True),
+    "rotate": MethodSpec(RotateArgs, True, _GOAL_RESULT, "rotate", awaited=True, sourced=True),
+    "go_to": MethodSpec(GoToArgs, True, _GOAL_RESULT, "go_to", awaited=True, sourced=True),
 }
 #: The services a ``call`` may name.
 METHODS: Final = tuple(METHOD_SPECS)
@@ -713,7 +775,13 @@ class Hello(_Message):
         False, description="The Robot is the built-in simulator: nothing physical moves."
     )
     peer: str = Field(description="This connection as the server names it (host:port).")
-    lease: str | None = Field(description="Who holds the control lease (peer), or null.")
+    lease: str | None = Field(
+        description="Who holds the control lease of the highest command source held (peer), "
+        "or null: nobody holds one."
+    )
+    leases: dict[str, str] = Field(
+        default_factory=dict, description="Each command source's lease and its holder (peer)."
+    )
     topics: dict[str, float] = Field(description="Each stream and its rate (Hz; 0: on events).")
     motion: Motion
     limits: Limits
@@ -726,6 +794,7 @@ class LeaseMessage(_Message):
     holder: str | None = Field(description="The new holder (peer), or null: nobody.")
     you: bool = Field(description="This connection holds it now.")
     reason: str = Field(description="What happened, for people: acquired, stolen by …")
+    source: str = Field("remote", description="The command source whose lease it is.")
 
 
 class SampleMessage(_Message):
@@ -765,7 +834,8 @@ class ErrorMessage(_Message):
     raised: dict[str, Any] | None = Field(
         None,
         description="A refusal of the daemon's Robot: its exception's class (type) and, "
-        "for an OutOfRangeError, the value and its range (name, value, low, high, unit).",
+        "for an OutOfRangeError, the value and its range (name, value, low, high, unit); "
+        "for a SourceOverriddenError, source, active and lapses_in_s.",
     )
 
 
@@ -842,6 +912,17 @@ def raised_error(raised: dict[str, Any] | None, message: str) -> OhmniError | No
             )
         except (KeyError, TypeError):
             return None
+    if kind == "SourceOverriddenError":
+        try:
+            lapses = raised.get("lapses_in_s")
+            return SourceOverriddenError(
+                message,
+                source=str(raised["source"]),
+                active=str(raised["active"]),
+                lapses_in_s=None if lapses is None else float(lapses),
+            )
+        except (KeyError, TypeError, ValueError):
+            return None
     if kind in ("PositionError", "PositionTimeoutError"):
         position = PositionTimeoutError if kind == "PositionTimeoutError" else PositionError
         try:
@@ -863,6 +944,8 @@ def _raised_json(exc: OhmniError) -> dict[str, Any]:
         raised.update(name=exc.name, value=value, low=exc.low, high=exc.high, unit=exc.unit)
     elif isinstance(exc, PositionError):
         raised.update(sid=exc.sid, target_raw=exc.target_raw)
+    elif isinstance(exc, SourceOverriddenError):
+        raised.update(source=exc.source, active=exc.active, lapses_in_s=exc.lapses_in_s)
     return raised
 
 
@@ -1020,6 +1103,7 @@ def goal_json(outcome: MotionResult | MotionError) -> dict[str, Any]:
     error: dict[str, Any] = {"type": type(outcome).__name__, "message": str(outcome)}
     if isinstance(outcome, MotionPreemptedError):
         error["by"] = outcome.by
+        error["source"] = outcome.source
     elif isinstance(outcome, MotionTimeoutError):
         error["timeout_s"] = outcome.timeout_s
     elif isinstance(outcome, WheelStallError):
@@ -1048,7 +1132,13 @@ def goal_from_json(data: Any) -> MotionResult:
         return result
     kind, message = error.get("type"), str(error.get("message", ""))
     if kind == "MotionPreemptedError":
-        raise MotionPreemptedError(message, result=result, by=str(error.get("by")))
+        source = error.get("source")
+        raise MotionPreemptedError(
+            message,
+            result=result,
+            by=str(error.get("by")),
+            source=None if source is None else str(source),
+        )
     if kind == "MotionTimeoutError":
         raise MotionTimeoutError(message, result=result, timeout_s=float(error["timeout_s"]))
     if kind == "WheelStallError":
