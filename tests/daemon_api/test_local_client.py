@@ -22,7 +22,7 @@ async def test_a_command_needs_the_lease_and_another_client_holding_it_refuses_i
             await local.call("light_ring", {"hue": 1, "saturation": 2, "value": 3})
         assert refused.value.code == "no_lease"
         async with RobotClient.connect(server.url) as other:
-            await other.acquire()
+            await other.acquire(source="remote")  # the local client's source
             with pytest.raises(RequestError) as held:
                 await local.call("acquire")
             assert held.value.code == "lease_held"
@@ -54,10 +54,10 @@ async def test_holding_the_lease_it_commands_and_others_are_told(
         assert robot.sim is not None
         assert bytes(robot.sim.core.light_ring) == bytes((10, 20, 30))
         with pytest.raises(LeaseError, match="mqtt:test"):
-            await other.acquire()
+            await other.acquire(source="remote")
         local.close()  # leaving releases the lease
         assert lease_of(server, local) == (None, False)
-        await other.acquire()
+        await other.acquire(source="remote")
     assert [(m.holder, m.you) for m in told] == [("mqtt:test", True)]
 
 

@@ -109,7 +109,7 @@ async def test_the_light_ring_takes_the_lease_and_gives_it_back(broker: Mosquitt
 async def test_a_command_is_refused_while_another_client_drives(broker: Mosquitto) -> None:
     async with served(broker.url, "a") as robot, mqtt_client(broker.url) as client:
         async with RobotClient.connect(robot.server.url) as driver:
-            await driver.acquire()
+            await driver.acquire(source="remote")  # the bridge's own source
             reply, _ = await command(
                 client, "a", "light_ring", {"hue": 1, "saturation": 1, "value": 1}
             )
