@@ -154,9 +154,7 @@ async def test_the_pages_own_origin_may_connect_and_others_may_not(server: Robot
     own = await get(server.url, "/", **handshake(f"http://{address}"))
     assert own.status == 101
     # Reached through a tunnel or another name for loopback: the Host it came to.
-    tunnel = await get(
-        server.url, "/", **handshake("http://localhost:9000", Host="localhost:9000")
-    )
+    tunnel = await get(server.url, "/", **handshake("http://localhost:9000", Host="localhost:9000"))
     assert tunnel.status == 101
     for origin, host in [
         ("http://evil.example", address),  # another site
@@ -222,7 +220,8 @@ def test_a_daemon_listening_everywhere_shows_an_address_others_reach() -> None:
     from ohmni_tb.daemon.web import page_url
 
     url = page_url("0.0.0.0", 8766)
-    assert url.startswith("http://") and url.endswith(":8766/")
+    assert url.startswith("http://")
+    assert url.endswith(":8766/")
     assert "0.0.0.0" not in url
     assert page_url("::1", 8766) == "http://[::1]:8766/"
     assert page_url("127.0.0.1", 1) == "http://127.0.0.1:1/"
@@ -239,7 +238,9 @@ def test_every_file_of_the_page_is_in_the_package_data_and_found_installed() -> 
     patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
         "package-data"
     ]["ohmni_tb"]
-    missing = [n for n in names if not any(fnmatch.fnmatch(f"{WEB_FOLDER}/{n}", p) for p in patterns)]
+    missing = [
+        n for n in names if not any(fnmatch.fnmatch(f"{WEB_FOLDER}/{n}", p) for p in patterns)
+    ]
     assert missing == [], "not in pyproject's package-data: the wheel would lack them"
 
 
@@ -250,7 +251,14 @@ def test_the_page_loads_only_its_own_files() -> None:
     referenced = set(re.findall(r'(?:src|href)="([^"]+)"', html))
     for script in (name for name in names if name.endswith(".js")):
         referenced |= set(re.findall(r'from "\./([^"]+)"', folder.joinpath(script).read_text()))
-    assert referenced == {"icon.svg", "style.css", "app.js", "connection.js", "joystick.js", "plot.js"}
+    assert referenced == {
+        "icon.svg",
+        "style.css",
+        "app.js",
+        "connection.js",
+        "joystick.js",
+        "plot.js",
+    }
     assert referenced <= names
     for name in names:
         text = folder.joinpath(name).read_text()

@@ -5,7 +5,8 @@ Playwright's Python package (never its own browser download: ``executable_path``
 the page is opened at the URL it printed. What the robot did is read by the test's own
 client of the daemon (:class:`Peer`: the daemon's protocol, as docs/daemon.md shows it),
 from the simulated boards' wheel counts — never from the page. One browser serves every
-test; each test has a page of its own, in a fresh context (its own session storage)."""
+test of a module; each test has a page of its own, in a fresh context (its own session
+storage)."""
 
 from __future__ import annotations
 
@@ -97,7 +98,7 @@ class Peer:
 
     def still(self) -> bool:
         wheels = self.latest("wheel_encoder")
-        return abs(wheels["left_mps"]) < 0.01 and abs(wheels["right_mps"]) < 0.01
+        return bool(abs(wheels["left_mps"]) < 0.01 and abs(wheels["right_mps"]) < 0.01)
 
     def close(self) -> None:
         """Idempotent."""
@@ -170,8 +171,11 @@ def guarded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     served.close()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
+    """One Chromium for a module's tests. Not for a whole session: while Playwright's
+    synchronous API is in use, its event loop counts as running in this thread, and the
+    async tests of another module (pytest-asyncio) could not start theirs."""
     if CHROMIUM is None:
         pytest.skip("needs Chromium: apt-get install chromium (.ci/run installs it)")
     from playwright.sync_api import sync_playwright

@@ -235,9 +235,7 @@ def test_while_another_client_drives_the_page_says_so_and_cannot_drive(
     assert lease["you"] is False
 
 
-def test_leaving_the_page_gives_the_lease_back(
-    browser: Any, daemon: Served, peer: Peer
-) -> None:
+def test_leaving_the_page_gives_the_lease_back(browser: Any, daemon: Served, peer: Peer) -> None:
     context = browser.new_context()
     page = context.new_page()
     page.goto(daemon.page_url)

@@ -6,9 +6,9 @@ use. A client presents it as ``Authorization: Bearer <token>``, or, from a brows
 cannot set that header on a WebSocket), as one of the WebSocket subprotocols it offers:
 ``ohmni.token.<the token, base64url>`` beside ``ohmni`` (:data:`WEB_PROTOCOL`, the one the
 daemon picks), which keeps it out of URLs, histories and logs; ``?token=<token>`` in the URL
-is still taken. It is compared in constant time. Browsers also send ``Origin``: a page from any site could otherwise open a
-WebSocket to the daemon from the user's machine, so a handshake carrying an ``Origin`` is
-refused unless that origin is allowed.
+is still taken. It is compared in constant time. Browsers also send ``Origin``: a page from
+any site could otherwise open a WebSocket to the daemon from the user's machine, so a
+handshake carrying an ``Origin`` is refused unless that origin is allowed.
 """
 
 from __future__ import annotations

@@ -30,7 +30,6 @@ own name resolve to the robot's address (DNS rebinding) and be that origin.
 from __future__ import annotations
 
 import contextlib
-import email.utils
 import hashlib
 import ipaddress
 import logging
@@ -171,7 +170,9 @@ class WebConsole:
         if given is not None:
             address = connection.remote_address
             peer = f"{address[0]}:{address[1]}" if isinstance(address, tuple) else str(address)
-            _log.warning("client %s: refused: a wrong token (the web console's %s)", peer, AUTH_PATH)
+            _log.warning(
+                "client %s: refused: a wrong token (the web console's %s)", peer, AUTH_PATH
+            )
         return _response(connection, 401, "this daemon needs its token\n", request)
 
 
@@ -218,7 +219,7 @@ def _response(connection: ServerConnection, status: int, text: str, request: Req
     host = _header(request, "Host")
     ws = f" ws://{host} wss://{host}" if host is not None and _HOST.match(host) else ""
     headers["Content-Security-Policy"] = _POLICY.format(ws=ws)
-    if status == 304 or status == 204:
+    if status in {204, 304}:
         response.body = b""
         del headers["Content-Type"], headers["Content-Length"]
     return response
