@@ -26,7 +26,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
 ]
 #: A laptop's window: every plot on screen (a page draws what it shows).
-VIEWPORT = {"width": 1280, "height": 860}
+WIDTH, HEIGHT = 1280, 860
 
 
 def main() -> int:
@@ -41,7 +41,8 @@ def main() -> int:
         pages = []
         for _ in range(count):
             # A context each: every page is a browser tab of its own, as five people's.
-            page = browser.new_context(viewport=VIEWPORT).new_page()  # type: ignore[arg-type]  # a dict is a ViewportSize
+            context = browser.new_context(viewport={"width": WIDTH, "height": HEIGHT})
+            page = context.new_page()
             page.goto(url)
             pages.append(page)
         for page in pages:

@@ -77,8 +77,10 @@ def main() -> int:
     from playwright.sync_api import sync_playwright  # noqa: PLC0415  # the test extra
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "ohmni_tb", "serve", "--port", "sim://"]
-        + ["--listen", f"127.0.0.1:{free_port()}"],
+        [
+            *(sys.executable, "-m", "ohmni_tb", "serve", "--port", "sim://"),
+            *("--listen", f"127.0.0.1:{free_port()}"),
+        ],
         stdout=subprocess.PIPE,
     )
     try:

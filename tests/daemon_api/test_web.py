@@ -282,3 +282,15 @@ def test_ohmni_serve_prints_the_pages_url_on_its_own_line_and_serves_it() -> Non
         assert b"Ohmni console" in answer.body
     finally:
         stop_serving(proc)
+
+
+def test_the_token_is_read_from_a_subprotocol_after_the_header() -> None:
+    from ohmni_tb.daemon import auth
+
+    offered = f"ohmni, {token_protocol(TOKEN)}"
+    assert auth.presented_token("/", None, offered) == TOKEN
+    assert auth.presented_token("/", f"Bearer {TOKEN}x", offered) == f"{TOKEN}x"
+    assert auth.presented_token(f"/?token={TOKEN}x", None, offered) == TOKEN
+    assert auth.presented_token("/", None, "ohmni") is None
+    # Not base64url: presented as it is, and so refused as a wrong token, not as none.
+    assert auth.presented_token("/", None, "ohmni.token.!!") == "!!"
