@@ -110,13 +110,17 @@ function showLease() {
   $("clear").disabled = !state.you;
   $("clear-help").hidden = state.you;
   const drive = canDrive();
+  // Not allowed to drive any more (the lease gone, an emergency stop, the connection
+  // lost): the commands end here, without a stop of this page's own — the daemon
+  // stopped the robot as the lease changed hands, and a stop now could cut into the
+  // first commands of whoever drives next.
+  if (!drive) driver.halt(false);
   joystick.setEnabled(drive);
   document.body.classList.toggle("driving-allowed", drive);
   for (const id of ["neck", "neck-up", "neck-level", "neck-down"]) {
     $(id).disabled = !state.you || state.neck === "none" || readOnly;
   }
   $("estop").disabled = !state.connection?.connected;
-  if (!drive) driver.halt(false);
 }
 
 function showEstop(estopped) {
@@ -226,8 +230,11 @@ function driveFromKeys() {
 window.addEventListener("keydown", (event) => {
   if (event.ctrlKey || event.altKey || event.metaKey || typing(event.target)) return;
   if (event.code === "Space") {
+    // The driver's stop key. A page that only watches keeps space for scrolling: its
+    // STOP button stops the robot.
+    if (!state.you) return;
     event.preventDefault();
-    stopEverything(true);
+    stopEverything(false);
     if (state.connection?.connected) state.connection.post("stop");
     return;
   }
@@ -579,7 +586,13 @@ function connect() {
     state.you = false;
     document.body.classList.add("stale");
     showLease();
-    showLink(event.detail.opened ? "Disconnected: reconnecting…" : "Refused: checking…", false);
+    showLink(
+      event.detail.opened
+        ? "Disconnected: reconnecting…"
+        : "Refused by the daemon: too many clients, or this address is not allowed " +
+            "(open the page by IP address or localhost): trying again",
+      false,
+    );
     reconnectLater();
   });
   connection.connect();
