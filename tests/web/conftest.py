@@ -21,13 +21,16 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 from websockets.sync.client import ClientConnection, connect
 
 from daemon_api._pty_robot import START_S, read_line
 from daemon_api._serving import free_port, stop_serving
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page
 
 #: Debian's and Ubuntu's package; ``.ci/run`` installs it when missing.
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -169,6 +172,45 @@ def guarded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     served.url = f"ws://127.0.0.1:{port}"  # the test's own client, from this machine
     yield served
     served.close()
+
+
+class Tabs:
+    """A test's browser tabs, each in a fresh context (its own session storage) unless
+    opened beside another; closed after the test, which fails if a page's script raised
+    (an uncaught exception: the page would be broken for its user)."""
+
+    def __init__(self, browser: Any) -> None:
+        self._browser = browser
+        self._contexts: list[Any] = []
+        self.errors: list[str] = []
+
+    def open(self, **options: Any) -> Page:
+        context = self._browser.new_context(**options)
+        self._contexts.append(context)
+        return self._watched(context.new_page())
+
+    def beside(self, page: Page) -> Page:
+        """Another tab of the same browser window (the same context)."""
+        return self._watched(page.context.new_page())
+
+    def _watched(self, page: Page) -> Page:
+        page.on("pageerror", self._raised)
+        return page
+
+    def _raised(self, error: Any) -> None:
+        self.errors.append(str(error))
+
+    def close(self) -> None:
+        for context in self._contexts:
+            context.close()
+
+
+@pytest.fixture
+def tabs(browser: Any) -> Iterator[Tabs]:
+    opened = Tabs(browser)
+    yield opened
+    opened.close()
+    assert opened.errors == [], "the page's script raised"
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 from playwright.sync_api import Page, expect
 
-from .conftest import Peer, Served, needs_chromium, until
+from .conftest import Peer, Served, Tabs, needs_chromium, until
 
 pytestmark = needs_chromium
 
@@ -37,13 +37,11 @@ def peer(daemon: Served) -> Iterator[Peer]:
 
 
 @pytest.fixture
-def page(browser: Any, daemon: Served, peer: Peer) -> Iterator[Page]:
-    context = browser.new_context(viewport={"width": 1280, "height": 900})
-    opened: Page = context.new_page()
+def page(tabs: Tabs, daemon: Served, peer: Peer) -> Page:
+    opened = tabs.open(viewport={"width": 1280, "height": 900})
     opened.goto(daemon.page_url)
     expect(opened.get_by_role("status", name="Connection")).to_contain_text("Connected")
-    yield opened
-    context.close()
+    return opened
 
 
 def take_control(page: Page) -> None:
@@ -106,9 +104,8 @@ def test_the_page_shows_the_robots_status(page: Page, peer: Peer) -> None:
     ).is_visible()
 
 
-def test_the_plots_update_at_10_hz_or_more(browser: Any, daemon: Served, peer: Peer) -> None:
-    context = browser.new_context()
-    page = context.new_page()
+def test_the_plots_update_at_10_hz_or_more(tabs: Tabs, daemon: Served, peer: Peer) -> None:
+    page = tabs.open()
     odometry: list[float] = []
 
     def frames(ws: Any) -> None:
@@ -120,22 +117,21 @@ def test_the_plots_update_at_10_hz_or_more(browser: Any, daemon: Served, peer: P
         ws.on("framereceived", seen)
 
     page.on("websocket", frames)
-    try:
-        page.goto(daemon.page_url)
-        caption = page.get_by_label("Odometry updates")
-        until(lambda: caption.inner_text().endswith("Hz") and int(caption.inner_text()[:-3]) >= 10)
-        assert int(page.get_by_label("Wheel speed updates").inner_text()[:-3]) >= 10
-        start = len(odometry)
-        page.wait_for_timeout(1000)  # the browser's events are seen meanwhile
-        assert len(odometry) - start >= 10
-        # The plots are drawn: something other than the background.
-        drawn = page.evaluate(
-            """() => { const c = document.getElementById("speeds");
-                       return c.toDataURL() !== document.createElement("canvas").toDataURL(); }"""
+    page.goto(daemon.page_url)
+    caption = page.get_by_label("Odometry updates")
+    until(lambda: caption.inner_text().endswith("Hz") and int(caption.inner_text()[:-3]) >= 10)
+    assert int(page.get_by_label("Wheel speed updates").inner_text()[:-3]) >= 10
+    start = len(odometry)
+    page.wait_for_timeout(1000)  # the browser's events are seen meanwhile
+    assert len(odometry) - start >= 10
+    # The plots are drawn: not a blank canvas of their size.
+    for plot in ("Wheel speeds, commanded and measured", "Odometry path"):
+        drawn = page.get_by_role("img", name=plot).evaluate(
+            """(canvas) => { const blank = document.createElement("canvas");
+                             blank.width = canvas.width; blank.height = canvas.height;
+                             return canvas.toDataURL() !== blank.toDataURL(); }"""
         )
-        assert drawn
-    finally:
-        context.close()
+        assert drawn, plot
 
 
 def test_holding_the_joystick_forward_drives_and_letting_go_stops(page: Page, peer: Peer) -> None:
@@ -152,7 +148,10 @@ def test_holding_the_joystick_forward_drives_and_letting_go_stops(page: Page, pe
     released = time.monotonic()
     until(lambda: requested_mps(peer) == 0.0, 2.0)
     assert time.monotonic() - released < page_stop_s(peer)
+    # Standing still within the watchdog's time and the braking ramp from that speed.
+    ramp_s = START_LINEAR_MPS / peer.call("config")["linear_decel_mps2"]
     until(peer.still, 2.0)
+    assert time.monotonic() - released < peer.hello["motion"]["watchdog_s"] + ramp_s
     expect(page.get_by_label("Command", exact=True)).to_have_text("stopped")
 
 
@@ -240,16 +239,14 @@ def test_while_another_client_drives_the_page_says_so_and_cannot_drive(
     assert lease["you"] is False
 
 
-def test_leaving_the_page_gives_the_lease_back(browser: Any, daemon: Served, peer: Peer) -> None:
-    context = browser.new_context()
-    page = context.new_page()
+def test_leaving_the_page_gives_the_lease_back(tabs: Tabs, daemon: Served, peer: Peer) -> None:
+    page = tabs.open()
     page.goto(daemon.page_url)
     take_control(page)
     holder = until(lambda: peer.call("lease")["holder"], 2.0)
     assert holder != peer.peer
     page.close()
     until(lambda: peer.call("lease")["holder"] is None, 3.0)
-    context.close()
 
 
 def test_the_neck_moves_within_its_range(page: Page, peer: Peer) -> None:
@@ -287,10 +284,9 @@ def test_the_top_speed_is_shown_and_set_within_the_robots_limit(page: Page, peer
 
 
 def test_a_lease_taken_while_the_page_drives_ends_its_commands(
-    browser: Any, daemon: Served, peer: Peer
+    tabs: Tabs, daemon: Served, peer: Peer
 ) -> None:
-    context = browser.new_context()
-    page = context.new_page()
+    page = tabs.open()
     # The page's frames in the order the browser saw them: its drive commands, and the
     # lease message telling it the lease went to another client.
     frames: list[str] = []
@@ -308,23 +304,20 @@ def test_a_lease_taken_while_the_page_drives_ends_its_commands(
         ws.on("framereceived", received)
 
     page.on("websocket", watch)
-    try:
-        page.goto(daemon.page_url)
-        take_control(page)
-        stick = Stick(page)
-        stick.hold(up=1.0)
-        until(lambda: requested_mps(peer) > 0, 2.0)
-        peer.call("acquire", steal=True)  # an operator takes over
-        expect(page.get_by_role("status", name="Control")).to_have_text(f"{peer.peer} has control")
-        page.wait_for_timeout(500)  # the finger still on the joystick
-        assert "lease lost" in frames
-        after = frames[frames.index("lease lost") + 1 :]
-        # At most one already on its way as the message came in; none after it was read.
-        assert after.count("drive") <= 1, after
-        assert requested_mps(peer) == 0.0
-        expect(page.get_by_role("application", name="Drive joystick")).to_have_attribute(
-            "aria-disabled", "true"
-        )
-        stick.let_go()
-    finally:
-        context.close()
+    page.goto(daemon.page_url)
+    take_control(page)
+    stick = Stick(page)
+    stick.hold(up=1.0)
+    until(lambda: requested_mps(peer) > 0, 2.0)
+    peer.call("acquire", steal=True)  # an operator takes over
+    expect(page.get_by_role("status", name="Control")).to_have_text(f"{peer.peer} has control")
+    page.wait_for_timeout(500)  # the finger still on the joystick
+    assert "lease lost" in frames
+    after = frames[frames.index("lease lost") + 1 :]
+    # At most one already on its way as the message came in; none after it was read.
+    assert after.count("drive") <= 1, after
+    assert requested_mps(peer) == 0.0
+    expect(page.get_by_role("application", name="Drive joystick")).to_have_attribute(
+        "aria-disabled", "true"
+    )
+    stick.let_go()

@@ -6,24 +6,21 @@ of every URL."""
 from __future__ import annotations
 
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
 
 import pytest
 from playwright.sync_api import Page, expect
 
-from .conftest import Served, needs_chromium
+from .conftest import Served, Tabs, needs_chromium
 
 pytestmark = needs_chromium
 
 
 @pytest.fixture
-def page(browser: Any, guarded: Served) -> Iterator[Page]:
-    context = browser.new_context()
-    opened: Page = context.new_page()
-    yield opened
-    context.close()
+def page(tabs: Tabs) -> Page:
+    return tabs.open()
 
 
 def collect(into: list[Any]) -> Callable[[Any], None]:
@@ -92,20 +89,16 @@ def test_with_the_token_the_page_works_and_keeps_it_out_of_urls(
     expect(page.get_by_role("form", name="Token")).to_be_hidden()
 
 
-def test_the_token_is_kept_for_the_tab_only(browser: Any, guarded: Served) -> None:
+def test_the_token_is_kept_for_the_tab_only(tabs: Tabs, guarded: Served) -> None:
     assert guarded.token is not None
-    context = browser.new_context()
-    try:
-        first = context.new_page()
-        first.goto(page_url(guarded))
-        first.get_by_label("Daemon token").fill(guarded.token)
-        first.get_by_role("button", name="Connect").click()
-        expect(first.get_by_role("status", name="Connection")).to_contain_text("Connected")
-        # ... but another tab asks for it: it was kept in the session's storage alone.
-        second = context.new_page()
-        second.goto(page_url(guarded))
-        expect(second.get_by_role("form", name="Token")).to_be_visible()
-        stored = first.evaluate("() => [localStorage.length, document.cookie]")
-        assert stored == [0, ""]
-    finally:
-        context.close()
+    first = tabs.open()
+    first.goto(page_url(guarded))
+    first.get_by_label("Daemon token").fill(guarded.token)
+    first.get_by_role("button", name="Connect").click()
+    expect(first.get_by_role("status", name="Connection")).to_contain_text("Connected")
+    # ... but another tab asks for it: it was kept in the session's storage alone.
+    second = tabs.beside(first)
+    second.goto(page_url(guarded))
+    expect(second.get_by_role("form", name="Token")).to_be_visible()
+    stored = first.evaluate("() => [localStorage.length, document.cookie]")
+    assert stored == [0, ""]
