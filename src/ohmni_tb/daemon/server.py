@@ -224,8 +224,9 @@ class RobotServer:
         host: Address to listen on. Loopback by default; any other needs ``token``.
         port: TCP port; 0 picks a free one (see :attr:`url`).
         read_only: Refuse every command but ``stop`` and ``estop`` (and the lease).
-        token: When given, every client must present it (``Authorization: Bearer …`` or
-            ``?token=…``); see :func:`ohmni_tb.daemon.auth.load_or_create_token`.
+        token: When given, every client must present it (``Authorization: Bearer …``, a
+            browser's ``ohmni.token.…`` subprotocol, or ``?token=…``); see
+            :func:`ohmni_tb.daemon.auth.load_or_create_token`.
         origins: Browser origins allowed to connect (``"http://localhost:8080"``); a
             handshake with any other ``Origin`` header is refused (403).
         max_clients: Connections served at once (1..10000); the next handshake is

@@ -465,6 +465,13 @@ setInterval(() => {
   setText("trace-rate", `${rates.wheel_odom.perSecond()} Hz`);
 }, 500);
 
+/** A command source as words: its name, whatever shape the daemon gives it in. */
+function sourceText(source) {
+  if (source === null) return "none";
+  if (typeof source === "object") return String(source.name ?? JSON.stringify(source));
+  return String(source);
+}
+
 const onSample = {
   wheel_encoder(data) {
     rates.wheel_encoder.tick();
@@ -506,7 +513,7 @@ const onSample = {
     const hasSource = source !== undefined;
     $("l-source").hidden = !hasSource;
     $("v-source").hidden = !hasSource;
-    if (hasSource) setText("v-source", source === null ? "none" : String(source));
+    if (hasSource) setText("v-source", sourceText(source));
     if (data.neck !== state.neck && state.config) setupNeck(data.neck, state.config);
     if (data.event) setText("v-event", data.event);
   },
