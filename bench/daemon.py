@@ -3,7 +3,7 @@
 Run: ``python bench/daemon.py [--seconds S] [--quick] [--soak-seconds S]`` (``--seconds``
 per row, 30 by default; ``--soak-seconds``, 600 by default; ``--quick``: 5 s rows and a
 20 s soak; ``--only rows``, ``--only flood`` or ``--only soak`` runs one part;
-``--flooders N``, 200 by default).
+``--flooders N``, 200 by default; ``--only web``: the web console's pages).
 
 The daemon is this process: ``Robot.open(...)`` with every stream on and
 ``RobotServer(robot)`` on a free loopback port, which is what ``ohmni serve`` runs, on the
@@ -67,6 +67,15 @@ in the bus's first 110 s, while its bounded windows still fill), the lines that 
 most over that half, and whether every client and every Robot subscription is gone once
 the churn stops. tracemalloc runs only during the soak (it slows every allocation).
 
+The web console (``--only web``): the daemon alone, then with ``--pages`` (5) pages of
+its web console open in one headless Chromium (``bench/_web_pages.py``: the distribution's
+Chromium driven by Playwright, a browser context each, a laptop's window, every plot
+drawing), each subscribed as the page is (wheel counts and odometry at 20 Hz, the
+battery at 2, the neck at 5, the state and diagnostics as they come). Per row: the
+control tick's rate (target: within ±1 % of 50 Hz with the pages open) and skipped
+cycles, the jitter, the daemon's CPU; and each page's own count of its plots' updates a
+second.
+
 ``--sim in-process`` runs ``sim://`` in the daemon's process instead of the pty. On two
 shared cores, the clients' bursts delay the pty's kernel work (its data goes through a
 kernel worker thread) by milliseconds now and then; a request then reaches the simulator
@@ -124,6 +133,7 @@ CONTROL_PERIOD_MS = 20.0
 T = TypeVar("T")
 
 CLIENTS_SCRIPT = Path(__file__).with_name("_daemon_clients.py")
+PAGES_SCRIPT = Path(__file__).with_name("_web_pages.py")
 CONTROL = "wheel_encoder"
 CONTROL_HZ = 50.0
 #: The control tick's rate must be within this share of 50 Hz.
@@ -271,15 +281,18 @@ class ClientProcess:
 
     @classmethod
     @asynccontextmanager
-    async def start(cls, url: str, *args: str) -> AsyncIterator[ClientProcess]:
-        """Start it and wait until every client is subscribed."""
+    async def start(
+        cls, url: str, *args: str, script: Path = CLIENTS_SCRIPT
+    ) -> AsyncIterator[ClientProcess]:
+        """Start it (``script``: the clients', or the web pages') and wait until every
+        client is subscribed."""
         # --clients-nice: the clients yield the cores to the daemon (and the simulator),
         # to tell the daemon's own cost from the two processes' contention.
         nice = ["nice", "-n", str(CLIENTS_NICE)] if CLIENTS_NICE else []
         process = await asyncio.create_subprocess_exec(
             *nice,
             sys.executable,
-            str(CLIENTS_SCRIPT),
+            str(script),
             url,
             *args,
             stdin=asyncio.subprocess.PIPE,
@@ -961,6 +974,48 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise TerminatedError
 
 
+async def web_row(name: str, port: str, seconds: float, pages: int) -> Row:
+    """The daemon with ``pages`` pages of its web console open (``bench/_web_pages.py``)."""
+    row = Row(name, 0)
+    async with serving(port) as daemon, contextlib.AsyncExitStack() as stack:
+        process: ClientProcess | None = None
+        if pages:
+            page_url = daemon.server.web_url
+            assert page_url is not None
+            process = await stack.enter_async_context(
+                ClientProcess.start(page_url, str(pages), script=PAGES_SCRIPT)
+            )
+            await asyncio.sleep(CLIENTS_SETTLE_S)
+        await measure(row, daemon, seconds)
+        if process is not None:
+            connected = len(daemon.server.clients)
+            done = await process.finish()
+            row.notes.append(
+                f"{connected} pages connected; their plots' updates a second each: "
+                f"{done['updates_hz']}"
+            )
+    return row
+
+
+def run_web(seconds: float, pages: int) -> None:
+    show_header()
+    rows: list[Row] = []
+    for name, count in (("0 pages", 0), (f"{pages} pages", pages)):
+        with simulator() as (port, on_pty):
+            row = run(web_row(name, port, seconds, count))
+        if not on_pty:
+            row.notes.append("sim:// ran in the daemon's process; its CPU is in the figure")
+        show(row, rows[0] if rows else None)
+        rows.append(row)
+    base, opened = rows
+    hz = opened.rates[CONTROL]
+    print(
+        f"control tick with {pages} pages open: {hz:.2f} Hz, {hz / CONTROL_HZ - 1:+.2%} of "
+        f"{CONTROL_HZ:g} Hz ({'within' if opened.control_ok else 'NOT within'} ±1 %); "
+        f"daemon CPU {opened.cpu:.1%} of one core, {base.cpu:.1%} without them"
+    )
+
+
 def run_rows(seconds: float) -> None:
     show_header()
     specs = [
@@ -1011,7 +1066,10 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=30.0, help="per row (default 30)")
     parser.add_argument("--soak-seconds", type=float, default=600.0, help="default 600")
     parser.add_argument("--quick", action="store_true", help="5 s rows, a 20 s soak")
-    parser.add_argument("--only", choices=("rows", "flood", "soak"), help="run one part")
+    parser.add_argument("--only", choices=("rows", "flood", "soak", "web"), help="run one part")
+    parser.add_argument(
+        "--pages", type=int, default=5, help="web: the web console's pages open (5)"
+    )
     parser.add_argument(
         "--flooders", type=int, default=200, help="flood: connections calling stats (200)"
     )
@@ -1062,6 +1120,9 @@ def main() -> int:
     try:
         if args.only == "flood":
             run_flood(seconds, args.flooders)
+            return 0
+        if args.only == "web":
+            run_web(seconds, args.pages)
             return 0
         if args.only != "rows" and soak_seconds > 0:
             with simulator() as (port, on_pty):

@@ -207,9 +207,11 @@ PUBLIC = {
     ],
     "ohmni_tb.fleet": ["DEFAULT_CALL_TIMEOUT_S", "Fleet", "FleetRobot"],
     "ohmni_tb.daemon.auth": [
-         "MIN_TOKEN_CHARS", "TOKEN_ENV", "TOKEN_FILE_NAME", "check_origin", "check_token",
-         "default_token_path", "load_or_create_token", "presented_token", "read_token",
+         "MIN_TOKEN_CHARS", "TOKEN_ENV", "TOKEN_FILE_NAME", "TOKEN_PROTOCOL_PREFIX",
+         "WEB_PROTOCOL", "check_origin", "check_token", "default_token_path",
+         "load_or_create_token", "presented_token", "read_token",
     ],
+    "ohmni_tb.daemon.web": ["AUTH_PATH", "CONTENT_TYPES", "WEB_FOLDER", "WebConsole", "page_url"],
 }  # fmt: skip
 
 

@@ -91,7 +91,8 @@ def wait_until(condition: object, timeout_s: float) -> bool:
 
 
 class Daemon:
-    """``ohmni serve --port PTY --listen 127.0.0.1:0`` and the address it printed."""
+    """``ohmni serve --port PTY --listen 127.0.0.1:0`` and the addresses it printed: its
+    own, and its web console's page."""
 
     def __init__(self, port: str, *args: str) -> None:
         self.proc = subprocess.Popen(
@@ -102,6 +103,7 @@ class Daemon:
         assert self.proc.stdout is not None
         try:
             self.url = read_line(self.proc.stdout.fileno())
+            self.page = read_line(self.proc.stdout.fileno())
         except BaseException:
             self.proc.kill()
             self.proc.communicate()
@@ -167,7 +169,7 @@ def test_a_killed_worker_ends_in_stopped_wheels_and_a_new_worker(sim: Simulator)
         # A new worker serves at the same address (port 0 chose it the first time).
         assert wait_until(lambda: children(daemon.proc.pid) not in ([], [worker]), START_S)
         assert wait_until(lambda: asyncio.run(_reads_robot_state(daemon.url)), START_S)
-        assert daemon.more_stdout() == b""  # the address was printed once
+        assert daemon.more_stdout() == b""  # the addresses were printed once
     finally:
         if driver is not None:
             driver.close()

@@ -68,6 +68,16 @@ def serve(
             metavar="ORIGIN",
         ),
     ] = None,
+    web: Annotated[
+        bool,
+        typer.Option(
+            "--web/--no-web",
+            help="Serve the web console at http://HOST:PORT/ on the daemon's own port: status, "
+            "live plots, a joystick and the neck, from a phone or a laptop, under the "
+            "daemon's rules (the token beyond loopback, one driver). Its URL is the last "
+            "line of stdout at start. --no-web: WebSocket clients only.",
+        ),
+    ] = True,
     foxglove: Annotated[
         str | None,
         typer.Option(
@@ -189,7 +199,8 @@ def serve(
     """Serve the robot to many local clients over WebSocket: one driver, many readers.
 
     Opens the port like every command, then prints the address (ws://HOST:PORT) alone on
-    the first line of stdout. Clients subscribe to the Robot's streams, call its services
+    the first line of stdout, and the web console's page (http://HOST:PORT/) on the last
+    (docs/web.md). Clients subscribe to the Robot's streams, call its services
     and, holding the control lease, command it (Robot.open("ws://HOST:PORT") in Python;
     docs/daemon.md). Ctrl-C or SIGTERM closes the clients, stops the wheels and exits
     with 0. The robot runs in a worker process: when it dies, this one stops the wheels
@@ -228,7 +239,7 @@ def serve(
     if supervisor_fd is not None:
         _check_pipe(supervisor_fd)
     elif os.name == "posix":
-        _supervise(ctx, url, listen, foxglove, rt_priority=rt_priority, stop=stop)
+        _supervise(ctx, url, listen, foxglove, rt_priority=rt_priority, stop=stop, web=web)
         return
     run(
         lambda: _serve(
@@ -245,6 +256,7 @@ def serve(
             stop=stop,
             supervisor_fd=supervisor_fd,
             mqtt=fleet,
+            web=web,
         ),
         stop_requested=stop,
     )
@@ -265,6 +277,7 @@ async def _serve(
     stop: asyncio.Event | None = None,
     supervisor_fd: int | None = None,
     mqtt: dict[str, Any] | None = None,
+    web: bool = True,
 ) -> None:
     # The server and the Robot load when serving: `ohmni serve --help` starts without them.
     from ohmni_tb.daemon.server import RobotServer, check_listen  # noqa: PLC0415
@@ -286,6 +299,7 @@ async def _serve(
             origins=origins,
             max_clients=max_clients,
             serves=url,
+            web=web,
         ) as server,
         contextlib.AsyncExitStack() as stack,
     ):
@@ -331,6 +345,10 @@ async def _serve(
 
             # A client of the daemon like any other: its commands take the lease.
             await stack.enter_async_context(MqttBridge(robot, server))
+        if server.web_url is not None:
+            # Last, on a line of its own: the lines before it keep their places.
+            write_line(server.web_url)
+            _log.info("serving the web console on %s", server.web_url)
         # What is loaded and open now lives as long as the daemon: keep it out of the
         # cycle collector's full passes, which otherwise walk ~55,000 objects and pause
         # the loop 30–45 ms (two control periods) now and then. (A link reopened later
@@ -526,6 +544,7 @@ def _supervise(
     *,
     rt_priority: int | None,
     stop: asyncio.Event,
+    web: bool = True,
 ) -> None:
     """Serve through a worker process (ohmni_tb.daemon.supervisor); exit with its code."""
     from ohmni_tb.daemon.supervisor import supervise  # noqa: PLC0415
@@ -575,7 +594,7 @@ def _supervise(
             command,
             port=url,
             stop=stop,
-            ready_lines=1 if foxglove is None else 2,
+            ready_lines=1 + (foxglove is not None) + web,
             write=write_line,
         )
 

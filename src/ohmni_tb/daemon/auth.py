@@ -3,14 +3,18 @@
 On loopback every local program may connect, as to gpsd. Listening anywhere else needs a
 token: a random secret kept in a file only its owner can read (``0600``), created on first
 use. A client presents it as ``Authorization: Bearer <token>``, or, from a browser (which
-cannot set that header on a WebSocket), as ``?token=<token>`` in the URL. It is compared in
-constant time. Browsers also send ``Origin``: a page from any site could otherwise open a
-WebSocket to the daemon from the user's machine, so a handshake carrying an ``Origin`` is
-refused unless that origin is allowed.
+cannot set that header on a WebSocket), as one of the WebSocket subprotocols it offers:
+``ohmni.token.<the token, base64url>`` beside ``ohmni`` (:data:`WEB_PROTOCOL`, the one the
+daemon picks), which keeps it out of URLs, histories and logs; ``?token=<token>`` in the URL
+is still taken. It is compared in constant time. Browsers also send ``Origin``: a page from
+any site could otherwise open a WebSocket to the daemon from the user's machine, so a
+handshake carrying an ``Origin`` is refused unless that origin is allowed.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import hmac
 import os
 import secrets
@@ -27,6 +31,8 @@ __all__ = [
     "MIN_TOKEN_CHARS",
     "TOKEN_ENV",
     "TOKEN_FILE_NAME",
+    "TOKEN_PROTOCOL_PREFIX",
+    "WEB_PROTOCOL",
     "check_origin",
     "check_token",
     "default_token_path",
@@ -39,6 +45,13 @@ __all__ = [
 TOKEN_FILE_NAME: Final = "daemon-token"
 #: Bytes of randomness in a new token (256 bits), shown URL-safe base64 (43 characters).
 _TOKEN_BYTES = 32
+#: The WebSocket subprotocol a browser offers, and the daemon picks: a browser refuses a
+#: handshake that answers none of the subprotocols it offered.
+WEB_PROTOCOL: Final = "ohmni"
+#: A subprotocol starting with this carries the token, base64url without padding: a
+#: browser cannot set ``Authorization`` on a WebSocket, and a URL's query ends up in
+#: histories and logs. Never picked, so never sent back.
+TOKEN_PROTOCOL_PREFIX: Final = "ohmni.token."
 #: A token shorter than this is refused (the daemon, Foxglove control): anyone could
 #: guess it.
 MIN_TOKEN_CHARS: Final = 16
@@ -106,12 +119,20 @@ def read_token(path: str | os.PathLike[str]) -> str:
     return token
 
 
-def presented_token(path: str, authorization: str | None) -> str | None:
-    """The token a handshake presents: ``Authorization: Bearer …``, else ``?token=…``."""
+def presented_token(
+    path: str, authorization: str | None, protocols: str | None = None
+) -> str | None:
+    """The token a handshake presents: ``Authorization: Bearer …``, else a subprotocol
+    ``ohmni.token.<base64url>`` among ``protocols`` (the ``Sec-WebSocket-Protocol``
+    header's value), else ``?token=…``."""
     if authorization is not None:
         scheme, _, value = authorization.partition(" ")
         if scheme.lower() == "bearer" and value.strip():
             return value.strip()
+    for offered in (protocols or "").split(","):
+        name = offered.strip()
+        if name.startswith(TOKEN_PROTOCOL_PREFIX):
+            return _from_base64url(name[len(TOKEN_PROTOCOL_PREFIX) :])
     values = parse_qs(urlsplit(path).query).get("token")
     return values[0] if values else None
 
@@ -126,3 +147,16 @@ def check_token(presented: str | None, expected: str) -> bool:
 def check_origin(origin: str | None, allowed: tuple[str, ...]) -> bool:
     """Whether a handshake's ``Origin`` may connect: none (not a browser), or one allowed."""
     return origin is None or origin in allowed
+
+
+_FROM_URLSAFE = str.maketrans("-_", "+/")
+
+
+def _from_base64url(text: str) -> str:
+    """A token sent base64url (padding optional); a text that is not one is presented as
+    itself, and so is refused as a wrong token (never as none)."""
+    try:
+        standard = text.translate(_FROM_URLSAFE) + "=" * (-len(text) % 4)
+        return base64.b64decode(standard, validate=True).decode("utf-8")
+    except (binascii.Error, ValueError):
+        return text

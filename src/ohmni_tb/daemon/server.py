@@ -21,7 +21,8 @@ at the robot overrides a remote script for a while. Only a client on the robot's
 computer (loopback, a unix socket) may take ``local`` or ``safety``. ``stop`` and
 ``estop`` are anyone's. On loopback every local program may connect; any other address
 needs a token (:mod:`ohmni_tb.daemon.auth`), and a browser's handshake (it carries
-``Origin``) is refused unless its origin is allowed.
+``Origin``) is refused unless its origin is allowed — or is the web console's own
+(:mod:`ohmni_tb.daemon.web`: the page served at ``/`` of the same port, on by default).
 
 No load of clients holds the control tick back. At most ``max_clients`` connections
 (:data:`DEFAULT_MAX_CLIENTS`, fewer when the process may open too few files to keep some
@@ -51,7 +52,14 @@ from typing import TYPE_CHECKING, Any, Final
 from ohmni_tb._checks import integer
 from ohmni_tb._version import __version__
 from ohmni_tb.control.sources import LOOPBACK_SOURCES, claimable_beyond_loopback
-from ohmni_tb.daemon.auth import MIN_TOKEN_CHARS, check_origin, check_token, presented_token
+from ohmni_tb.daemon.auth import (
+    MIN_TOKEN_CHARS,
+    WEB_PROTOCOL,
+    check_origin,
+    check_token,
+    presented_token,
+)
+from ohmni_tb.daemon.web import WebConsole, page_url
 from ohmni_tb.errors import (
     ConfigError,
     InvalidArgumentError,
@@ -89,6 +97,7 @@ from ohmni_tb.robot.wire import (
 if TYPE_CHECKING:
     from websockets.asyncio.server import Server, ServerConnection
     from websockets.http11 import Request, Response
+    from websockets.typing import Subprotocol
 
     from ohmni_tb.robot import Robot, RobotStats, SampleStream
 
@@ -221,8 +230,9 @@ class RobotServer:
         host: Address to listen on. Loopback by default; any other needs ``token``.
         port: TCP port; 0 picks a free one (see :attr:`url`).
         read_only: Refuse every command but ``stop`` and ``estop`` (and the lease).
-        token: When given, every client must present it (``Authorization: Bearer …`` or
-            ``?token=…``); see :func:`ohmni_tb.daemon.auth.load_or_create_token`.
+        token: When given, every client must present it (``Authorization: Bearer …``, a
+            browser's ``ohmni.token.…`` subprotocol, or ``?token=…``); see
+            :func:`ohmni_tb.daemon.auth.load_or_create_token`.
         origins: Browser origins allowed to connect (``"http://localhost:8080"``); a
             handshake with any other ``Origin`` header is refused (403).
         max_clients: Connections served at once (1..10000); the next handshake is
@@ -231,6 +241,8 @@ class RobotServer:
         serves: The port the Robot was opened on (``sim://``, ``/dev/ttyUSB0``), told to
             clients in ``hello``; by default ``sim://`` for the built-in simulator, else
             not told.
+        web: Serve the web console at ``/`` of the same port (:attr:`web_url`;
+            :mod:`ohmni_tb.daemon.web`), and let its own origin connect.
 
     Raises:
         ConfigError: ``host`` is not a loopback address and there is no ``token``, or the
@@ -249,6 +261,7 @@ class RobotServer:
         origins: Sequence[str] = (),
         max_clients: int = DEFAULT_MAX_CLIENTS,
         serves: str | None = None,
+        web: bool = True,
     ) -> None:
         check_listen(host, token)
         if not 0 <= port <= 65535:
@@ -266,7 +279,8 @@ class RobotServer:
         self._leases: dict[str, _Client] = {}
         self._flusher = _Flusher(SAMPLE_FLUSH_S)
         self._closed = False
-        self._door = _Doorkeeper(max_clients, token, tuple(origins))
+        self._web = WebConsole(token) if web else None
+        self._door = _Doorkeeper(max_clients, token, tuple(origins), self._web)
         self._simulated = robot.sim is not None
         self._serves = serves if serves is not None else "sim://" if self._simulated else None
         self._budget = _Budget(READER_MESSAGES_PER_S, READER_BURST)
@@ -276,6 +290,12 @@ class RobotServer:
     def url(self) -> str:
         """``ws://host:port`` it listens on (the port chosen, when 0 was asked)."""
         return f"ws://{_host_in_url(self._host)}:{self._port}"
+
+    @property
+    def web_url(self) -> str | None:
+        """``http://host:port/``: the web console's page (a wildcard address shown as one
+        other machines reach), or ``None`` when it is not served."""
+        return None if self._web is None else page_url(self._host, self._port)
 
     @property
     def clients(self) -> list[ClientFigures]:
@@ -336,8 +356,9 @@ class RobotServer:
                 write_limit=_WRITE_LIMIT,
                 close_timeout=_CLOSE_TIMEOUT_S,
                 compression=None,  # loopback: deflate would cost CPU per client for nothing
-                process_request=self._door.admit,
+                process_request=self._process_request,
                 create_connection=_capped_connection(self._door),
+                select_subprotocol=_select_subprotocol,
             )
         except OSError as exc:
             raise TransportError(f"cannot listen on {self.url}: {exc.strerror or exc}") from exc
@@ -348,6 +369,14 @@ class RobotServer:
         self._port = self._server.sockets[0].getsockname()[1]  # the one chosen for 0
         logging.getLogger("asyncio").addFilter(self._door.accept_failures)
         _log.info("serving on %s (at most %d clients)", self.url, self._door.max_clients)
+
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        """The web console's page (a plain HTTP request), else the handshake's checks."""
+        if self._web is not None:
+            page = self._web.respond(connection, request)
+            if page is not None:
+                return page
+        return self._door.admit(connection, request)
 
     async def aclose(self) -> None:
         """Close every client (1001, going away), stop listening. Idempotent."""
@@ -1195,10 +1224,17 @@ class _Doorkeeper:
     the process may open), a browser's origin, then the token — checked in the
     handshake, a refusal an HTTP error before any WebSocket exists."""
 
-    def __init__(self, max_clients: int, token: str | None, origins: tuple[str, ...]) -> None:
+    def __init__(
+        self,
+        max_clients: int,
+        token: str | None,
+        origins: tuple[str, ...],
+        web: WebConsole | None = None,
+    ) -> None:
         self.max_clients = max_clients
         self._token = token
         self._origins = origins
+        self._web = web
         #: Connections admitted (the handshake's checks passed) and not yet gone.
         self._admitted: set[ServerConnection] = set()
         #: TCP connections open: from accepted until closed.
@@ -1270,13 +1306,19 @@ class _Doorkeeper:
                 503, f"this daemon serves at most {self.max_clients} clients: try again later\n"
             )
         origin = request.headers.get("Origin")
-        if not check_origin(origin, self._origins):
+        if not check_origin(origin, self._origins) and not (
+            self._web is not None and self._web.own_origin(request)
+        ):
             _log.warning("client %s: refused: origin %r is not allowed", peer, origin)
             return connection.respond(
                 403, f"origin {origin} is not allowed (ohmni serve --allow-origin)\n"
             )
         if self._token is not None:
-            given = presented_token(request.path, request.headers.get("Authorization"))
+            given = presented_token(
+                request.path,
+                request.headers.get("Authorization"),
+                ",".join(request.headers.get_all("Sec-WebSocket-Protocol")),
+            )
             if not check_token(given, self._token):
                 _log.warning(
                     "client %s: refused: %s token", peer, "no" if given is None else "a wrong"
@@ -1314,6 +1356,18 @@ def _capped_connection(door: _Doorkeeper) -> Any:
             super().connection_lost(exc)
 
     return CappedConnection
+
+
+def _select_subprotocol(
+    connection: ServerConnection, offered: Sequence[Subprotocol]
+) -> Subprotocol | None:
+    """``ohmni`` when offered (the web console offers it, with the token beside it), else
+    none: programs offer none. The token's own subprotocol is never picked, so never
+    sent back."""
+    for name in offered:
+        if name == WEB_PROTOCOL:
+            return name
+    return None
 
 
 def _descriptors_free() -> int | None:
