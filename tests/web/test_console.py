@@ -321,3 +321,31 @@ def test_a_lease_taken_while_the_page_drives_ends_its_commands(
         "aria-disabled", "true"
     )
     stick.let_go()
+
+
+def test_a_person_at_the_robot_overrides_the_page_and_the_page_says_so(
+    page: Page, peer: Peer
+) -> None:
+    # The page holds the remote source's lease; a program on the robot's own computer
+    # takes the local one and keeps commanding standstill. The page's joystick moves
+    # nothing while that source is live, and the page shows who drives.
+    take_control(page)
+    peer.call("acquire", source="local")
+    try:
+        peer.call("drive", linear_mps=0.0, angular_radps=0.0)
+        expect(page.locator("#v-source")).to_have_text("local")
+        before = peer.rolled_m()
+        stick = Stick(page)
+        stick.hold(up=1.0)
+        for _ in range(5):  # the local source stays live: a command every 0.15 s
+            peer.call("drive", linear_mps=0.0, angular_radps=0.0)
+            time.sleep(0.15)
+        stick.let_go()
+        assert requested_mps(peer) == 0.0
+        assert peer.rolled_m() == pytest.approx(before, abs=1e-3)
+        # Its refusal, in the daemon's words.
+        expect(page.locator("#notice")).to_contain_text("source 'local', of higher priority")
+        # The page still holds its own lease: it drives again once the local source lapses.
+        expect(page.get_by_role("status", name="Control")).to_have_text("You have control")
+    finally:
+        peer.call("release", source="local")

@@ -11,6 +11,8 @@ import { Joystick } from "./joystick.js";
 import { RateMeter, TimePlot, TracePlot } from "./plot.js";
 
 const TOKEN_KEY = "ohmni.token";
+// The command source the page drives as: a person at the robot (local) overrides it.
+const SOURCE = "remote";
 // The page's own speed limits at first, within the Robot's.
 const START_LINEAR_MPS = 0.4;
 const START_ANGULAR_RADPS = 1.2;
@@ -267,7 +269,7 @@ window.addEventListener("pagehide", () => {
   stopEverything(true);
   const connection = state.connection;
   if (connection?.connected) {
-    if (state.you) connection.post("release");
+    if (state.you) connection.post("release", { source: SOURCE });
     connection.close();
   }
 });
@@ -276,7 +278,7 @@ window.addEventListener("pagehide", () => {
 
 async function acquire(steal) {
   try {
-    await state.connection.call("acquire", { steal });
+    await state.connection.call("acquire", { steal, source: SOURCE });
   } catch (error) {
     notice(error.message);
   }
@@ -292,7 +294,7 @@ $("takeover").addEventListener("click", () => {
 $("release").addEventListener("click", async () => {
   stopEverything(true);
   try {
-    await state.connection.call("release");
+    await state.connection.call("release", { source: SOURCE });
   } catch (error) {
     notice(error.message);
   }
@@ -578,7 +580,9 @@ function connect() {
     if (handle) handle(event.detail.data);
   });
   connection.addEventListener("lease", (event) => {
-    const { holder, you, reason } = event.detail;
+    const { holder, you, reason, source } = event.detail;
+    // The page holds the lease of its own command source only.
+    if (source !== undefined && source !== SOURCE) return;
     if (!you && state.you) notice(`Control ${reason}`);
     setLease(holder, you);
   });
@@ -620,7 +624,8 @@ async function welcome(hello) {
   driver.periodMs = 1000 / clamp(hz, 5, 50);
   setupLimits(hello.motion);
   setText("v-watchdog-s", `${hello.motion.watchdog_s} s`);
-  setLease(hello.lease, hello.lease !== null && hello.lease === hello.peer);
+  const holder = hello.leases ? (hello.leases[SOURCE] ?? null) : hello.lease;
+  setLease(holder, holder !== null && holder === hello.peer);
   speeds.clearData();
   for (const [topic, options] of Object.entries(SUBSCRIPTIONS)) {
     if (!(topic in (hello.topics ?? {}))) continue;
