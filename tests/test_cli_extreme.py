@@ -60,6 +60,7 @@ TEXT_PARAMS = frozenset(
         "config_file",  # ohmni config --config FILE
         "config",  # ohmni probe --config FILE
         "share",  # ohmni probe --share FILE
+        "robot_id",  # ohmni serve --robot-id ID: any name (a number is a name too)
     }
 )
 
@@ -93,6 +94,8 @@ BASELINES: dict[tuple[str, ...], dict[str, str | bool]] = {
     ("odom", "set"): {"x": "0.5", "y": "-0.5", "yaw": "1"},
     # Asks a daemon on a port where none listens: never a developer's own daemon.
     ("serve",): {"handoff": "1", "listen": "127.0.0.1:1"},
+    # A broker where none listens: its one error line (exit 1).
+    ("fleet",): {"mqtt": "mqtt://127.0.0.1:1"},
     # A file of its own, replaced each time (FILE is text: not fuzzed).
     ("record",): {
         "file": str(Path(tempfile.gettempdir(), "ohmni-extreme-record.mcap")),

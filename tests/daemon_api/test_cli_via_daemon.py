@@ -178,8 +178,14 @@ def test_a_drive_at_the_robot_overrides_a_script_and_the_script_is_told(via: str
             "from ohmni_tb.errors import SourceOverriddenError\n"
             "async def main():\n"
             f"    async with Robot.open({via!r}) as robot:\n"  # a script: autonomy
-            "        robot.drive(-0.1, 0.0)\n"
-            "        await robot.confirm()\n"
+            # The test before may have driven as local a moment ago: its turn first.
+            "        for _ in range(40):\n"
+            "            try:\n"
+            "                robot.drive(-0.1, 0.0)\n"
+            "                await robot.confirm()\n"
+            "                break\n"
+            "            except SourceOverriddenError:\n"
+            "                await asyncio.sleep(0.05)\n"
             "        print('driving', flush=True)\n"
             "        refused = set()\n"
             "        for _ in range(60):\n"

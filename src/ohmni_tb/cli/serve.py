@@ -217,6 +217,8 @@ def serve(
         raise typer.BadParameter(
             f"{rt_priority} is not in 1..{_MAX_RT_PRIORITY}", param_hint="--rt-priority"
         )
+    # Every option is checked before anything is asked of a daemon or a port.
+    fleet = _mqtt_settings(mqtt, robot_id, mqtt_discovery)
     if handoff is not None or reclaim:
         _hand_off(host, tcp_port, handoff, reclaim=reclaim, token_file=token_file)
         return
@@ -233,7 +235,6 @@ def serve(
         else None
     )
     url = resolve_port(port)
-    fleet = _mqtt_settings(mqtt, robot_id, mqtt_discovery)
     origins = tuple(allow_origin or ())
     stop = asyncio.Event()
     if supervisor_fd is not None:
