@@ -14,17 +14,8 @@ import json
 import shutil
 import sys
 
-#: Headless, and nothing of its own reaching out (updates, sync, QUIC probes).
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+from ohmni_tb.daemon.web import HEADLESS_CHROMIUM_ARGS
+
 #: A laptop's window: every plot on screen (a page draws what it shows).
 WIDTH, HEIGHT = 1280, 860
 
@@ -37,7 +28,9 @@ def main() -> int:
     from playwright.sync_api import expect, sync_playwright  # noqa: PLC0415  # the test extra
 
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+        browser = playwright.chromium.launch(
+            executable_path=chromium, args=list(HEADLESS_CHROMIUM_ARGS)
+        )
         pages = []
         for _ in range(count):
             # A context each: every page is a browser tab of its own, as five people's.

@@ -21,18 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ohmni_tb.daemon.web import HEADLESS_CHROMIUM_ARGS
+
 ROOT = Path(__file__).resolve().parent.parent
-#: Headless, and nothing of its own reaching out (updates, sync, QUIC probes).
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def free_port() -> int:
@@ -87,7 +78,9 @@ def main() -> int:
         read_line(proc)
         url = read_line(proc)
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
+            browser = playwright.chromium.launch(
+                executable_path=chromium, args=list(HEADLESS_CHROMIUM_ARGS)
+            )
             desktop = browser.new_page(viewport={"width": 1280, "height": 860})
             desktop.goto(url)
             desktop.get_by_role("button", name="Take control").click()

@@ -211,7 +211,10 @@ PUBLIC = {
          "WEB_PROTOCOL", "check_origin", "check_token", "default_token_path",
          "load_or_create_token", "presented_token", "read_token",
     ],
-    "ohmni_tb.daemon.web": ["AUTH_PATH", "CONTENT_TYPES", "WEB_FOLDER", "WebConsole", "page_url"],
+    "ohmni_tb.daemon.web": [
+        "AUTH_PATH", "CONTENT_TYPES", "HEADLESS_CHROMIUM_ARGS", "WEB_FOLDER", "WebConsole",
+        "page_url",
+    ],
 }  # fmt: skip
 
 

@@ -28,23 +28,13 @@ from websockets.sync.client import ClientConnection, connect
 
 from daemon_api._pty_robot import START_S, read_line
 from daemon_api._serving import free_port, stop_serving
+from ohmni_tb.daemon.web import HEADLESS_CHROMIUM_ARGS
 
 if TYPE_CHECKING:
     from playwright.sync_api import Page
 
 #: Debian's and Ubuntu's package; ``.ci/run`` installs it when missing.
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-#: Headless, and nothing of its own reaching out (updates, sync, QUIC probes).
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 #: Skips a browser test only when there is no Chromium to run it in.
 needs_chromium = pytest.mark.skipif(
     CHROMIUM is None,
@@ -223,6 +213,8 @@ def browser() -> Iterator[Any]:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
-        launched = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        launched = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=list(HEADLESS_CHROMIUM_ARGS)
+        )
         yield launched
         launched.close()

@@ -49,12 +49,27 @@ if TYPE_CHECKING:
 __all__ = [
     "AUTH_PATH",
     "CONTENT_TYPES",
+    "HEADLESS_CHROMIUM_ARGS",
     "WEB_FOLDER",
     "WebConsole",
     "page_url",
 ]
 
 _log = logging.getLogger("ohmni_tb.daemon")
+
+#: Chromium's arguments to open the console headless on a closed network (the tests, the
+#: screenshots, the benchmark): nothing of its own reaching out (updates, sync, QUIC
+#: probes), no sandbox (CI runs as root).
+HEADLESS_CHROMIUM_ARGS: tuple[str, ...] = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
 
 #: The package folder with the page's files (``ohmni_tb/web``).
 WEB_FOLDER: Final = "web"
