@@ -206,7 +206,13 @@ def test_the_modules_import_each_other_without_circles() -> None:
 #: never a higher layer's (docs/design "Layers"). The package's own ``__init__`` (the
 #: lazy public names) sits with the client: it re-exports the Robot, never the CLI.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("ohmni_tb._checks", "ohmni_tb.errors", "ohmni_tb._version", "ohmni_tb._files"),
+    (
+        "ohmni_tb._checks",
+        "ohmni_tb.errors",
+        "ohmni_tb._version",
+        "ohmni_tb._files",
+        "ohmni_tb._ratelimit",
+    ),
     (
         "ohmni_tb.protocol",
         "ohmni_tb.control",

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 from ohmni_tb._checks import integer
+from ohmni_tb._ratelimit import TokenBucket
 from ohmni_tb._version import __version__
 from ohmni_tb.control.sources import LOOPBACK_SOURCES, claimable_beyond_loopback
 from ohmni_tb.daemon.auth import (
@@ -459,7 +460,7 @@ class RobotServer:
     async def _read_loop(self, client: _Client) -> None:
         from websockets.protocol import State  # noqa: PLC0415  # loaded when serving
 
-        bucket = _TokenBucket(MAX_MESSAGES_PER_S, BURST_MESSAGES)
+        bucket = TokenBucket(MAX_MESSAGES_PER_S, BURST_MESSAGES)
         async for frame in client.ws:
             size = len(frame) if isinstance(frame, bytes) else len(frame.encode())
             if client.ws.state is not State.OPEN and not _may_stop(frame, size):
@@ -1093,28 +1094,6 @@ class _Flusher:
             self._timer.cancel()
             self._timer = None
         self._dirty.clear()
-
-
-class _TokenBucket:
-    """``rate_per_s`` sustained, ``burst`` at once."""
-
-    def __init__(
-        self, rate_per_s: float, burst: int, clock: Callable[[], float] = time.monotonic
-    ) -> None:
-        self._rate = rate_per_s
-        self._burst = float(burst)
-        self._tokens = float(burst)
-        self._clock = clock
-        self._last = clock()
-
-    def take(self) -> bool:
-        now = self._clock()
-        self._tokens = min(self._burst, self._tokens + (now - self._last) * self._rate)
-        self._last = now
-        if self._tokens < 1.0:
-            return False
-        self._tokens -= 1.0
-        return True
 
 
 class _Budget:

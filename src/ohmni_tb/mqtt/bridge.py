@@ -33,6 +33,7 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING, Any, Final
 
+from ohmni_tb._ratelimit import TokenBucket
 from ohmni_tb._version import __version__
 from ohmni_tb.daemon.local import LocalClient
 from ohmni_tb.daemon.server import MAX_MESSAGE_BYTES
@@ -162,7 +163,7 @@ class MqttBridge:
         self._light = (0, 0, 255)
         self._running: set[asyncio.Task[None]] = set()
         self._lease_users = 0
-        self._bucket = _Bucket(COMMANDS_PER_S, int(COMMANDS_PER_S))
+        self._bucket = TokenBucket(COMMANDS_PER_S, int(COMMANDS_PER_S))
         #: Counts for the state's ``bridge`` figures.
         self.connects = 0
         self.published = 0
@@ -610,25 +611,6 @@ class _Answer:
 
 class _LeavingError(Exception):
     """The connection loop ended (the bridge is closing): the other tasks end too."""
-
-
-class _Bucket:
-    """``rate_per_s`` sustained, ``burst`` at once."""
-
-    def __init__(self, rate_per_s: float, burst: int) -> None:
-        self._rate = rate_per_s
-        self._burst = float(burst)
-        self._tokens = float(burst)
-        self._last = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self._tokens = min(self._burst, self._tokens + (now - self._last) * self._rate)
-        self._last = now
-        if self._tokens < 1.0:
-            return False
-        self._tokens -= 1.0
-        return True
 
 
 def _correlation_properties(correlation: bytes | None) -> Any:
