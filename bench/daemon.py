@@ -87,6 +87,9 @@ rows show what the fan-out does to the control tick. Its CPU figure includes the
 simulator (~7 % of a core). ``--clients-nice 19`` runs the clients' process at the
 lowest priority: on two cores it competes with the daemon for them, and this shows how
 much of the control tick's jitter is that contention rather than the daemon's own work.
+``--clients-cpu N`` puts the clients' process (and the browser ``--only web`` starts) on
+CPU N alone and the daemon on the others: the clients stand in for other devices (a
+phone's browser), whose work never shares the robot's cores.
 ``--daemon-rt N`` runs the daemon as ``ohmni serve --rt-priority N`` does (its event loop
 under SCHED_FIFO at N), the deployment docs/hardware.md describes; the clients stay
 time-shared, and the pty's simulator runs at N too: it stands in for the robot's boards,
@@ -185,6 +188,9 @@ SIM_IN_PROCESS = False
 CLIENTS_NICE = 0
 #: ``--daemon-rt N``: the daemon's SCHED_FIFO priority (0: time-shared).
 DAEMON_RT = 0
+#: ``--clients-cpu N``: the clients' process (and a browser it starts) on CPU N alone, the
+#: daemon on the others (None: wherever the kernel puts them).
+CLIENTS_CPU: int | None = None
 
 
 @contextmanager
@@ -289,7 +295,11 @@ class ClientProcess:
         # --clients-nice: the clients yield the cores to the daemon (and the simulator),
         # to tell the daemon's own cost from the two processes' contention.
         nice = ["nice", "-n", str(CLIENTS_NICE)] if CLIENTS_NICE else []
+        # --clients-cpu: the clients (a browser's processes inherit it) on a core of their
+        # own, as a phone's browser is on a device of its own.
+        pin = ["taskset", "-c", str(CLIENTS_CPU)] if CLIENTS_CPU is not None else []
         process = await asyncio.create_subprocess_exec(
+            *pin,
             *nice,
             sys.executable,
             str(script),
@@ -1085,6 +1095,14 @@ def main() -> int:
         help="run the clients' process at niceness N (0..19; default 0)",
     )
     parser.add_argument(
+        "--clients-cpu",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run the clients' process (and the web pages' browser) on CPU N alone and the "
+        "daemon on the other CPUs (default: the kernel places both)",
+    )
+    parser.add_argument(
         "--daemon-rt",
         type=int,
         default=0,
@@ -1094,10 +1112,19 @@ def main() -> int:
         "time-shared)",
     )
     args = parser.parse_args()
-    global SIM_IN_PROCESS, CLIENTS_NICE, DAEMON_RT  # noqa: PLW0603  # settings for the whole run
+    global SIM_IN_PROCESS, CLIENTS_NICE, DAEMON_RT, CLIENTS_CPU  # noqa: PLW0603  # settings for the whole run
     SIM_IN_PROCESS = args.sim == "in-process"
     CLIENTS_NICE = args.clients_nice
     DAEMON_RT = args.daemon_rt
+    if args.clients_cpu is not None:
+        cpus = os.sched_getaffinity(0)
+        if args.clients_cpu not in cpus or len(cpus) < 2:
+            parser.error(
+                f"--clients-cpu {args.clients_cpu}: allowed one of {sorted(cpus)}, "
+                "with another left for the daemon"
+            )
+        CLIENTS_CPU = args.clients_cpu
+        os.sched_setaffinity(0, cpus - {CLIENTS_CPU})
     if DAEMON_RT:
         set_realtime(DAEMON_RT)  # this thread runs every row's event loop
     seconds = 5.0 if args.quick else args.seconds
@@ -1107,7 +1134,12 @@ def main() -> int:
     print(machine())
     print(
         f"daemon: SCHED_FIFO at {DAEMON_RT}" if DAEMON_RT else "daemon: time-shared",
-        f"| clients: nice {CLIENTS_NICE}, time-shared",
+        f"| clients: nice {CLIENTS_NICE}, time-shared"
+        + (
+            ""
+            if CLIENTS_CPU is None
+            else f", on CPU {CLIENTS_CPU} alone (the daemon on the others)"
+        ),
         "| simulator: "
         + (
             "in the daemon's process"
