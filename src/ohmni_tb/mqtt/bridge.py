@@ -210,8 +210,11 @@ class MqttBridge:
                     await asyncio.shield(main)
             except TimeoutError:
                 main.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await main
+                # Never longer than that again: a broker connection stuck in its own
+                # goodbye must not keep the daemon from closing (and stopping the wheels).
+                await asyncio.wait({main}, timeout=_LEAVE_S)
+                if not main.done():
+                    _log.warning("MQTT: the broker connection did not close; left behind")
         if self._local is not None:
             self._local.close()
 
