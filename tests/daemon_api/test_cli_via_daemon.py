@@ -79,8 +79,8 @@ def test_a_drive_moves_the_daemons_robot_and_the_next_command_sees_it(via: str) 
     assert drove["port"] == via
     assert drove["stop"]["confirmed"]
     # In real time on a machine busy with other tests a control tick can come a few tens
-    # of milliseconds late; the goal's precision itself is the contract suite's (virtual
-    # time, under a millimetre).
+    # of milliseconds late; the goal's precision itself is tested in virtual time
+    # (tests/robot_api/test_motion.py, tests/contract: by the simulator's truth).
     assert drove["goal"]["error_m"] == pytest.approx(0.0, abs=0.02)
     after = odometry(via)
     moved = ((after["x_m"] - before["x_m"]) ** 2 + (after["y_m"] - before["y_m"]) ** 2) ** 0.5
