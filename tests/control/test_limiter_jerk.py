@@ -229,6 +229,8 @@ def test_with_changing_targets_and_jittery_steps_the_limits_and_zero_hold(
                 assert speed > 0.0 > target or speed < 0.0 < target
             if speed == 0.0 and new != 0.0:
                 assert new > 0.0 < target or new < 0.0 > target
-            # Never faster than the start or a target asked for.
-            assert abs(new) <= fastest + EPS
+            # Never faster than the start or a target asked for, but for what a target
+            # changed mid-ramp may be passed by while the acceleration eases off (as
+            # jerk_ramp documents: at most a² / (2·max_jerk)).
+            assert abs(new) <= fastest + max(accel, decel) ** 2 / (2.0 * jerk) + EPS
             speed = new
