@@ -1718,10 +1718,10 @@ class Bus:
                 slot.refused[index] = retry_in
                 slot.settle(index, None)
                 return
-            if self._conn.blocked_until(packet, now) > now + _EPS:
+            if part.pos > 1 and self._conn.blocked_until(packet, now) > now + _EPS:
                 # An urgent twin went in the middle of this slot (the scan checked the
-                # slot's packets when it chose it): this one's reply would be taken for
-                # the twin's, or the twin's for this one's.
+                # slot's packets when it chose it, and its first went at once): this
+                # one's reply would be taken for the twin's, or the twin's for this one's.
                 self._twins += 1
                 slot.settle(index, None)
                 return
