@@ -386,7 +386,7 @@ class Slot:
 class _Part:
     """Packets of a slot to send back to back: the whole slot first, then single retries."""
 
-    __slots__ = ("indices", "pos", "ready_at", "seq", "slot", "submitted_at")
+    __slots__ = ("indices", "pos", "ready_at", "seq", "slot", "submitted_at", "urgents")
 
     def __init__(
         self,
@@ -401,6 +401,8 @@ class _Part:
         self.indices = indices
         self.pos = 0
         self.seq = seq
+        #: The bus's count of urgent packets sent, when it was chosen to go.
+        self.urgents = 0
         # Waiting (for promotion and the queue-wait figure) counts from when it may start.
         self.submitted_at = max(submitted_at, ready_at)
         #: It may not start before this loop time (a cycle queued ahead of its due time).
@@ -533,6 +535,8 @@ class Bus:
         self._promoted = 0
         self._refused = 0
         self._twins = 0
+        # Urgent packets sent (send_now): a slot under way checks for twins only after one.
+        self._urgents_sent = 0
         self._link_losses = 0
         self._reconnects = 0
 
@@ -1690,6 +1694,7 @@ class Bus:
             slot.started_at = now
             self._slots += 1
             self._waits.append(now - best.submitted_at)
+        best.urgents = self._urgents_sent
         self._current = best
         return best, now
 
@@ -1718,10 +1723,12 @@ class Bus:
                 slot.refused[index] = retry_in
                 slot.settle(index, None)
                 return
-            if part.pos > 1 and self._conn.blocked_until(packet, now) > now + _EPS:
+            if part.urgents != self._urgents_sent and (
+                self._conn.blocked_until(packet, now) > now + _EPS
+            ):
                 # An urgent twin went in the middle of this slot (the scan checked the
-                # slot's packets when it chose it, and its first went at once): this
-                # one's reply would be taken for the twin's, or the twin's for this one's.
+                # slot's packets when it chose it): this one's reply would be taken for
+                # the twin's, or the twin's for this one's.
                 self._twins += 1
                 slot.settle(index, None)
                 return
@@ -1744,6 +1751,7 @@ class Bus:
             slot.settle(index, None)
 
     def _send_urgent(self, urgent: _Urgent, now: float) -> None:
+        self._urgents_sent += 1
         conn = self._conn
         packet = urgent.packet
         expect = conn.expects_reply(packet)

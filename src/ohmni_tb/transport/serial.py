@@ -298,27 +298,23 @@ class _TtyTransport(serial_asyncio_fast.SerialTransport):
         if self._closing or self._write_buffer or fd is None:
             super().write(data)
             return
-        n = self._os_write(fd, data)
-        if n is None:
+        try:
+            n = os.write(fd, data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError as exc:
+            self._write_failed(exc)
             return
         if n < len(data):
             self._write_buffer.append(data[n:])  # the rest when the port can take it
             self._maybe_pause_protocol()
             self._ensure_writer()
 
-    def _os_write(self, fd: int, data: bytes | bytearray | memoryview) -> int | None:
-        """Bytes of ``data`` the non-blocking port took (0 when full); ``None`` when the
-        write failed, the transport then closed as the library closes it."""
-        try:
-            return os.write(fd, data)
-        except (BlockingIOError, InterruptedError):
-            return 0
-        except OSError as exc:
-            self._fatal_error(
-                serial.SerialException(f"write failed: {exc}"),
-                "Fatal write error on serial transport",
-            )
-            return None
+    def _write_failed(self, exc: OSError) -> None:
+        """A write the port refused: the transport closes as the library closes it."""
+        self._fatal_error(
+            serial.SerialException(f"write failed: {exc}"), "Fatal write error on serial transport"
+        )
 
     def _write_data(self, data: bytes | bytearray | memoryview) -> None:
         # The library's own goes through pyserial's write(), whose timeout bookkeeping is
@@ -328,8 +324,12 @@ class _TtyTransport(serial_asyncio_fast.SerialTransport):
         if fd is None:  # closing
             super()._write_data(data)
             return
-        n = self._os_write(fd, data)
-        if n is None:
+        try:
+            n = os.write(fd, data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        except OSError as exc:
+            self._write_failed(exc)
             return
         if n == len(data):
             if self._closing:
