@@ -562,8 +562,10 @@ class ControlLoop:
         if self._mode == "pwm":
             return self._target_pwm != (0, 0)
         if self._mode == "wheels":
-            return self._target_wheels != WheelSpeeds(0.0, 0.0)
-        return self._target != Twist()
+            wheels = self._target_wheels  # fields compared: no call, every tick
+            return wheels.left_mps != 0.0 or wheels.right_mps != 0.0
+        target = self._target
+        return target.linear_mps != 0.0 or target.angular_radps != 0.0
 
     def _reset_pids(self) -> None:
         for wheel in self._wheels:
