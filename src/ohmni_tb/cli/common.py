@@ -11,7 +11,7 @@ import signal
 import socket
 import sys
 import traceback
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Annotated, Any, Final, NoReturn, TypeVar
 
@@ -590,6 +590,34 @@ def plain_table(title: str | None = None) -> Table:
         padding=(0, 1),
         pad_edge=False,
     )
+
+
+@contextlib.contextmanager
+def watching(*, as_json: bool) -> Iterator[Any]:
+    """Where a ``--watch`` redraws: rich's ``Live`` on the console, or ``None`` with
+    ``--json`` (the caller writes a JSON line a frame, :func:`write_line`).
+
+    Ctrl-C (the interrupt itself, or ``asyncio.run`` cancelling the task) ends the watch
+    normally, so what was opened closes as on a clean exit (a Robot reports a wheel stop
+    it could not confirm). A file's last frame ends with a newline, which ``Live`` leaves
+    out.
+    """
+    if as_json:
+        display: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
+    else:
+        from rich.live import Live  # noqa: PLC0415  # only to watch
+
+        display = Live(console=console, auto_refresh=False)
+    try:
+        with display as live:
+            yield live
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        task = asyncio.current_task()
+        if task is not None:
+            while task.cancelling():
+                task.uncancel()
+    if not as_json and not console.is_terminal:
+        console.line()
 
 
 def write_line(text: str) -> bool:

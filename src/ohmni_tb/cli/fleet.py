@@ -3,7 +3,6 @@ seen (``--watch``, ``--json``)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 from typing import TYPE_CHECKING, Annotated, Any
@@ -11,7 +10,15 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from rich.markup import escape
 
-from ohmni_tb.cli.common import JsonOption, console, emit_json, plain_table, run, write_line
+from ohmni_tb.cli.common import (
+    JsonOption,
+    console,
+    emit_json,
+    plain_table,
+    run,
+    watching,
+    write_line,
+)
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -122,29 +129,13 @@ def render(robots: list[FleetRobot], now_s: float) -> Table | str:
 
 async def _watch(view: Any, *, as_json: bool) -> None:
     """The list on every change until Ctrl-C, which ends it cleanly."""
-    import asyncio  # noqa: PLC0415
-
-    if as_json:
-        display: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
-    else:
-        from rich.live import Live  # noqa: PLC0415
-
-        display = Live(console=console, auto_refresh=False)
-    try:
-        with display as live:
-            async for robots in view.changes():
-                if live is None:
-                    if not write_line(json.dumps([robot.as_json() for robot in robots])):
-                        return  # the reader went away (`| head`)
-                else:
-                    live.update(render(robots, time.time()), refresh=True)
-    except (KeyboardInterrupt, asyncio.CancelledError):
-        task = asyncio.current_task()
-        if task is not None:
-            while task.cancelling():
-                task.uncancel()
-    if not as_json and not console.is_terminal:
-        console.line()
+    with watching(as_json=as_json) as live:
+        async for robots in view.changes():
+            if live is None:
+                if not write_line(json.dumps([robot.as_json() for robot in robots])):
+                    return  # the reader went away (`| head`)
+            else:
+                live.update(render(robots, time.time()), refresh=True)
 
 
 def _age(stamp: float | None, now_s: float) -> str:

@@ -11,7 +11,6 @@ after the Robot has closed. Nothing moves, and the neck is left as it was.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import math
 from collections.abc import Mapping
@@ -30,6 +29,7 @@ from ohmni_tb.cli.common import (
     plain_table,
     resolve_port,
     run,
+    watching,
     write_line,
 )
 
@@ -140,36 +140,19 @@ async def _pause(delay_s: float) -> None:
 
 async def _watch(robot: Robot, url: str, found: Mapping[str, Any], *, as_json: bool) -> None:
     """Redraw (or print a JSON line) every FRAME_S until Ctrl-C, which ends it cleanly."""
-    if as_json:
-        display: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
-    else:
-        from rich.live import Live  # noqa: PLC0415
-
-        display = Live(console=console, auto_refresh=False)
-    try:
-        with display as live:
-            due = _clock()
-            while True:
-                frame = snapshot(robot, url, found)
-                if live is None:
-                    if not write_line(json.dumps(frame)):
-                        return  # the reader went away (`| head`): nothing more to say
-                else:
-                    live.update(render(frame), refresh=True)
-                now = _clock()
-                # Late (a slow terminal): the next frame now, without a burst after.
-                due = max(due + FRAME_S, now)
-                await _pause(due - now)
-    except (KeyboardInterrupt, asyncio.CancelledError):
-        # Ctrl-C: asyncio.run cancels this task (or the interrupt lands here directly).
-        # Watching ends normally, so the Robot closes as on a clean exit and reports a
-        # wheel stop it could not confirm.
-        task = asyncio.current_task()
-        if task is not None:
-            while task.cancelling():
-                task.uncancel()
-    if not as_json and not console.is_terminal:
-        console.line()  # Live ends a file's last frame without a newline
+    with watching(as_json=as_json) as live:
+        due = _clock()
+        while True:
+            frame = snapshot(robot, url, found)
+            if live is None:
+                if not write_line(json.dumps(frame)):
+                    return  # the reader went away (`| head`): nothing more to say
+            else:
+                live.update(render(frame), refresh=True)
+            now = _clock()
+            # Late (a slow terminal): the next frame now, without a burst after.
+            due = max(due + FRAME_S, now)
+            await _pause(due - now)
 
 
 # -- the snapshot (the JSON schema) ------------------------------------------------------
