@@ -133,23 +133,22 @@ def _broker(directory: Path, *, secure: bool) -> Mosquitto:
     return Mosquitto(config, port, directory / "mosquitto.log")
 
 
-@pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Mosquitto]:
-    """An anonymous broker on a free loopback port, stopped after the test."""
-    server = _broker(tmp_path / "broker", secure=False)
+def _running(server: Mosquitto) -> Iterator[Mosquitto]:
+    """``server`` started, and stopped after the test whatever happened."""
     server.start()
     try:
         yield server
     finally:
         server.stop()
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    """An anonymous broker on a free loopback port, stopped after the test."""
+    yield from _running(_broker(tmp_path / "broker", secure=False))
 
 
 @pytest.fixture
 def secure_broker(tmp_path: Path) -> Iterator[Mosquitto]:
     """A broker with passwords (:data:`USERS`) and the robots' ACL (:data:`ACL`)."""
-    server = _broker(tmp_path / "secure", secure=True)
-    server.start()
-    try:
-        yield server
-    finally:
-        server.stop()
+    yield from _running(_broker(tmp_path / "secure", secure=True))
