@@ -1348,9 +1348,9 @@ _warned_env: set[str] = set()
 
 
 def _warn_unknown_env() -> None:
-    """Warn once about each ``OHMNI_*`` variable that nothing reads (a mistyped
-    ``OHMNI_WATCHDOG`` would otherwise leave the watchdog at its default unnoticed),
-    naming the closest known name."""
+    """Warn once about each ``OHMNI_*`` variable that nothing reads (``OHMNI_WATCHDOG_S``
+    mistyped without its ``_S`` would otherwise leave the watchdog at its default
+    unnoticed), naming the closest known name."""
     fields = {f"{ENV_PREFIX}{name}".upper() for name in RobotConfig.model_fields}
     for key in os.environ:
         if not key.upper().startswith(ENV_PREFIX) or key in _warned_env:
