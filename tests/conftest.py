@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import os
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -93,6 +94,20 @@ async def memory_pair() -> AsyncIterator[tuple[MemoryTransport, MemoryTransport]
     yield host, device
     await host.aclose()
     await device.aclose()
+
+
+@pytest.fixture
+def hermetic(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    """No OHMNI_* variable, an empty XDG config dir, and an empty working directory (its
+    path): the settings of the machine running the tests do not reach the test."""
+    for name in list(os.environ):
+        if name.upper().startswith("OHMNI_"):
+            monkeypatch.delenv(name)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    return work
 
 
 @pytest.fixture

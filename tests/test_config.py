@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -50,17 +49,8 @@ FIELDS = [
 ]  # fmt: skip
 
 
-@pytest.fixture(autouse=True)
-def hermetic(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    """No OHMNI_* variable, an empty XDG config dir, and an empty working directory."""
-    for name in list(os.environ):
-        if name.upper().startswith("OHMNI_"):
-            monkeypatch.delenv(name)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-    return work
+#: Every test here without the machine's own settings (conftest's ``hermetic``).
+pytestmark = pytest.mark.usefixtures("hermetic")
 
 
 def build(**values: Any) -> RobotConfig:

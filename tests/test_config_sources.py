@@ -5,7 +5,6 @@ and a ``source=`` the table has not refused before any port opens."""
 from __future__ import annotations
 
 import asyncio
-import os
 from pathlib import Path
 
 import pytest
@@ -14,18 +13,8 @@ from ohmni_tb import Robot, RobotConfig
 from ohmni_tb.control.sources import CommandSource
 from ohmni_tb.errors import ConfigError
 
-
-@pytest.fixture(autouse=True)
-def hermetic(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    """No OHMNI_* variable, no config file around."""
-    for name in list(os.environ):
-        if name.upper().startswith("OHMNI_"):
-            monkeypatch.delenv(name)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-    return work
+#: Every test here without the machine's own settings (conftest's ``hermetic``).
+pytestmark = pytest.mark.usefixtures("hermetic")
 
 
 def test_the_default_table_and_its_rows() -> None:
