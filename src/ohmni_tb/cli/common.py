@@ -367,6 +367,17 @@ def run(
         logger.removeHandler(shown)
 
 
+def run_watch(main: Callable[[], Coroutine[Any, Any, T]], *, watch: bool) -> T | None:
+    """:func:`run` for a command with ``--watch``: a watch ended by Ctrl-C before its
+    first frame is a normal end too (``None``, exit code 0): what it opened has closed."""
+    try:
+        return run(main)
+    except typer.Exit as exc:
+        if watch and exc.exit_code == 128 + signal.SIGINT:
+            return None
+        raise
+
+
 class _WarningLines(logging.Handler):
     """The library's warnings during a command, one yellow line each on stderr (its errors
     one red ``error:`` line each; Python's last-resort handler would print them bare). A

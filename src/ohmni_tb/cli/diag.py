@@ -28,7 +28,7 @@ from ohmni_tb.cli.common import (
     open_robot,
     plain_table,
     resolve_port,
-    run,
+    run_watch,
     write_line,
 )
 from ohmni_tb.errors import StateError
@@ -59,8 +59,6 @@ FIGURES: Final[tuple[tuple[str, str], ...]] = (
     ("watchdog_trips", "{} watchdog trips"),
 )
 _STYLE: Final = {"ok": "green", "warn": "yellow", "error": "bold red"}
-#: The exit code common.run gives Ctrl-C.
-_INTERRUPTED = 130
 
 
 def diag(
@@ -98,12 +96,7 @@ def diag(
                 return None
             return {"port": url, **diagnostics_json(await first_sample(robot))}
 
-    try:
-        result = run(main)
-    except typer.Exit as exc:
-        if watch and exc.exit_code == _INTERRUPTED:
-            return  # Ctrl-C before the first sample: the Robot closed, all is well
-        raise
+    result = run_watch(main, watch=watch)
     if result is None:
         return
     if as_json:

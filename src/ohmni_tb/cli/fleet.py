@@ -15,7 +15,7 @@ from ohmni_tb.cli.common import (
     console,
     emit_json,
     plain_table,
-    run,
+    run_watch,
     watching,
     write_line,
 )
@@ -26,9 +26,6 @@ if TYPE_CHECKING:
     from ohmni_tb.fleet import FleetRobot
 
 __all__ = ["fleet", "render", "rows"]
-
-#: The exit code common.run gives Ctrl-C.
-_INTERRUPTED = 130
 
 
 def fleet(
@@ -85,12 +82,7 @@ def fleet(
             await _watch(view, as_json=as_json)
             return None
 
-    try:
-        robots = run(main)
-    except typer.Exit as exc:
-        if watch and exc.exit_code == _INTERRUPTED:
-            return
-        raise
+    robots = run_watch(main, watch=watch)
     if robots is None:
         return
     if as_json:

@@ -28,7 +28,7 @@ from ohmni_tb.cli.common import (
     open_robot,
     plain_table,
     resolve_port,
-    run,
+    run_watch,
     watching,
     write_line,
 )
@@ -57,8 +57,6 @@ _NOT_DEVICES = frozenset({"robot_state", "pid_debug"})
 #: Streams with no bus reads of their own (left out of the bus table).
 _NOT_READ = _NOT_DEVICES | {"diagnostics"}
 _EXT_STREAMS = (("ext1", "servo_ext1"), ("ext2", "servo_ext2"))
-#: The exit code common.run gives Ctrl-C.
-_INTERRUPTED = 130
 
 
 def status(
@@ -96,12 +94,7 @@ def status(
                 return None
             return snapshot(robot, url, found)
 
-    try:
-        result = run(main)
-    except typer.Exit as exc:
-        if watch and exc.exit_code == _INTERRUPTED:
-            return  # Ctrl-C before the first frame: the Robot closed, all is well
-        raise
+    result = run_watch(main, watch=watch)
     if result is None:
         return
     if as_json:
